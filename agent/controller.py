@@ -1,0 +1,255 @@
+"""One robot's tube MPC: the state machine an agent process runs each step.
+
+Per step t (DESIGN §4):
+
+1. Build the QP from the measured state ``x_t`` (4,), the committed
+   reference ``ỹ_t … ỹ_{t+N−1}`` and its reference states, the neighbours'
+   last committed points and the static obstacles.
+2. Form the *shifted candidate* from the previous solution (stay put:
+   ``ȳ = ỹ_{t+N−1}``).  It is feasible by construction whenever the real
+   disturbance stayed in W; its numerical constraint violation is recorded.
+3. Solve with ProxSuite, warm-started at the candidate.  If the status is not
+   solved (or the time budget is exceeded), apply the candidate instead: the
+   *fallback*, counted and reported.
+4. Apply ``a = v̂_t + K(x_t − x̂_t)`` (the ancillary law), append ȳ, shift.
+
+Nothing here knows about transport or logging; events are returned in
+:class:`StepOutput` for the caller to publish.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+
+from agent.coordination import (
+    Navigator,
+    NeighbourInfo,
+    obstacle_halfplanes,
+    polynomial_penalty,
+    split_halfplanes,
+)
+from agent.qp import StepData, TubeQP
+from agent.sets import Array
+from agent.tube import TubeDesign
+
+
+@dataclass
+class StepOutput:
+    """Result of one controller step."""
+
+    a: Array
+    """Acceleration to apply (2,) [m/s²], u = v̂ + K(x − x̂)."""
+    committed: Array
+    """Committed reference ỹ_{t+1} … ỹ_{t+N} after the append, (N, 2) [m]."""
+    plan: Array
+    """Nominal positions x̂_t … x̂_{t+N} of the applied plan, (N+1, 2) [m]."""
+    x_hat: Array
+    """Nominal state x̂_t (4,) used in the ancillary law."""
+    status: str
+    """ProxSuite status name, or a fallback reason."""
+    fallback: bool
+    """True if the shifted candidate was applied instead of a solution."""
+    solve_time: float
+    """Wall time of QP update + solve [s]."""
+    step_time: float
+    """Wall time of the whole step: assembly + solve + bookkeeping [s]."""
+    candidate_violation: float
+    """Constraint violation of the shifted candidate in this step's QP (0 = feasible)."""
+    tube_ok: bool
+    """x_t − x̂_t ∈ Z for the applied x̂_t."""
+    min_slack: float
+    """Smallest σ = ‖c_i − c_j‖ − (r_i + r_j) against neighbours [m]."""
+    target: Array
+    """Target of the goal term this step (2,) [m]."""
+    mode: str
+    """Navigator mode: goal, waypoint, yield or escape."""
+    iterations: int = 0
+
+
+@dataclass
+class Counters:
+    solves: int = 0
+    failures: int = 0
+    fallbacks: int = 0
+    tube_exits: int = 0
+    status_counts: dict[str, int] = field(default_factory=dict)
+
+
+class TubeMPC:
+    """Distributed robust tube MPC of one robot.
+
+    ``start`` (2,) is the controlled point's initial position [m]; the robot is
+    assumed at rest there, so the initial committed reference is ``start``
+    repeated N times."""
+
+    def __init__(
+        self,
+        design: TubeDesign,
+        start: Array,
+        goal: Array,
+        arena: tuple[float, float, float, float],
+        obstacles: Sequence[Any] = (),
+        priority: int = 0,
+        rank: int = 0,
+        max_neighbour_rows: int = 12,
+        seed: int = 0,
+        solver_fault: Any = None,
+    ):
+        self.design = design
+        p = self.params = design.params
+        self.N = p.horizon
+        self.goal = np.asarray(goal, dtype=float)
+        self.arena = arena
+        self.obstacles = list(obstacles)
+        self.priority = priority
+        self.rank = rank
+        self.r = design.footprint
+        self.qp = TubeQP(design, max_coord_rows=max_neighbour_rows + len(self.obstacles))
+        self.nav = Navigator(
+            footprint=self.r, arena=arena, obstacles=self.obstacles, priority=priority, rank=rank, seed=seed
+        )
+        self.solver_fault = solver_fault
+        """Optional callable(step) -> bool; True forces this step's solve to count as failed (tests)."""
+        xmin, xmax, ymin, ymax = arena
+        r = self.r
+        self.y_box = np.array([xmin + r, xmax - r, ymin + r, ymax - r])
+        m = design.body_radius + design.pos_tightening
+        self.pos_box = np.array([xmin + m, xmax - m, ymin + m, ymax - m])
+        self.counters = Counters()
+        self.k = 0
+        self.reset(np.asarray(start, dtype=float))
+
+    # --------------------------------------------------------------- state
+    def reset(self, point: Array, velocity: Array | None = None) -> None:
+        """(Re-)initialise at rest at ``point`` (2,): reference and plan stay put there."""
+        E = self.design.E
+        self.y_ref = np.tile(point, (self.N, 1))
+        self.x_ref = np.tile(E @ point, (self.N, 1))
+        xi = np.zeros(self.qp.n)
+        xi[0:4] = E @ point
+        xi[self.qp.iy] = point
+        self.xi = xi
+        self.target = self.goal
+
+    @property
+    def last_point(self) -> Array:
+        """c_i = ỹ_{t+N−1} (2,) [m]."""
+        return self.y_ref[-1]
+
+    @property
+    def done(self) -> bool:
+        return bool(np.linalg.norm(self.y_ref[-1] - self.goal) < 1e-3)
+
+    def info(self) -> NeighbourInfo:
+        """What this agent publishes about itself for its neighbours."""
+        return NeighbourInfo(
+            id="",
+            last_point=self.last_point.copy(),
+            footprint=self.r,
+            priority=self.priority,
+            rank=self.rank,
+            target=np.asarray(self.target, dtype=float).copy(),
+            done=self.done,
+        )
+
+    def candidate(self) -> Array:
+        """Shifted previous solution with ȳ = ỹ_{t+N−1} (stay put)."""
+        qp, E, K_r = self.qp, self.design.E, self.design.K_r
+        prev = self.xi
+        c = np.empty(qp.n)
+        c[0:4] = qp.S[1] @ prev
+        v = prev[qp.iv].reshape(self.N, 2)
+        u_stay = -K_r @ (self.x_ref[-1] - E @ self.y_ref[-1])
+        c[qp.iv] = np.vstack([v[1:], u_stay]).ravel()
+        c[qp.iy] = self.y_ref[-1]
+        return c
+
+    # ---------------------------------------------------------------- step
+    def step(self, x: Array, neighbours: Sequence[NeighbourInfo]) -> StepOutput:
+        """One control step from measured state ``x`` (4,) [m, m/s]."""
+        import time
+
+        t0 = time.perf_counter()
+        p, design, qp = self.params, self.design, self.qp
+        c_i = self.last_point
+        normals, bounds, min_slack = split_halfplanes(
+            c_i, self.r, self.priority, neighbours, p.priority_share, p.epsilon
+        )
+        on, ob = obstacle_halfplanes(c_i, self.r, self.obstacles, p.epsilon)
+        normals += on
+        bounds += ob
+        if p.deadlock:
+            self.target, mode = self.nav.target(c_i, self.goal, neighbours)
+        else:
+            self.target, mode = self.goal, "goal"
+        pen = None
+        if p.penalty:
+            pen = polynomial_penalty(c_i, [nb.last_point for nb in neighbours], p.penalty_dlim, p.penalty_weight)
+        data = StepData(
+            x=x,
+            x_ref=self.x_ref,
+            y_ref=self.y_ref,
+            goal=self.target,
+            y_box=self.y_box,
+            pos_box=self.pos_box,
+            coord_normals=np.array(normals).reshape(-1, 2),
+            coord_bounds=np.array(bounds),
+            penalty_H=None if pen is None else pen[0],
+            penalty_g=None if pen is None else pen[1],
+        )
+        prob = qp.problem(data)
+        cand = self.candidate()
+        cand_violation = TubeQP.violation(prob, cand)
+        res = qp.solve(prob, cand)
+        status = res.status
+        if res.ok and self.solver_fault is not None and self.solver_fault(self.k):
+            res.ok, res.xi, status = False, None, "INJECTED_FAULT"
+        ctr = self.counters
+        ctr.solves += 1
+        ctr.status_counts[status] = ctr.status_counts.get(status, 0) + 1
+        if res.ok and res.xi is not None:
+            xi = res.xi
+            fallback = False
+        else:
+            ctr.failures += 1
+            ctr.fallbacks += 1
+            xi = cand
+            fallback = True
+        x_hat = xi[0:4]
+        tube_ok = design.contains_error(x - x_hat, tol=1e-7)
+        if not tube_ok:
+            ctr.tube_exits += 1
+        a = xi[4:6] + design.K @ (x - x_hat)
+        self.xi = xi
+        self._append(xi[qp.iy])
+        plan = np.array([qp.S[k] @ xi for k in range(self.N + 1)])[:, [0, 2]]
+        self.k += 1
+        return StepOutput(
+            a=a,
+            committed=self.y_ref.copy(),
+            plan=plan,
+            x_hat=x_hat.copy(),
+            status=status,
+            fallback=fallback,
+            solve_time=res.solve_time,
+            step_time=time.perf_counter() - t0,
+            candidate_violation=cand_violation,
+            tube_ok=tube_ok,
+            min_slack=min_slack if math.isfinite(min_slack) else math.inf,
+            target=np.asarray(self.target, dtype=float).copy(),
+            mode=mode,
+            iterations=res.iterations,
+        )
+
+    def _append(self, ybar: Array) -> None:
+        """Append ȳ = ỹ_{t+N}, advance the reference generator, drop index t."""
+        d = self.design
+        x_last = self.x_ref[-1]
+        u_last = -d.K_r @ (x_last - d.E @ ybar)
+        x_new = d.A @ x_last + d.B @ u_last
+        self.x_ref = np.vstack([self.x_ref[1:], x_new])
+        self.y_ref = np.vstack([self.y_ref[1:], ybar])

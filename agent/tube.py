@@ -1,0 +1,296 @@
+"""Offline tube synthesis (Mayne et al. 2005; paper §III.A; DESIGN §2–§4).
+
+Nominal model per robot (DESIGN §1), sampled at Ts with zero-order hold::
+
+    x = [px, vx, py, vy]   [m, m/s, m, m/s], world frame
+    u = [ax, ay]           [m/s²]
+    x⁺ = A x + B u + w,    w ∈ W (a box)
+
+Synthesised objects:
+
+* K, the ancillary gain: ``u = v̂ + K(x − x̂)``, ``A_K = A + BK`` Schur.  It
+  comes from its own LQR weights (K_Q, K_R), separate from the MPC weights.
+* Z, an RPI outer approximation of the mRPI set of ``z⁺ = A_K z + w``.
+* X̂ = X ⊖ Z and Û = U ⊖ KZ (boxes: bound − support).
+* K_r, the reference generator ``ũ_k = −K_r(x̃_k − E ỹ_{k+1})``, and Ψ, the
+  mRPI set of the lag ``e = x̃ − Eỹ``: ``e⁺ = (A − BK_r)(e − EΔ)``, Δ ∈ B_ε.
+* ρ = max ‖C(Z ⊕ Ψ) ⊕ Δ^z‖₂ + ε and the footprint r = robot_radius + ℓ + ρ.
+
+Every admissibility failure is reported with the bound that fails and by
+how much (:class:`InadmissibleDesign`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg
+
+from agent.params import ControllerParams
+from agent.sets import Array, MRPIApprox, Zonotope, mrpi_outer
+
+
+class InadmissibleDesign(ValueError):
+    """The tube design is empty or inadmissible; ``failures`` lists why."""
+
+    def __init__(self, failures: list[str]):
+        self.failures = failures
+        super().__init__("; ".join(failures))
+
+
+def double_integrator(Ts: float) -> tuple[Array, Array, Array]:
+    """(A (4,4), B (4,2), C (2,4)) of two decoupled double integrators."""
+    A1 = np.array([[1.0, Ts], [0.0, 1.0]])
+    B1 = np.array([[0.5 * Ts * Ts], [Ts]])
+    A = scipy.linalg.block_diag(A1, A1)
+    B = scipy.linalg.block_diag(B1, B1)
+    C = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
+    return A, B, C
+
+
+def position_to_rest_state() -> Array:
+    """E (4,2): maps a position [x, y] to the state at rest there."""
+    return np.array([[1.0, 0.0], [0.0, 0.0], [0.0, 1.0], [0.0, 0.0]])
+
+
+def dlqr_gain(A: Array, B: Array, Q: Array, R: Array) -> Array:
+    """Infinite-horizon discrete LQR gain L with u = −L x (so A − BL is Schur)."""
+    P = scipy.linalg.solve_discrete_are(A, B, Q, R)
+    return np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
+
+
+def _block_halfspaces(Zn: Zonotope, blocks: list[list[int]]) -> tuple[Array, Array]:
+    """Exact H-rep of a zonotope that is a product over coordinate blocks.
+
+    Falls back to the generic facet enumeration when a generator mixes blocks."""
+    n = Zn.dim
+    owner = []
+    for g in Zn.G.T:
+        nz = np.flatnonzero(np.abs(g) > 1e-15)
+        hit = [b for b, idx in enumerate(blocks) if set(nz) <= set(idx)]
+        if not hit:
+            return Zn.halfspaces()
+        owner.append(hit[0])
+    rows, offs = [], []
+    for b, idx in enumerate(blocks):
+        cols = [k for k, o in enumerate(owner) if o == b]
+        sub = Zonotope(Zn.c[idx], Zn.G[np.ix_(idx, cols)])
+        Fb, fb = sub.halfspaces()
+        Fn = np.zeros((Fb.shape[0], n))
+        Fn[:, idx] = Fb
+        rows.append(Fn)
+        offs.append(fb)
+    return np.vstack(rows), np.concatenate(offs)
+
+
+def max_norm_2d(h_of: object, count: int = 7200) -> float:
+    """max ‖p‖₂ over a convex planar set given by its support function.
+
+    Sampled on ``count`` directions and inflated by the sampling error bound
+    1/cos(π/count), so the result is an upper bound."""
+    ang = np.linspace(0.0, 2.0 * np.pi, count, endpoint=False)
+    d = np.column_stack([np.cos(ang), np.sin(ang)])
+    return float(np.max(h_of(d))) / float(np.cos(np.pi / count))  # type: ignore[operator]
+
+
+@dataclass
+class TubeDesign:
+    """A synthesised, admissibility-checked tube design.  See module docstring."""
+
+    params: ControllerParams
+    A: Array
+    B: Array
+    C: Array
+    E: Array
+    K: Array
+    """Ancillary gain (2, 4), u = v̂ + K(x − x̂)."""
+    K_r: Array
+    """Reference-generator gain (2, 4), ũ = −K_r(x̃ − Eỹ⁺)."""
+    Z: MRPIApprox
+    Psi: MRPIApprox
+    Z_F: Array
+    """H-rep of Z: {z : |Z_F z| ≤ Z_f}, Z_F (p, 4)."""
+    Z_f: Array
+    x_bound: Array
+    """Box X̂ velocity half-widths per state [m or m/s] (4,); positions are arena-relative, see ``pos_tightening``."""
+    u_hat: Array
+    """Box Û half-widths (2,) [m/s²]."""
+    pos_tightening: float
+    """h_Z along a position axis [m]: X̂ positions = arena ⊖ (robot radius + ℓ) ⊖ this."""
+    KZ: Array
+    """h_{KZ} per input axis (2,) [m/s²]."""
+    rho: float
+    """Bound on ‖p − ỹ_k‖₂ between the real controlled point and its reference [m]."""
+    footprint: float
+    """Footprint radius r_i = robot_radius + ℓ + ρ [m]."""
+    failures: list[str] = field(default_factory=list)
+
+    @property
+    def admissible(self) -> bool:
+        return not self.failures
+
+    @property
+    def body_radius(self) -> float:
+        """Radius around the controlled point that covers the body [m]."""
+        return self.params.robot_radius + self.params.lookahead
+
+    def contains_error(self, z: Array, tol: float = 1e-9) -> bool:
+        """True if the error z = x − x̂ (4,) lies in Z."""
+        return bool(np.all(np.abs(self.Z_F @ z) <= self.Z_f + tol))
+
+    def summary(self) -> dict[str, object]:
+        """Machine-readable view (used by ``fleet design --json``)."""
+        zp = self.Z.Z.interval_hull()
+        pp = self.Psi.Z.interval_hull()
+        return {
+            "preset": self.params.preset,
+            "Ts_s": self.params.Ts,
+            "horizon": self.params.horizon,
+            "K": self.K.round(6).tolist(),
+            "K_r": self.K_r.round(6).tolist(),
+            "spectral_radius_A_K": float(max(abs(np.linalg.eigvals(self.A + self.B @ self.K)))),
+            "Z_half_widths": {"position_m": float(zp[0]), "velocity_m_s": float(zp[1])},
+            "Z_terms": self.Z.s,
+            "Z_alpha": self.Z.alpha,
+            "Z_error_bound": self.Z.error_bound,
+            "Z_facets": int(self.Z_F.shape[0]),
+            "Psi_half_widths": {"position_m": float(pp[0]), "velocity_m_s": float(pp[1])},
+            "Psi_terms": self.Psi.s,
+            "Psi_error_bound": self.Psi.error_bound,
+            "KZ_m_s2": self.KZ.tolist(),
+            "tightened": {
+                "velocity_m_s": float(self.x_bound[1]),
+                "acceleration_m_s2": float(self.u_hat[0]),
+                "position_margin_m": self.body_radius + self.pos_tightening,
+            },
+            "epsilon_m": self.params.epsilon,
+            "delta_m": self.params.delta,
+            "rho_m": self.rho,
+            "footprint_radius_m": self.footprint,
+            "admissible": self.admissible,
+            "failures": list(self.failures),
+        }
+
+
+def synthesize(params: ControllerParams, arena: tuple[float, float, float, float] | None = None) -> TubeDesign:
+    """Build the tube design for ``params``; check it against ``arena``.
+
+    ``arena`` = (xmin, xmax, ymin, ymax) [m]; without it the arena checks are
+    skipped.  Raises :class:`agent.sets.SetComputationError` if an mRPI
+    approximation does not converge.  Admissibility failures are collected in
+    ``TubeDesign.failures`` (call :func:`require_admissible` to raise)."""
+    p = params
+    A, B, C = double_integrator(p.Ts)
+    E = position_to_rest_state()
+    K = -dlqr_gain(A, B, np.diag(p.K_Q), np.diag(p.K_R))
+    K_r = dlqr_gain(A, B, np.diag(p.ref_Q), np.diag(p.ref_R))
+    AK = A + B @ K
+    AR = A - B @ K_r
+
+    # W: box per axis; zero half-widths are padded so W is full-dimensional
+    # (an outer approximation, hence still sound).
+    w = np.array([p.W[0], p.W[1], p.W[0], p.W[1]], dtype=float)
+    w = np.maximum(w, 1e-6 * max(float(w.max()), 1e-12))
+    Zr = mrpi_outer(AK, Zonotope.box(w), p.mrpi_tol, p.mrpi_max_terms)
+    blocks = [[0, 1], [2, 3]]
+    Z_F, Z_f = _block_halfspaces(Zr.Z, blocks)
+
+    # Ψ: disturbance −(A − BK_r) E Δ with Δ ∈ B_ε (box), i.e. generators
+    # (A − BK_r) E diag(ε); the sign is irrelevant for a symmetric set.
+    eps = p.epsilon
+    Weps = Zonotope(np.zeros(4), AR @ E @ np.diag([eps, eps]))
+    Weps_full = Zonotope(np.zeros(4), np.hstack([Weps.G, 1e-9 * np.eye(4)]))
+    Pr = mrpi_outer(AR, Weps_full, p.mrpi_tol * 0.1, p.mrpi_max_terms)
+
+    eye = np.eye(4)
+    hZ = Zr.Z.support(eye)  # (4,)
+    hKZ = Zr.Z.support(K)  # h_Z(K_j) per input row
+    KZ = np.abs(K @ Zr.Z.G).sum(axis=1)
+    assert np.allclose(hKZ, KZ)
+    x_bound = np.array([np.inf, p.v_max - hZ[1], np.inf, p.v_max - hZ[3]])
+    u_hat = np.array([p.a_max - KZ[0], p.a_max - KZ[1]])
+
+    # ρ: real controlled point minus committed reference ∈ C Z ⊕ C Ψ ⊕ Δ^z, plus ε.
+    CZ = Zr.Z.linear_map(C)
+    CPsi = Pr.Z.linear_map(C)
+    dz = Zonotope.box(np.array([p.delta, p.delta]))
+    sum_set = CZ.minkowski_sum(CPsi).minkowski_sum(dz)
+    rho = max_norm_2d(sum_set.support) + eps
+    footprint = p.robot_radius + p.lookahead + rho
+
+    failures: list[str] = []
+    margin = p.admissibility_margin
+    for j, name in ((1, "velocity"), (3, "velocity")):
+        if x_bound[j] <= 0:
+            failures.append(
+                f"X̂ {name} bound is empty: v_max {p.v_max:.4g} m/s − h_Z {hZ[j]:.4g} m/s = {x_bound[j]:.4g} m/s"
+            )
+            break
+    for j in range(1):
+        if u_hat[j] <= 0:
+            failures.append(
+                f"Û is empty: a_max {p.a_max:.4g} m/s² − h_KZ {KZ[j]:.4g} m/s² = {u_hat[j]:.4g} m/s²"
+            )
+    # Stay-put admissibility (DESIGN §3): Ψ's velocity part in X̂ and the
+    # reference input K_r(Ψ ⊕ E B_ε) in Û, both strictly, with a margin.
+    hPsi_v = float(Pr.Z.support(eye[1]))
+    ref_u = Pr.Z.minkowski_sum(Zonotope(np.zeros(4), E @ np.diag([eps, eps])))
+    hKrPsi = float(np.abs(K_r @ ref_u.G).sum(axis=1).max())
+    if x_bound[1] > 0 and hPsi_v > (1.0 - margin) * x_bound[1]:
+        failures.append(
+            f"epsilon {eps:.4g} m too large: reference lag velocity h_Ψ {hPsi_v:.4g} m/s exceeds "
+            f"{1 - margin:.2f}·X̂ velocity bound {x_bound[1]:.4g} m/s by {hPsi_v - (1 - margin) * x_bound[1]:.4g} m/s"
+        )
+    if u_hat[0] > 0 and hKrPsi > (1.0 - margin) * u_hat[0]:
+        failures.append(
+            f"epsilon {eps:.4g} m too large: reference input h_{{K_r(Ψ⊕EB_ε)}} {hKrPsi:.4g} m/s² exceeds "
+            f"{1 - margin:.2f}·Û bound {u_hat[0]:.4g} m/s² by {hKrPsi - (1 - margin) * u_hat[0]:.4g} m/s²"
+        )
+    if p.delta <= 0:
+        failures.append(f"delta {p.delta} m must be > 0")
+    if eps <= 0:
+        failures.append(f"epsilon {eps} m must be > 0")
+    if arena is not None:
+        xmin, xmax, ymin, ymax = arena
+        for name, lo, hi in (("x", xmin, xmax), ("y", ymin, ymax)):
+            free = (hi - lo) - 2.0 * footprint
+            if free <= 0:
+                failures.append(
+                    f"footprint radius {footprint:.3f} m does not fit the arena's {name} extent "
+                    f"{hi - lo:.3f} m: short by {-free:.3f} m"
+                )
+            # Rough capacity: a robot must be able to pass another one.
+            elif free < 2.0 * footprint:
+                failures.append(
+                    f"footprint radius {footprint:.3f} m leaves {free:.3f} m of free {name} extent, "
+                    f"less than one footprint diameter {2 * footprint:.3f} m: two robots cannot pass "
+                    f"(short by {2 * footprint - free:.3f} m)"
+                )
+    return TubeDesign(
+        params=p,
+        A=A,
+        B=B,
+        C=C,
+        E=E,
+        K=K,
+        K_r=K_r,
+        Z=Zr,
+        Psi=Pr,
+        Z_F=Z_F,
+        Z_f=Z_f,
+        x_bound=x_bound,
+        u_hat=u_hat,
+        pos_tightening=float(hZ[0]),
+        KZ=KZ,
+        rho=rho,
+        footprint=footprint,
+        failures=failures,
+    )
+
+
+def require_admissible(design: TubeDesign) -> TubeDesign:
+    """Raise :class:`InadmissibleDesign` if the design has failures."""
+    if design.failures:
+        raise InadmissibleDesign(design.failures)
+    return design
