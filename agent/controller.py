@@ -20,12 +20,16 @@ Nothing here knows about transport or logging; events are returned in
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
 from agent.coordination import (
+    PARKED,
+    RETURNING,
+    UNDER_WAY,
     Navigator,
     NeighbourInfo,
     obstacle_halfplanes,
@@ -35,6 +39,9 @@ from agent.coordination import (
 from agent.qp import StepData, TubeQP
 from agent.sets import Array
 from agent.tube import TubeDesign
+
+PARKED_RADIUS = 0.05
+"""A robot that has reached its goal counts as parked within this distance of it [m]."""
 
 
 @dataclass
@@ -76,6 +83,8 @@ class Counters:
     failures: int = 0
     fallbacks: int = 0
     tube_exits: int = 0
+    repairs: int = 0
+    """Solutions whose ȳ was pulled back onto the coordination rows (solver tolerance)."""
     status_counts: dict[str, int] = field(default_factory=dict)
 
 
@@ -120,6 +129,7 @@ class TubeMPC:
         m = design.body_radius + design.pos_tightening
         self.pos_box = np.array([xmin + m, xmax - m, ymin + m, ymax - m])
         self.counters = Counters()
+        self.reached_once = False
         self.k = 0
         self.reset(np.asarray(start, dtype=float))
 
@@ -141,8 +151,25 @@ class TubeMPC:
         return self.y_ref[-1]
 
     @property
-    def done(self) -> bool:
+    def at_goal(self) -> bool:
+        """The committed end point is at the goal now (within 1 mm)."""
         return bool(np.linalg.norm(self.y_ref[-1] - self.goal) < 1e-3)
+
+    @property
+    def phase(self) -> int:
+        """Precedence phase (:data:`agent.coordination.UNDER_WAY` …)."""
+        d = float(np.linalg.norm(self.y_ref[-1] - self.goal))
+        if not self.reached_once and d < 1e-3:
+            self.reached_once = True
+        if not self.reached_once:
+            return UNDER_WAY
+        return PARKED if d < PARKED_RADIUS else RETURNING
+
+    def set_goal(self, goal: Array) -> None:
+        """Accept a new goal (2,) [m] at run time."""
+        self.goal = np.asarray(goal, dtype=float)
+        self.reached_once = False
+        self.nav.reset_goal()
 
     def info(self) -> NeighbourInfo:
         """What this agent publishes about itself for its neighbours."""
@@ -153,7 +180,7 @@ class TubeMPC:
             priority=self.priority,
             rank=self.rank,
             target=np.asarray(self.target, dtype=float).copy(),
-            done=self.done,
+            phase=self.phase,
         )
 
     def candidate(self) -> Array:
@@ -183,12 +210,15 @@ class TubeMPC:
         normals += on
         bounds += ob
         if p.deadlock:
+            self.nav.phase = self.phase
             self.target, mode = self.nav.target(c_i, self.goal, neighbours)
         else:
             self.target, mode = self.goal, "goal"
         pen = None
         if p.penalty:
-            pen = polynomial_penalty(c_i, [nb.last_point for nb in neighbours], p.penalty_dlim, p.penalty_weight)
+            pen = polynomial_penalty(
+                c_i, [nb.last_point for nb in neighbours], p.penalty_dlim, p.penalty_weight
+            )
         data = StepData(
             x=x,
             x_ref=self.x_ref,
@@ -219,6 +249,8 @@ class TubeMPC:
             ctr.fallbacks += 1
             xi = cand
             fallback = True
+        if not fallback:
+            xi[qp.iy] = self._repair(xi[qp.iy], data)
         x_hat = xi[0:4]
         tube_ok = design.contains_error(x - x_hat, tol=1e-7)
         if not tube_ok:
@@ -244,6 +276,25 @@ class TubeMPC:
             mode=mode,
             iterations=res.iterations,
         )
+
+    def _repair(self, ybar: Array, data: StepData) -> Array:
+        """Pull ȳ towards c_i until every ȳ row holds exactly.
+
+        The solver meets constraints to its tolerance (1e-5); left alone,
+        robots pressed together would erode the separation by that much each
+        step.  Every ȳ constraint is convex and holds exactly at c_i (stay
+        put), so ``c_i + λ(ȳ − c_i)`` with the largest feasible λ ∈ [0, 1]
+        is exactly feasible and moves ȳ by at most the solver tolerance."""
+        c = self.last_point
+        lam = 1.0
+        for n, b in zip(data.coord_normals, data.coord_bounds, strict=True):
+            at_y = float(n @ ybar)
+            if at_y < b:
+                at_c = float(n @ c)
+                lam = min(lam, max(0.0, (at_c - b) / (at_c - at_y)) if at_c > at_y else 0.0)
+        if lam < 1.0:
+            self.counters.repairs += 1
+        return c + lam * (ybar - c)
 
     def _append(self, ybar: Array) -> None:
         """Append ȳ = ỹ_{t+N}, advance the reference generator, drop index t."""

@@ -27,16 +27,20 @@ Shaping (cost only, so it can never break the guarantee):
 
 from __future__ import annotations
 
-import heapq
 import math
-from dataclasses import dataclass, field
-from typing import Any, Protocol, Sequence
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol
 
 import numpy as np
 
 from agent.sets import Array
 
 SQRT2 = math.sqrt(2.0)
+
+
+UNDER_WAY, RETURNING, PARKED = 0, 1, 2
+"""Precedence phases of :class:`NeighbourInfo` (lower goes first)."""
 
 
 class ConvexObstacle(Protocol):
@@ -61,8 +65,9 @@ class NeighbourInfo:
     """Tie-break order among equal priorities (lower goes first)."""
     target: Array | None = None
     """j's current navigation waypoint (2,) [m], if known."""
-    done: bool = False
-    """j has reached its goal."""
+    phase: int = 0
+    """Precedence class: 0 under way (goal never reached), 1 returning (goal
+    reached once, now displaced), 2 parked (at its goal).  Lower goes first."""
 
 
 def shares(prio_i: int, prio_j: int, share_hi: float) -> float:
@@ -166,64 +171,121 @@ def polynomial_penalty(
     return H, grad - H @ ybar0
 
 
-def obstacle_outline(ob: Any, inflate: float, sides: int = 16) -> Array:
-    """Polygon (k, 2) containing ``ob`` grown by ``inflate`` [m] (CCW).
-
-    Circles (``center``, ``radius``) become circumscribed regular polygons;
-    polygons (``vertices``) are grown along their vertex bisectors."""
-    if hasattr(ob, "radius"):
-        r = (ob.radius + inflate) / math.cos(math.pi / sides)
-        ang = np.linspace(0.0, 2.0 * math.pi, sides, endpoint=False) + math.pi / sides
-        return np.column_stack([ob.center[0] + r * np.cos(ang), ob.center[1] + r * np.sin(ang)])
-    V = np.asarray(ob.vertices, dtype=float)
-    out = []
-    k = len(V)
-    for i in range(k):
-        e1 = V[i] - V[i - 1]
-        e2 = V[(i + 1) % k] - V[i]
-        n1 = np.array([e1[1], -e1[0]]) / np.linalg.norm(e1)
-        n2 = np.array([e2[1], -e2[0]]) / np.linalg.norm(e2)
-        bis = n1 + n2
-        cosh = float(n1 @ bis / np.linalg.norm(bis))
-        out.append(V[i] + inflate * bis / np.linalg.norm(bis) / max(cosh, 0.2))
-    return np.array(out)
-
-
-def _segment_hits_polygon(a: Array, b: Array, P: Array) -> bool:
-    """True if segment ab passes through the interior of convex CCW polygon P."""
-    # Cyrus–Beck clipping against each edge's inner half-plane.
-    t0, t1 = 0.0, 1.0
-    d = b - a
-    k = len(P)
-    for i in range(k):
-        e = P[(i + 1) % k] - P[i]
-        n = np.array([-e[1], e[0]])  # inward for CCW
-        num = float(n @ (a - P[i]))
-        den = float(n @ d)
-        if abs(den) < 1e-12:
-            if num < 1e-9:
-                return False
-            continue
-        t = -num / den
-        if den > 0:
-            t0 = max(t0, t)
-        else:
-            t1 = min(t1, t)
-        if t0 >= t1 - 1e-9:
-            return False
-    return t1 - t0 > 1e-9
-
-
 def point_segment_distance(p: Array, a: Array, b: Array) -> float:
+    """Euclidean distance from point p to segment ab [m]."""
     d = b - a
     L2 = float(d @ d)
     t = 0.0 if L2 < 1e-12 else min(1.0, max(0.0, float((p - a) @ d) / L2))
     return float(np.linalg.norm(p - (a + t * d)))
 
 
+class GridPlanner:
+    """Shortest paths on an 8-connected grid over the arena (cell size ``h`` [m]).
+
+    Cell costs: 1 in free space, ``BLOCKED`` inside walls ⊕ r, static
+    obstacles ⊕ r and parked robots ⊕ (r_i + r_j), and ``1 + soft`` near
+    moving robots.  Large finite costs instead of infinities keep a path
+    defined even when the robot itself sits in a costly cell."""
+
+    BLOCKED = 1e4
+
+    def __init__(
+        self,
+        arena: tuple[float, float, float, float],
+        footprint: float,
+        obstacles: Sequence[Any],
+        h: float = 0.05,
+    ):
+        xmin, xmax, ymin, ymax = arena
+        self.h = h
+        self.nx = max(2, math.ceil((xmax - xmin) / h))
+        self.ny = max(2, math.ceil((ymax - ymin) / h))
+        self.x0, self.y0 = xmin, ymin
+        xs = xmin + (np.arange(self.nx) + 0.5) * (xmax - xmin) / self.nx
+        ys = ymin + (np.arange(self.ny) + 0.5) * (ymax - ymin) / self.ny
+        self.hx = (xmax - xmin) / self.nx
+        self.hy = (ymax - ymin) / self.ny
+        X, Y = np.meshgrid(xs, ys, indexing="ij")
+        self.centres = np.column_stack([X.ravel(), Y.ravel()])
+        r = footprint
+        static = np.ones(self.nx * self.ny)
+        out = (
+            (X.ravel() < xmin + r) | (X.ravel() > xmax - r) | (Y.ravel() < ymin + r) | (Y.ravel() > ymax - r)
+        )
+        static[out] = self.BLOCKED
+        for ob in obstacles:
+            d = np.array([ob.distance(c) for c in self.centres])
+            static[d < r + 0.01] = self.BLOCKED
+        self.static = static
+        # Fixed 8-connected edge list (both directions).
+        idx = np.arange(self.nx * self.ny).reshape(self.nx, self.ny)
+        src, dst, length = [], [], []
+        for dx, dy in ((1, 0), (0, 1), (1, 1), (1, -1)):
+            # Pair each cell (i, j) with (i + dx, j + dy) where both exist.
+            j0, j1 = max(0, -dy), self.ny - max(0, dy)
+            a = idx[: self.nx - dx, j0:j1]
+            b = idx[dx:, j0 + dy : j1 + dy]
+            a, b = a.ravel(), b.ravel()
+            ln = math.hypot(dx * self.hx, dy * self.hy)
+            src += [a, b]
+            dst += [b, a]
+            length += [np.full(a.size, ln), np.full(a.size, ln)]
+        self.src = np.concatenate(src)
+        self.dst = np.concatenate(dst)
+        self.length = np.concatenate(length)
+
+    def cell(self, p: Array) -> int:
+        i = min(self.nx - 1, max(0, int((p[0] - self.x0) / self.hx)))
+        j = min(self.ny - 1, max(0, int((p[1] - self.y0) / self.hy)))
+        return i * self.ny + j
+
+    def field(self, goal: Array, cost: Array) -> Array:
+        """Predecessor array of shortest paths *to* ``goal`` under cell ``cost``."""
+        from scipy.sparse import csr_matrix
+        from scipy.sparse.csgraph import dijkstra
+
+        n = self.nx * self.ny
+        w = self.length * 0.5 * (cost[self.src] + cost[self.dst])
+        G = csr_matrix((w, (self.src, self.dst)), shape=(n, n))
+        _, pred = dijkstra(G, directed=True, indices=self.cell(goal), return_predecessors=True)
+        return np.asarray(pred)
+
+    def carrot(self, pred: Array, start: Array, goal: Array, lookahead: float) -> Array:
+        """Point ``lookahead`` [m] along the path from ``start`` towards ``goal``."""
+        c = self.cell(start)
+        gcell = self.cell(goal)
+        travelled = 0.0
+        prev = start
+        for _ in range(self.nx * self.ny):
+            if c == gcell:
+                return goal
+            nxt = int(pred[c])
+            if nxt < 0:
+                return goal
+            p = self.centres[nxt]
+            travelled += float(np.linalg.norm(p - prev))
+            prev = p
+            c = nxt
+            if travelled >= lookahead:
+                return p.copy()
+        return goal
+
+
 @dataclass
 class Navigator:
-    """Chooses the goal-term target of one agent (shaping only; see module docstring)."""
+    """Chooses the target of the goal term (shaping only; see module docstring).
+
+    Every ``replan_steps`` it plans a grid path to the goal around walls and
+    static obstacles (hard), parked robots (expensive) and moving robots
+    (cheaper), and follows a carrot point ``lookahead`` ahead.  On top of
+    that, the yielding rule: a robot inside the corridor of a nearby robot
+    that goes first (the segment to that robot's carrot, widened by
+    r_i + r_j + ``corridor_margin``) moves to the best free point out of it.
+    Precedence is (phase, priority, rank): robots under way (goal never
+    reached) go first, then robots returning to a goal they were displaced
+    from, then parked robots, which step aside when they block a path and
+    return afterwards.  Parked robots never need to yield to each other, and
+    the first robot in precedence never waits on a robot that can move."""
 
     footprint: float
     arena: tuple[float, float, float, float]
@@ -234,10 +296,22 @@ class Navigator:
     """Extra distance beyond r_i + r_j within which a higher robot is yielded to [m]."""
     corridor_margin: float = 0.05
     """Extra corridor half-width beyond r_i + r_j [m]."""
+    lookahead: float = 0.3
+    """Carrot distance along the planned path [m]."""
+    replan_steps: int = 5
+    soft_cost: float = 8.0
+    """Extra cost per metre inside the footprint disc of a moving robot."""
+    parked_cost: float = 40.0
+    """Extra cost per metre inside the footprint disc of a parked robot."""
     hold_steps: int = 15
+    stall_steps: int = 60
+    """Steps without 2 cm of progress before the watchdog escape."""
     seed: int = 0
-    _outlines: list[Array] = field(default_factory=list)
-    _nodes: Array | None = None
+    phase: int = 0
+    """This robot's precedence class (set by the controller each step)."""
+    _grid: GridPlanner | None = None
+    _pred: Array | None = None
+    _since_plan: int = 10**9
     _escape: Array | None = None
     _escape_left: int = 0
     _rng: np.random.Generator | None = None
@@ -245,58 +319,46 @@ class Navigator:
     _stall: int = 0
 
     def __post_init__(self) -> None:
-        infl = self.footprint + 0.02
-        self._outlines = [obstacle_outline(o, infl) for o in self.obstacles]
-        nodes = [v for P in self._outlines for v in P]
-        # Nodes are pushed slightly outward so paths graze, not enter, the outlines.
-        self._nodes = np.array(nodes) if nodes else np.zeros((0, 2))
+        self._grid = GridPlanner(self.arena, self.footprint, self.obstacles)
         self._rng = np.random.default_rng(self.seed)
 
-    # ---------------------------------------------------------- static paths
-    def _visible(self, a: Array, b: Array) -> bool:
-        return not any(_segment_hits_polygon(a, b, P) for P in self._outlines)
+    def reset_goal(self) -> None:
+        """Forget the plan and the watchdog state (new goal)."""
+        self._pred = None
+        self._escape = None
+        self._best_dist = math.inf
+        self._stall = 0
 
-    def waypoint(self, c: Array, goal: Array) -> Array:
-        """Next waypoint from ``c`` towards ``goal`` around static obstacles."""
-        if not self._outlines or self._visible(c, goal):
-            return goal
-        assert self._nodes is not None
-        pts = np.vstack([c, goal, self._nodes])
-        n = len(pts)
-        dist = [math.inf] * n
-        prev = [-1] * n
-        dist[0] = 0.0
-        heap = [(0.0, 0)]
-        while heap:
-            d, i = heapq.heappop(heap)
-            if d > dist[i]:
-                continue
-            if i == 1:
-                break
-            for j in range(1, n):
-                if j == i:
-                    continue
-                nd = d + float(np.linalg.norm(pts[j] - pts[i]))
-                if nd < dist[j] and self._visible(pts[i], pts[j]):
-                    dist[j] = nd
-                    prev[j] = i
-                    heapq.heappush(heap, (nd, j))
-        if prev[1] < 0:
-            return goal
-        j = 1
-        while prev[j] != 0:
-            j = prev[j]
-        return pts[j]
+    def _plan(self, c: Array, goal: Array, neighbours: Sequence[NeighbourInfo]) -> None:
+        g = self._grid
+        assert g is not None
+        cost = g.static.copy()
+        for nb in neighbours:
+            R = self.footprint + nb.footprint
+            d = np.linalg.norm(g.centres - nb.last_point, axis=1)
+            cost[d < R] += self.parked_cost if nb.phase == PARKED else self.soft_cost
+        self._pred = g.field(goal, cost)
+        self._since_plan = 0
 
-    # ------------------------------------------------------------- yielding
+    def waypoint(self, c: Array, goal: Array, neighbours: Sequence[NeighbourInfo] = ()) -> Array:
+        """Carrot point on the planned path from ``c`` to ``goal``."""
+        if self._pred is None or self._since_plan >= self.replan_steps:
+            self._plan(c, goal, neighbours)
+        self._since_plan += 1
+        assert self._grid is not None and self._pred is not None
+        if float(np.linalg.norm(goal - c)) <= self.lookahead:
+            return goal
+        return self._grid.carrot(self._pred, c, goal, self.lookahead)
+
     def target(self, c: Array, goal: Array, neighbours: Sequence[NeighbourInfo]) -> tuple[Array, str]:
-        """Target of the goal term and the mode (``goal``, ``waypoint``, ``yield``, ``escape``)."""
-        wp = self.waypoint(c, goal)
-        mode = "goal" if wp is goal else "waypoint"
+        """Target of the goal term and the mode (``goal``, ``path``, ``yield``, ``escape``)."""
+        wp = self.waypoint(c, goal, neighbours)
+        mode = "goal" if wp is goal else "path"
         me = order_key(self.priority, self.rank)
         corridors = []
         for nb in neighbours:
-            if nb.done or order_key(nb.priority, nb.rank) > me:
+            # Yield to lower phases; within a phase, to the higher-ordered.
+            if nb.phase == PARKED or (nb.phase, *order_key(nb.priority, nb.rank)) > (self.phase, *me):
                 continue
             R = self.footprint + nb.footprint
             if np.linalg.norm(nb.last_point - c) > R + self.conflict_range:
@@ -307,24 +369,27 @@ class Navigator:
         if blocked:
             self._escape = self._escape_point(c, wp, corridors, neighbours)
             self._escape_left = self.hold_steps
+            self._stall = 0
             return self._escape, "yield"
 
-        # Progress watchdog: a robot that has made no progress for long picks a
-        # clearance-seeking escape point and holds it (DESIGN §5).
-        dgoal = float(np.linalg.norm(goal - c))
-        if dgoal < self._best_dist - 0.02:
-            self._best_dist = dgoal
-            self._stall = 0
-        elif dgoal > 0.02:
-            self._stall += 1
+        # Progress watchdog: no progress for long → a clearance-seeking escape
+        # point, held for a while (DESIGN §5).  Time spent yielding or escaping
+        # does not count as a stall.
         if self._escape is not None and self._escape_left > 0:
             self._escape_left -= 1
             if np.linalg.norm(self._escape - c) > 0.02:
                 return self._escape, "escape"
-        self._escape = None
-        if self._stall > 60:
+        if self._escape is not None:
+            self._escape = None
+            self._best_dist = math.inf
             self._stall = 0
-            self._best_dist = dgoal
+        dgoal = float(np.linalg.norm(goal - c))
+        if dgoal < self._best_dist - 0.02 or dgoal < 0.005:
+            self._best_dist = min(dgoal, self._best_dist)
+            self._stall = 0
+        else:
+            self._stall += 1
+        if self._stall > self.stall_steps:
             self._escape = self._escape_point(c, wp, corridors, neighbours, radius=0.5)
             self._escape_left = 40
             return self._escape, "escape"
@@ -339,16 +404,15 @@ class Navigator:
         radius: float = 0.4,
     ) -> Array:
         """Best free point near ``c``: outside the corridors, clear of others, towards ``wp``."""
-        assert self._rng is not None
-        xmin, xmax, ymin, ymax = self.arena
-        r = self.footprint
+        assert self._grid is not None
+        g = self._grid
         ang = np.linspace(0.0, 2.0 * math.pi, 24, endpoint=False)
-        cands = [c + rad * np.array([math.cos(a), math.sin(a)]) for rad in (0.5 * radius, radius) for a in ang]
+        cands = [
+            c + rad * np.array([math.cos(a), math.sin(a)]) for rad in (0.5 * radius, radius) for a in ang
+        ]
         best, best_score = c, math.inf
         for p in cands:
-            if not (xmin + r <= p[0] <= xmax - r and ymin + r <= p[1] <= ymax - r):
-                continue
-            if any(ob.distance(p) < r + 0.01 for ob in self.obstacles):
+            if g.static[g.cell(p)] >= GridPlanner.BLOCKED:
                 continue
             score = 0.5 * float(np.linalg.norm(p - c)) + 0.2 * float(np.linalg.norm(wp - p))
             for a, b, w in corridors:
@@ -356,11 +420,9 @@ class Navigator:
                 if dseg < w:
                     score += 10.0 + 5.0 * (w - dseg)
             for nb in neighbours:
-                clear = float(np.linalg.norm(p - nb.last_point)) - (r + nb.footprint)
+                clear = float(np.linalg.norm(p - nb.last_point)) - (self.footprint + nb.footprint)
                 if clear < 0.1:
                     score += 2.0 * (0.1 - clear)
-            if not self._visible(c, p):
-                score += 5.0
             if score < best_score:
                 best, best_score = p, score
         return np.asarray(best, dtype=float)

@@ -104,7 +104,9 @@ class InnerLoop:
 
     def point(self, pose: Array) -> Array:
         """Controlled point (2,) [m, world frame] for an axle-centre pose."""
-        return np.array([pose[0] + self.lookahead * math.cos(pose[2]), pose[1] + self.lookahead * math.sin(pose[2])])
+        return np.array(
+            [pose[0] + self.lookahead * math.cos(pose[2]), pose[1] + self.lookahead * math.sin(pose[2])]
+        )
 
 
 @dataclass

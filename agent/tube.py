@@ -113,7 +113,8 @@ class TubeDesign:
     """H-rep of Z: {z : |Z_F z| ≤ Z_f}, Z_F (p, 4)."""
     Z_f: Array
     x_bound: Array
-    """Box X̂ velocity half-widths per state [m or m/s] (4,); positions are arena-relative, see ``pos_tightening``."""
+    """X̂ half-widths per state (4,) [m/s for velocities]; positions are inf
+    here because X̂'s position part is the arena shrunk by ``pos_tightening``."""
     u_hat: Array
     """Box Û half-widths (2,) [m/s²]."""
     pos_tightening: float
@@ -173,7 +174,9 @@ class TubeDesign:
         }
 
 
-def synthesize(params: ControllerParams, arena: tuple[float, float, float, float] | None = None) -> TubeDesign:
+def synthesize(
+    params: ControllerParams, arena: tuple[float, float, float, float] | None = None
+) -> TubeDesign:
     """Build the tube design for ``params``; check it against ``arena``.
 
     ``arena`` = (xmin, xmax, ymin, ymax) [m]; without it the arena checks are
@@ -224,7 +227,8 @@ def synthesize(params: ControllerParams, arena: tuple[float, float, float, float
     for j, name in ((1, "velocity"), (3, "velocity")):
         if x_bound[j] <= 0:
             failures.append(
-                f"X̂ {name} bound is empty: v_max {p.v_max:.4g} m/s − h_Z {hZ[j]:.4g} m/s = {x_bound[j]:.4g} m/s"
+                f"X̂ {name} bound is empty: v_max {p.v_max:.4g} m/s − h_Z {hZ[j]:.4g} m/s "
+                f"= {x_bound[j]:.4g} m/s"
             )
             break
     for j in range(1):
@@ -240,7 +244,8 @@ def synthesize(params: ControllerParams, arena: tuple[float, float, float, float
     if x_bound[1] > 0 and hPsi_v > (1.0 - margin) * x_bound[1]:
         failures.append(
             f"epsilon {eps:.4g} m too large: reference lag velocity h_Ψ {hPsi_v:.4g} m/s exceeds "
-            f"{1 - margin:.2f}·X̂ velocity bound {x_bound[1]:.4g} m/s by {hPsi_v - (1 - margin) * x_bound[1]:.4g} m/s"
+            f"{1 - margin:.2f}·X̂ velocity bound {x_bound[1]:.4g} m/s "
+            f"by {hPsi_v - (1 - margin) * x_bound[1]:.4g} m/s"
         )
     if u_hat[0] > 0 and hKrPsi > (1.0 - margin) * u_hat[0]:
         failures.append(

@@ -21,12 +21,13 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
-from agent.controller import NeighbourInfo, TubeMPC
+from agent.controller import TubeMPC
 from agent.models import DoubleIntegratorPlant, UnicyclePlant, make_inner_loop
 from agent.sets import Array
 from agent.tube import TubeDesign, require_admissible, synthesize
@@ -192,7 +193,7 @@ def run(
         design = require_admissible(synthesize(scenario.controller, scenario.arena))
     p = design.params
     Ts = p.Ts
-    n_steps = steps if steps is not None else int(round(scenario.duration / Ts))
+    n_steps = steps if steps is not None else round(scenario.duration / Ts)
     dist = Disturbance(sim.disturbance, p.W, sim.disturbance_fraction, rng)
     W4 = np.array([p.W[0], p.W[1], p.W[0], p.W[1]])
     robots = list(scenario.robots)
@@ -202,7 +203,7 @@ def run(
         start_pt = plant.state()[[0, 2]]
         fault = None
         if solver_fault is not None:
-            fault = (lambda rid: (lambda k: solver_fault(rid, k)))(rb.id)
+            fault = (lambda rid: lambda k: solver_fault(rid, k))(rb.id)
         ctrls[rb.id] = TubeMPC(
             design,
             start_pt,
@@ -300,7 +301,7 @@ def run(
         times.append((k + 1) * Ts)
         check_truth()
         if stop_when_done and all(
-            traces[r].goal_error[-1] <= GOAL_TOLERANCE * 0.5 and ctrls[r].done for r in ids
+            traces[r].goal_error[-1] <= GOAL_TOLERANCE * 0.5 and ctrls[r].at_goal for r in ids
         ):
             break
     n_done = k + 1 if n_steps > 0 else 0

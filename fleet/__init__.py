@@ -1,0 +1,1 @@
+"""Fleet level: scenario files, programmatic scenes, and the tools that run them."""

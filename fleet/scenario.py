@@ -1,0 +1,749 @@
+"""Scenario files: schema, validation and geometric sanity checks.
+
+A scenario is a TOML file (read with :mod:`tomllib`) describing the arena, the
+controller parameters, the simulation options, the robots and the static
+obstacles.  Example::
+
+    name = "paper_three_robots"
+    duration = 60.0                      # simulated time [s], > 0
+    [arena]
+    bounds = [-1.0, 1.0, -1.0, 1.0]      # xmin, xmax, ymin, ymax [m]
+    [controller]                         # optional
+    preset = "epuck"                     # "epuck" (default) | "paper"
+    Ts = 0.1                             # any ControllerParams field overrides the preset
+    [controller.wheel]                   # optional, WheelGeometry fields
+    axle = 0.053
+    [simulation]                         # optional
+    seed = 1
+    disturbance = "uniform"              # "uniform" | "adversarial" | "none"
+    plant = "unicycle"                   # "unicycle" | "double_integrator"
+    disturbance_fraction = 0.9           # injected w lies in fraction·W, 0 < f <= 1
+    [[robots]]
+    id = "r1"
+    start = [-0.6, 0.0, 0.0]             # axle centre x [m], y [m], heading [rad]
+    goal = [0.6, 0.0]                    # controlled point x [m], y [m]
+    priority = 0                         # optional, higher goes first
+    link = "sim"                         # optional
+    [[obstacles]]                        # optional; exactly one of circle / polygon
+    circle = { center = [0.0, 0.0], radius = 0.15 }
+    [[obstacles]]
+    polygon = [[0.3, 0.3], [0.5, 0.3], [0.4, 0.5]]   # convex, >= 3 vertices
+
+Every problem is reported as a single :class:`ConfigError` naming the dotted
+field path (``controller.R[1]``, ``robots[2].start``, ``file``) and the reason;
+:func:`parse_scenario` and :func:`load_scenario` raise nothing else.
+:func:`check_geometry` then checks the starts and goals against the footprint
+radius of a synthesised tube design.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import math
+import numbers
+import re
+import tomllib
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from agent.params import PRESETS, ControllerParams
+from agent.params import preset as _preset
+
+DISTURBANCES = ("uniform", "adversarial", "none")
+"""Accepted values of ``simulation.disturbance``."""
+PLANTS = ("unicycle", "double_integrator")
+"""Accepted values of ``simulation.plant``."""
+
+_ID_RE = re.compile(r"^[A-Za-z0-9_-]+$")
+
+Point = Sequence[float] | np.ndarray
+
+
+# --------------------------------------------------------------------------- errors
+
+
+class ConfigError(ValueError):
+    """An invalid scenario: ``field`` is the dotted path, ``reason`` says why.
+
+    ``str(e) == f"{field}: {reason}"``; the CLI prints that line and exits 2."""
+
+    def __init__(self, field: str, reason: str) -> None:
+        self.field = field
+        self.reason = reason
+        super().__init__(f"{field}: {reason}")
+
+    def __str__(self) -> str:
+        return f"{self.field}: {self.reason}"
+
+    def __reduce__(self) -> tuple[type[ConfigError], tuple[str, str]]:
+        return (type(self), (self.field, self.reason))
+
+
+# --------------------------------------------------------------------------- data model
+
+
+@dataclass(frozen=True)
+class RobotSpec:
+    """One robot of a scenario."""
+
+    id: str
+    """Unique name, non-empty, characters [A-Za-z0-9_-]."""
+    start: tuple[float, float, float]
+    """Initial pose of the axle centre, world frame: x [m], y [m], heading θ [rad]."""
+    goal: tuple[float, float]
+    """Goal of the controlled point, world frame: x [m], y [m]."""
+    priority: int = 0
+    """Coordination priority; the higher goes first."""
+    link: str = "sim"
+    """Communication link of the robot ("sim" in simulation; used by hardware runs)."""
+
+
+@dataclass(frozen=True)
+class Circle:
+    """A static disc obstacle."""
+
+    center: tuple[float, float]
+    """Centre x, y [m]."""
+    radius: float
+    """Radius [m], > 0."""
+
+    def distance(self, point: Point) -> float:
+        """Euclidean distance [m] from ``point`` (x, y) to the disc; 0 inside."""
+        p = np.asarray(point, dtype=float)[:2]
+        return max(0.0, float(np.linalg.norm(p - np.asarray(self.center))) - self.radius)
+
+    def closest_point(self, point: Point) -> np.ndarray:
+        """Nearest point (2,) [m] of the disc's boundary circle to ``point``.
+
+        For a point outside this is the closest point of the obstacle; for the
+        centre itself an arbitrary boundary point is returned."""
+        p = np.asarray(point, dtype=float)[:2]
+        c = np.asarray(self.center, dtype=float)
+        d = p - c
+        n = float(np.linalg.norm(d))
+        if n < 1e-15:
+            return c + np.array([self.radius, 0.0])
+        return c + self.radius * d / n
+
+
+@dataclass(frozen=True)
+class Polygon:
+    """A static convex polygon obstacle."""
+
+    vertices: tuple[tuple[float, float], ...]
+    """Vertices x, y [m], counter-clockwise, strictly convex (no repeated or
+    collinear vertices), at least 3."""
+
+    def _array(self) -> np.ndarray:
+        return np.asarray(self.vertices, dtype=float)
+
+    def contains(self, point: Point) -> bool:
+        """True if ``point`` lies inside the polygon or on its boundary."""
+        v = self._array()
+        p = np.asarray(point, dtype=float)[:2]
+        e = np.roll(v, -1, axis=0) - v
+        r = p - v
+        cross = e[:, 0] * r[:, 1] - e[:, 1] * r[:, 0]
+        return bool(np.all(cross >= -1e-12 * max(1.0, float(np.abs(v).max()) ** 2)))
+
+    def closest_point(self, point: Point) -> np.ndarray:
+        """Nearest boundary point (2,) [m] to ``point`` (inside or outside)."""
+        v = self._array()
+        p = np.asarray(point, dtype=float)[:2]
+        a = v
+        e = np.roll(v, -1, axis=0) - v
+        t = np.clip(np.einsum("ij,ij->i", p - a, e) / np.einsum("ij,ij->i", e, e), 0.0, 1.0)
+        q = a + t[:, None] * e
+        k = int(np.argmin(np.linalg.norm(q - p, axis=1)))
+        return np.asarray(q[k], dtype=float)
+
+    def distance(self, point: Point) -> float:
+        """Euclidean distance [m] from ``point`` (x, y) to the polygon; 0 inside."""
+        if self.contains(point):
+            return 0.0
+        p = np.asarray(point, dtype=float)[:2]
+        return float(np.linalg.norm(self.closest_point(p) - p))
+
+
+Obstacle = Circle | Polygon
+
+
+@dataclass(frozen=True)
+class SimulationSpec:
+    """The ``[simulation]`` table."""
+
+    seed: int = 0
+    """Seed of the disturbance generator, >= 0."""
+    disturbance: str = "uniform"
+    """Disturbance model: "uniform" | "adversarial" | "none"."""
+    plant: str = "unicycle"
+    """Simulated plant: "unicycle" | "double_integrator"."""
+    disturbance_fraction: float = 0.9
+    """The injected disturbance lies in fraction·W, 0 < fraction <= 1."""
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """A validated scenario."""
+
+    name: str
+    """Scenario name."""
+    duration: float
+    """Simulated time [s], > 0."""
+    arena: tuple[float, float, float, float]
+    """Arena bounds (xmin, xmax, ymin, ymax) [m]."""
+    controller: ControllerParams
+    """Controller parameters: the preset with the file's overrides applied."""
+    simulation: SimulationSpec
+    """Simulation options."""
+    robots: tuple[RobotSpec, ...]
+    """The robots, in file order (at least one)."""
+    obstacles: tuple[Obstacle, ...]
+    """Static obstacles, in file order."""
+    source: str
+    """Where the scenario came from: a file path or "<dict>"."""
+
+
+# --------------------------------------------------------------------------- primitive validators
+
+
+def _show(value: object) -> str:
+    """Short rendering of a value for an error message."""
+    if isinstance(value, bool | np.bool_):
+        return f"{str(bool(value)).lower()} (a boolean)"
+    if isinstance(value, str):
+        return repr(value) if len(value) <= 40 else repr(value[:37] + "...")
+    if isinstance(value, Mapping):
+        return "a table"
+    if isinstance(value, list | tuple):
+        return f"an array of {len(value)} item{'s' if len(value) != 1 else ''}"
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _fmt(x: float) -> str:
+    return f"{x:g}"
+
+
+def _number(
+    value: object,
+    path: str,
+    *,
+    gt: float | None = None,
+    ge: float | None = None,
+    lt: float | None = None,
+    le: float | None = None,
+) -> float:
+    """A finite real number (bools rejected) within the given bounds."""
+    if isinstance(value, bool | np.bool_) or not isinstance(value, numbers.Real):
+        raise ConfigError(path, f"expected a number, got {_show(value)}")
+    x = float(value)
+    if not math.isfinite(x):
+        raise ConfigError(path, f"expected a finite number, got {_show(x)}")
+    if gt is not None and not x > gt:
+        raise ConfigError(path, f"must be > {_fmt(gt)}, got {_fmt(x)}")
+    if ge is not None and not x >= ge:
+        raise ConfigError(path, f"must be >= {_fmt(ge)}, got {_fmt(x)}")
+    if lt is not None and not x < lt:
+        raise ConfigError(path, f"must be < {_fmt(lt)}, got {_fmt(x)}")
+    if le is not None and not x <= le:
+        raise ConfigError(path, f"must be <= {_fmt(le)}, got {_fmt(x)}")
+    return x
+
+
+def _integer(value: object, path: str, *, ge: int | None = None) -> int:
+    """An integer (bools and floats rejected), optionally >= ``ge``."""
+    if isinstance(value, bool | np.bool_) or not isinstance(value, numbers.Integral):
+        raise ConfigError(path, f"expected an integer, got {_show(value)}")
+    n = int(value)
+    if ge is not None and n < ge:
+        raise ConfigError(path, f"must be an integer >= {ge}, got {n}")
+    return n
+
+
+def _boolean(value: object, path: str) -> bool:
+    if not isinstance(value, bool | np.bool_):
+        raise ConfigError(path, f"expected true or false, got {_show(value)}")
+    return bool(value)
+
+
+def _string(value: object, path: str, choices: Sequence[str] | None = None) -> str:
+    if not isinstance(value, str):
+        raise ConfigError(path, f"expected a string, got {_show(value)}")
+    if choices is not None and value not in choices:
+        raise ConfigError(path, f"unknown value {value!r} (expected one of {', '.join(choices)})")
+    return value
+
+
+def _array(value: object, path: str, what: str) -> Sequence[Any]:
+    if isinstance(value, str) or not isinstance(value, list | tuple | np.ndarray):
+        raise ConfigError(path, f"expected an array of {what}, got {_show(value)}")
+    return list(value)
+
+
+def _vector(
+    value: object, path: str, length: int, *, gt: float | None = None, ge: float | None = None
+) -> tuple[float, ...]:
+    """An array of exactly ``length`` finite numbers."""
+    items = _array(value, path, f"{length} numbers")
+    if len(items) != length:
+        raise ConfigError(path, f"expected {length} numbers, got {len(items)}")
+    return tuple(_number(x, f"{path}[{i}]", gt=gt, ge=ge) for i, x in enumerate(items))
+
+
+def _table(value: object, path: str) -> Mapping[str, Any]:
+    if not isinstance(value, Mapping):
+        raise ConfigError(path, f"expected a table, got {_show(value)}")
+    return value
+
+
+def _join(path: str, key: str) -> str:
+    return f"{path}.{key}" if path else key
+
+
+def _check_keys(
+    table: Mapping[str, Any], path: str, allowed: Sequence[str], required: Sequence[str] = ()
+) -> None:
+    """Reject unknown keys, then missing required ones."""
+    for key in table:
+        if key not in allowed:
+            close = difflib.get_close_matches(str(key), list(allowed), n=1)
+            hint = f"did you mean {close[0]!r}? " if close else ""
+            raise ConfigError(
+                _join(path, str(key)), f"unknown key ({hint}expected one of {', '.join(allowed)})"
+            )
+    for key in required:
+        if key not in table:
+            raise ConfigError(_join(path, key), "missing required key")
+
+
+# --------------------------------------------------------------------------- controller rules
+
+Rule = Callable[[object, str], object]
+
+
+def _positive(value: object, path: str) -> float:
+    return _number(value, path, gt=0.0)
+
+
+def _nonnegative(value: object, path: str) -> float:
+    return _number(value, path, ge=0.0)
+
+
+def _weights(length: int, positive: bool = False) -> Rule:
+    def rule(value: object, path: str) -> tuple[float, ...]:
+        return _vector(value, path, length, gt=0.0 if positive else None, ge=None if positive else 0.0)
+
+    return rule
+
+
+def _int_at_least(lo: int) -> Rule:
+    def rule(value: object, path: str) -> int:
+        return _integer(value, path, ge=lo)
+
+    return rule
+
+
+def _open_unit(value: object, path: str) -> float:
+    return _number(value, path, gt=0.0, lt=1.0)
+
+
+def _disturbance_box(value: object, path: str) -> tuple[float, ...]:
+    w = _vector(value, path, 2, ge=0.0)
+    if not any(x > 0.0 for x in w):
+        raise ConfigError(path, f"at least one half-width must be > 0, got [{_fmt(w[0])}, {_fmt(w[1])}]")
+    return w
+
+
+_CONTROLLER_RULES: dict[str, Rule] = {
+    "Ts": _positive,
+    "horizon": _int_at_least(2),
+    "Q": _weights(4),
+    "R": _weights(2, positive=True),
+    "gamma": _nonnegative,
+    "T": _weights(2),
+    "K_Q": _weights(4),
+    "K_R": _weights(2, positive=True),
+    "ref_Q": _weights(4),
+    "ref_R": _weights(2, positive=True),
+    "W": _disturbance_box,
+    "epsilon": _positive,
+    "delta": _positive,
+    "v_max": _positive,
+    "a_max": _positive,
+    "robot_radius": _positive,
+    "lookahead": _nonnegative,
+    "v_min": _positive,
+    "mrpi_tol": _positive,
+    "mrpi_max_terms": _int_at_least(1),
+    "admissibility_margin": lambda v, p: _number(v, p, ge=0.0, lt=1.0),
+    "max_iter": _int_at_least(1),
+    "max_iter_in": _int_at_least(1),
+    "solve_time_budget": _positive,
+    "priority_share": _open_unit,
+    "deadlock": _boolean,
+    "penalty": _boolean,
+    "penalty_dlim": _positive,
+    "penalty_weight": _nonnegative,
+}
+
+_WHEEL_RULES: dict[str, Rule] = {
+    "wheel_radius": _positive,
+    "axle": _positive,
+    "steps_per_rev": _int_at_least(1),
+    "max_steps": _positive,
+}
+
+
+def _rule_from_default(default: object) -> Rule:
+    """Fallback for a parameter without an explicit rule: typed like its default."""
+    if isinstance(default, bool):
+        return _boolean
+    if isinstance(default, int):
+        return lambda v, p: _integer(v, p)
+    if isinstance(default, float) or default is None:
+        return lambda v, p: _number(v, p)
+    if isinstance(default, tuple):
+        n = len(default)
+        return lambda v, p: _vector(v, p, n)
+    if isinstance(default, str):
+        return lambda v, p: _string(v, p)
+    raise TypeError(f"no scenario rule for a parameter with default {default!r}")  # pragma: no cover
+
+
+def _parse_dataclass_table(raw: object, path: str, base: Any, rules: Mapping[str, Rule]) -> dict[str, object]:
+    """Validate a table of overrides of the dataclass instance ``base``."""
+    table = _table(raw, path)
+    names = [f.name for f in dataclasses.fields(base)]
+    _check_keys(table, path, names)
+    out: dict[str, object] = {}
+    for key, value in table.items():
+        rule = rules.get(key) or _rule_from_default(getattr(base, key))
+        out[key] = rule(value, _join(path, key))
+    return out
+
+
+def _parse_controller(raw: object, path: str, preset_override: str | None) -> ControllerParams:
+    table = _table(raw, path) if raw is not None else {}
+    allowed = ["preset"] + [f.name for f in dataclasses.fields(ControllerParams) if f.name != "preset"]
+    _check_keys(table, path, allowed)
+    name = "epuck"
+    if "preset" in table:
+        name = _string(table["preset"], _join(path, "preset"), PRESETS)
+    if preset_override is not None:
+        if not isinstance(preset_override, str) or preset_override not in PRESETS:
+            raise ConfigError(
+                _join(path, "preset"),
+                f"unknown preset override {preset_override!r} (expected one of {', '.join(PRESETS)})",
+            )
+        name = preset_override
+    base = _preset(name)
+    overrides: dict[str, object] = {}
+    for key, value in table.items():
+        if key == "preset":
+            continue
+        if key == "wheel":
+            wheel = _parse_dataclass_table(value, _join(path, "wheel"), base.wheel, _WHEEL_RULES)
+            overrides["wheel"] = dataclasses.replace(base.wheel, **wheel)  # type: ignore[arg-type]
+            continue
+        rule = _CONTROLLER_RULES.get(key) or _rule_from_default(getattr(base, key))
+        overrides[key] = rule(value, _join(path, key))
+    return base.replace(**overrides)
+
+
+# --------------------------------------------------------------------------- tables
+
+
+def _parse_simulation(raw: object, path: str) -> SimulationSpec:
+    table = _table(raw, path) if raw is not None else {}
+    _check_keys(table, path, [f.name for f in dataclasses.fields(SimulationSpec)])
+    spec = SimulationSpec()
+    if "seed" in table:
+        spec = dataclasses.replace(spec, seed=_integer(table["seed"], _join(path, "seed"), ge=0))
+    if "disturbance" in table:
+        d = _string(table["disturbance"], _join(path, "disturbance"), DISTURBANCES)
+        spec = dataclasses.replace(spec, disturbance=d)
+    if "plant" in table:
+        spec = dataclasses.replace(spec, plant=_string(table["plant"], _join(path, "plant"), PLANTS))
+    if "disturbance_fraction" in table:
+        f = _number(table["disturbance_fraction"], _join(path, "disturbance_fraction"), gt=0.0, le=1.0)
+        spec = dataclasses.replace(spec, disturbance_fraction=f)
+    return spec
+
+
+def _parse_arena(raw: object, path: str) -> tuple[float, float, float, float]:
+    table = _table(raw, path)
+    _check_keys(table, path, ["bounds"], required=["bounds"])
+    bpath = _join(path, "bounds")
+    xmin, xmax, ymin, ymax = _vector(table["bounds"], bpath, 4)
+    if not xmin < xmax:
+        raise ConfigError(bpath, f"xmin {_fmt(xmin)} m must be < xmax {_fmt(xmax)} m")
+    if not ymin < ymax:
+        raise ConfigError(bpath, f"ymin {_fmt(ymin)} m must be < ymax {_fmt(ymax)} m")
+    return (xmin, xmax, ymin, ymax)
+
+
+_ROBOT_KEYS = ("id", "start", "goal", "priority", "link")
+
+
+def _parse_robots(raw: object, path: str) -> tuple[RobotSpec, ...]:
+    items = _array(raw, path, "robot tables ([[robots]])")
+    if not items:
+        raise ConfigError(path, "expected at least one robot")
+    robots: list[RobotSpec] = []
+    seen: dict[str, int] = {}
+    for i, item in enumerate(items):
+        rpath = f"{path}[{i}]"
+        table = _table(item, rpath)
+        _check_keys(table, rpath, _ROBOT_KEYS, required=("id", "start", "goal"))
+        ipath = _join(rpath, "id")
+        rid = _string(table["id"], ipath)
+        if not _ID_RE.match(rid):
+            raise ConfigError(ipath, f"invalid id {rid!r} (expected a non-empty string of A-Z a-z 0-9 _ -)")
+        if rid in seen:
+            raise ConfigError(ipath, f"duplicate id {rid!r} (also {path}[{seen[rid]}].id)")
+        seen[rid] = i
+        sx, sy, sth = _vector(table["start"], _join(rpath, "start"), 3)
+        gx, gy = _vector(table["goal"], _join(rpath, "goal"), 2)
+        priority = _integer(table["priority"], _join(rpath, "priority")) if "priority" in table else 0
+        link = "sim"
+        if "link" in table:
+            link = _string(table["link"], _join(rpath, "link"))
+            if not link:
+                raise ConfigError(_join(rpath, "link"), "expected a non-empty string")
+        robots.append(RobotSpec(id=rid, start=(sx, sy, sth), goal=(gx, gy), priority=priority, link=link))
+    return tuple(robots)
+
+
+def _convex_ccw(points: Sequence[tuple[float, float]], path: str) -> tuple[tuple[float, float], ...]:
+    """Check that ``points`` form a convex polygon; return it counter-clockwise,
+    without collinear vertices."""
+    v = np.asarray(points, dtype=float)
+    n = len(v)
+    if n < 3:
+        raise ConfigError(path, f"expected at least 3 vertices, got {n}")
+    scale = max(1.0, float(np.abs(v).max()))
+    for i in range(n):
+        for j in range(i + 1, n):
+            if np.linalg.norm(v[i] - v[j]) <= 1e-12 * scale:
+                raise ConfigError(
+                    path,
+                    f"vertex {j} ({v[j, 0]:.3g}, {v[j, 1]:.3g}) repeats vertex {i}; "
+                    "vertices must be distinct",
+                )
+    e_in = v - np.roll(v, 1, axis=0)  # edge arriving at vertex k
+    e_out = np.roll(v, -1, axis=0) - v  # edge leaving vertex k
+    cross = e_in[:, 0] * e_out[:, 1] - e_in[:, 1] * e_out[:, 0]
+    dot = np.einsum("ij,ij->i", e_in, e_out)
+    tol = 1e-12 * scale * scale
+    left, right = int(np.sum(cross > tol)), int(np.sum(cross < -tol))
+    if left == 0 and right == 0:
+        raise ConfigError(path, "vertices are collinear (the polygon has zero area)")
+    area2 = float(np.sum(v[:, 0] * np.roll(v[:, 1], -1) - np.roll(v[:, 0], -1) * v[:, 1]))
+    if abs(area2) > tol:
+        sign = 1.0 if area2 > 0 else -1.0
+    else:
+        sign = 1.0 if left >= right else -1.0
+    bad = np.flatnonzero(sign * cross < -tol)
+    if bad.size:
+        k = int(bad[0])
+        raise ConfigError(
+            path,
+            f"not convex: the boundary turns the other way at vertex {k} ({v[k, 0]:.3g}, {v[k, 1]:.3g}) "
+            "(split a concave obstacle into convex polygons)",
+        )
+    turns = float(np.sum(np.arctan2(cross, dot)))
+    winding = round(abs(turns) / (2.0 * math.pi))
+    if winding != 1:
+        raise ConfigError(path, f"not convex: the boundary crosses itself (it winds {winding} times)")
+    keep = np.abs(cross) > tol
+    strict = v[keep]
+    if sign < 0:
+        strict = strict[::-1]
+    return tuple((float(x), float(y)) for x, y in strict)
+
+
+def _parse_obstacles(raw: object, path: str) -> tuple[Obstacle, ...]:
+    if raw is None:
+        return ()
+    items = _array(raw, path, "obstacle tables ([[obstacles]])")
+    obstacles: list[Obstacle] = []
+    for i, item in enumerate(items):
+        opath = f"{path}[{i}]"
+        table = _table(item, opath)
+        _check_keys(table, opath, ("circle", "polygon"))
+        kinds = [k for k in ("circle", "polygon") if k in table]
+        if len(kinds) != 1:
+            got = "neither" if not kinds else "both"
+            raise ConfigError(opath, f"expected exactly one of circle, polygon, got {got}")
+        if kinds[0] == "circle":
+            cpath = _join(opath, "circle")
+            circle = _table(table["circle"], cpath)
+            _check_keys(circle, cpath, ("center", "radius"), required=("center", "radius"))
+            cx, cy = _vector(circle["center"], _join(cpath, "center"), 2)
+            radius = _number(circle["radius"], _join(cpath, "radius"), gt=0.0)
+            obstacles.append(Circle(center=(cx, cy), radius=radius))
+        else:
+            ppath = _join(opath, "polygon")
+            verts = _array(table["polygon"], ppath, "[x, y] vertices")
+            pts = []
+            for j, vert in enumerate(verts):
+                x, y = _vector(vert, f"{ppath}[{j}]", 2)
+                pts.append((x, y))
+            obstacles.append(Polygon(vertices=_convex_ccw(pts, ppath)))
+    return tuple(obstacles)
+
+
+_TOP_KEYS = ("name", "duration", "arena", "controller", "simulation", "robots", "obstacles")
+
+
+def parse_scenario(
+    data: Mapping[str, Any], source: str = "<dict>", preset_override: str | None = None
+) -> Scenario:
+    """Validate a scenario given as a (TOML-shaped) dict.
+
+    ``preset_override`` replaces ``[controller] preset``; the other controller
+    keys still override the preset's values.  Raises :class:`ConfigError`."""
+    table = _table(data, "scenario")
+    _check_keys(table, "", _TOP_KEYS, required=("name", "duration", "arena", "robots"))
+    name = _string(table["name"], "name")
+    if not name.strip():
+        raise ConfigError("name", "expected a non-empty string")
+    duration = _number(table["duration"], "duration", gt=0.0)
+    arena = _parse_arena(table["arena"], "arena")
+    controller = _parse_controller(table.get("controller"), "controller", preset_override)
+    simulation = _parse_simulation(table.get("simulation"), "simulation")
+    robots = _parse_robots(table["robots"], "robots")
+    obstacles = _parse_obstacles(table.get("obstacles"), "obstacles")
+    return Scenario(
+        name=name,
+        duration=duration,
+        arena=arena,
+        controller=controller,
+        simulation=simulation,
+        robots=robots,
+        obstacles=obstacles,
+        source=source,
+    )
+
+
+def load_scenario(path: str | Path, preset_override: str | None = None) -> Scenario:
+    """Read and validate a scenario TOML file.  Raises :class:`ConfigError`
+    (field ``file`` for an unreadable file or a TOML syntax error)."""
+    p = Path(path)
+    try:
+        with p.open("rb") as fh:
+            data = tomllib.load(fh)
+    except FileNotFoundError:
+        raise ConfigError("file", f"{p}: no such file") from None
+    except IsADirectoryError:
+        raise ConfigError("file", f"{p}: is a directory, not a scenario file") from None
+    except OSError as exc:
+        raise ConfigError("file", f"{p}: cannot read ({exc.strerror or exc})") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError("file", f"{p}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError("file", f"{p}: invalid TOML: {exc}") from None
+    return parse_scenario(data, source=str(p), preset_override=preset_override)
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+def controlled_point(start: Sequence[float], lookahead: float) -> np.ndarray:
+    """Controlled point (2,) [m] of a pose (x, y, θ): ``start[:2] + ℓ (cos θ, sin θ)``."""
+    x, y, th = float(start[0]), float(start[1]), float(start[2])
+    return np.array([x + lookahead * math.cos(th), y + lookahead * math.sin(th)])
+
+
+def _pair(a: float, b: float) -> tuple[str, str]:
+    """Format two lengths with enough digits that they print differently."""
+    for digits in range(3, 8):
+        sa, sb = f"{a:.{digits}f}", f"{b:.{digits}f}"
+        if sa != sb:
+            return sa, sb
+    return f"{a:.8g}", f"{b:.8g}"
+
+
+def _xy(p: np.ndarray) -> str:
+    return f"({p[0]:.2f}, {p[1]:.2f})"
+
+
+def _describe(obs: Obstacle) -> str:
+    if isinstance(obs, Circle):
+        return f"circle of radius {obs.radius:g} m at ({obs.center[0]:.2f}, {obs.center[1]:.2f}) m"
+    xs = [v[0] for v in obs.vertices]
+    ys = [v[1] for v in obs.vertices]
+    return (
+        f"polygon of {len(obs.vertices)} vertices spanning "
+        f"[{min(xs):.2f}, {max(xs):.2f}] × [{min(ys):.2f}, {max(ys):.2f}] m"
+    )
+
+
+def check_geometry(scn: Scenario, footprint: float) -> None:
+    """Check starts and goals against the footprint radius [m] of the design.
+
+    Raises :class:`ConfigError` when a start's controlled point or a goal lies
+    outside the arena or closer than ``footprint`` to a wall or an obstacle, or
+    when two starts (or two goals) are closer than ``2·footprint``."""
+    ell = scn.controller.lookahead
+    xmin, xmax, ymin, ymax = scn.arena
+    starts = [controlled_point(r.start, ell) for r in scn.robots]
+    goals = [np.asarray(r.goal, dtype=float) for r in scn.robots]
+    fp = float(footprint)
+
+    for i in range(len(scn.robots)):
+        for kind, p, label in (("start", starts[i], "controlled point"), ("goal", goals[i], "goal")):
+            field = f"robots[{i}].{kind}"
+            x, y = float(p[0]), float(p[1])
+            if not (xmin <= x <= xmax and ymin <= y <= ymax):
+                raise ConfigError(
+                    field,
+                    f"{label} {_xy(p)} lies outside the arena [{xmin:g}, {xmax:g}] × [{ymin:g}, {ymax:g}] m",
+                )
+            walls = [
+                (x - xmin, f"x = {xmin:g}"),
+                (xmax - x, f"x = {xmax:g}"),
+                (y - ymin, f"y = {ymin:g}"),
+                (ymax - y, f"y = {ymax:g}"),
+            ]
+            d, wall = min(walls, key=lambda w: w[0])
+            if d < fp:
+                sd, sf = _pair(d, fp)
+                raise ConfigError(
+                    field,
+                    f"{label} {_xy(p)} is {sd} m from the arena wall {wall}, "
+                    f"less than the footprint radius {sf} m",
+                )
+            for k, obs in enumerate(scn.obstacles):
+                d = obs.distance(p)
+                if d <= 0.0:
+                    raise ConfigError(
+                        field, f"{label} {_xy(p)} lies inside obstacles[{k}] ({_describe(obs)})"
+                    )
+                if d < fp:
+                    sd, sf = _pair(d, fp)
+                    raise ConfigError(
+                        field,
+                        f"{label} {_xy(p)} is {sd} m from obstacles[{k}], "
+                        f"less than the footprint radius {sf} m",
+                    )
+
+    for kind, pts, label in (("start", starts, "controlled point"), ("goal", goals, "goal")):
+        for j in range(len(pts)):
+            for i in range(j):
+                d = float(np.linalg.norm(pts[j] - pts[i]))
+                if d < 2.0 * fp:
+                    sd, sf = _pair(d, 2.0 * fp)
+                    raise ConfigError(
+                        f"robots[{j}].{kind}",
+                        f"{label} {_xy(pts[j])} is {sd} m from that of robots[{i}] ({scn.robots[i].id!r}), "
+                        f"closer than their footprints allow (2 × {fp:.3f} = {sf} m)",
+                    )

@@ -1,0 +1,534 @@
+"""Tests of the scenario schema (fleet.scenario) and the programmatic scenes (fleet.scenes)."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import functools
+import itertools
+import math
+import pickle
+import tomllib
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from agent.params import ControllerParams, preset
+from agent.tube import synthesize
+from fleet.scenario import (
+    Circle,
+    ConfigError,
+    Polygon,
+    Scenario,
+    check_geometry,
+    controlled_point,
+    load_scenario,
+    parse_scenario,
+)
+from fleet.scenes import antipodal_swap, random_scene, scene_to_toml
+
+SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
+SHIPPED = sorted(SCENARIO_DIR.glob("*.toml"))
+ARENA = (-1.0, 1.0, -1.0, 1.0)
+
+
+@functools.cache
+def footprint(params: ControllerParams, arena: tuple[float, float, float, float]) -> float:
+    return synthesize(params, arena).footprint
+
+
+def footprint_of(scn: Scenario) -> float:
+    return footprint(scn.controller, scn.arena)
+
+
+def base() -> dict[str, Any]:
+    """A valid scenario dict exercising every table."""
+    return {
+        "name": "base",
+        "duration": 30.0,
+        "arena": {"bounds": [-1.0, 1.0, -1.0, 1.0]},
+        "controller": {"preset": "epuck", "Ts": 0.1, "Q": [1, 1, 1, 1], "wheel": {"axle": 0.053}},
+        "simulation": {"seed": 1, "disturbance": "uniform", "plant": "unicycle", "disturbance_fraction": 0.9},
+        "robots": [
+            {"id": "r1", "start": [-0.6, 0.0, 0.0], "goal": [0.6, 0.0], "priority": 0, "link": "sim"},
+            {"id": "r2", "start": [0.6, 0.0, math.pi], "goal": [-0.6, 0.0]},
+        ],
+        "obstacles": [
+            {"circle": {"center": [0.0, 0.6], "radius": 0.1}},
+            {"polygon": [[0.3, -0.7], [0.5, -0.7], [0.4, -0.5]]},
+        ],
+    }
+
+
+# --------------------------------------------------------------------------- shipped files
+
+
+def test_scenarios_are_shipped() -> None:
+    names = {p.stem for p in SHIPPED}
+    expected = {
+        "paper_two_robots",
+        "paper_two_robots_priority",
+        "paper_three_robots",
+        "swap_4",
+        "swap_8",
+        "swap_16",
+        "obstacle_four",
+    }
+    assert expected <= names
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=[p.stem for p in SHIPPED])
+def test_shipped_scenario_parses_and_fits(path: Path) -> None:
+    scn = load_scenario(path)
+    assert scn.name == path.stem
+    assert scn.source == str(path)
+    design = synthesize(scn.controller, scn.arena)
+    assert design.failures == []
+    check_geometry(scn, design.footprint)
+
+
+def test_paper_two_robots_contents() -> None:
+    scn = load_scenario(SCENARIO_DIR / "paper_two_robots.toml")
+    assert [r.start for r in scn.robots] == [(-0.7, 0.0, 0.0), (0.7, 0.0, math.pi)]
+    assert [r.goal for r in scn.robots] == [(0.7, 0.0), (-0.7, 0.0)]
+    assert [r.priority for r in scn.robots] == [0, 0]
+    assert scn.duration == 60.0
+    assert scn.controller == preset("epuck")
+    prio = load_scenario(SCENARIO_DIR / "paper_two_robots_priority.toml")
+    assert [r.priority for r in prio.robots] == [1, 0]
+    assert [r.start for r in prio.robots] == [r.start for r in scn.robots]
+
+
+def test_paper_three_robots_contents() -> None:
+    scn = load_scenario(SCENARIO_DIR / "paper_three_robots.toml")
+    assert len(scn.robots) == 3
+    for r in scn.robots:
+        assert math.hypot(r.start[0], r.start[1]) == pytest.approx(0.7)
+        assert r.goal == pytest.approx((-r.start[0], -r.start[1]))
+        # heading points at the goal
+        assert math.cos(r.start[2]) == pytest.approx(-r.start[0] / 0.7)
+        assert math.sin(r.start[2]) == pytest.approx(-r.start[1] / 0.7)
+
+
+def test_obstacle_four_contents() -> None:
+    scn = load_scenario(SCENARIO_DIR / "obstacle_four.toml")
+    assert scn.obstacles == (Circle(center=(0.0, 0.0), radius=0.2),)
+    assert scn.duration == 120.0
+    for r in scn.robots:
+        assert r.goal == pytest.approx((-r.start[0], -r.start[1]))
+        assert controlled_point(r.start, 0.04) == pytest.approx(0.71 / 0.75 * np.array(r.start[:2]))
+
+
+@pytest.mark.parametrize(("n", "duration"), [(4, 60.0), (8, 120.0), (16, 240.0)])
+def test_swap_files_match_generator(n: int, duration: float) -> None:
+    from_file = load_scenario(SCENARIO_DIR / f"swap_{n}.toml")
+    generated = parse_scenario(antipodal_swap(n, duration=duration))
+    assert dataclasses.replace(from_file, source="") == dataclasses.replace(generated, source="")
+
+
+# --------------------------------------------------------------------------- scenes
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 5, 8, 12, 16])
+def test_antipodal_swap(n: int) -> None:
+    data = antipodal_swap(n)
+    scn = parse_scenario(data)
+    assert scn.name == f"swap_{n}"
+    check_geometry(scn, footprint_of(scn))
+    for r in scn.robots:
+        assert math.hypot(r.start[0], r.start[1]) == pytest.approx(0.8, abs=1e-8)
+        assert r.goal == pytest.approx((-r.start[0], -r.start[1]), abs=1e-8)
+        direction = (np.array(r.goal) - np.array(r.start[:2])) / 1.6
+        assert (math.cos(r.start[2]), math.sin(r.start[2])) == pytest.approx(tuple(direction), abs=1e-8)
+    angles = sorted(math.atan2(r.start[1], r.start[0]) % (2 * math.pi) for r in scn.robots)
+    gaps = np.diff([*angles, angles[0] + 2 * math.pi])
+    assert gaps == pytest.approx(np.full(n, 2 * math.pi / n), abs=1e-8)
+
+
+def test_antipodal_swap_16_too_tight_is_rejected() -> None:
+    scn = parse_scenario(antipodal_swap(16, radius=0.6))
+    with pytest.raises(ConfigError) as exc:
+        check_geometry(scn, footprint_of(scn))
+    assert exc.value.field == "robots[1].start"
+    assert "closer than their footprints" in exc.value.reason
+
+
+@pytest.mark.parametrize("seed", range(30))
+def test_random_scene_contract(seed: int) -> None:
+    sep, margin, ell = 0.42, 0.16, preset("epuck").lookahead
+    data = random_scene(seed)
+    assert data == random_scene(seed)  # deterministic
+    scn = parse_scenario(data)
+    assert scn.name == f"random_10_seed{seed}"
+    assert len(scn.robots) == 10
+    axles = [np.array(r.start[:2]) for r in scn.robots]
+    points = [controlled_point(r.start, ell) for r in scn.robots]
+    goals = [np.array(r.goal) for r in scn.robots]
+    for group in (axles, points, goals):
+        for p in group:
+            assert np.all(p >= -1.0 + margin - 1e-12) and np.all(p <= 1.0 - margin + 1e-12)
+        for p, q in itertools.combinations(group, 2):
+            assert np.linalg.norm(p - q) >= sep
+    check_geometry(scn, footprint_of(scn))
+
+
+def test_random_scene_seeds_differ_and_bounded() -> None:
+    assert random_scene(0)["robots"] != random_scene(1)["robots"]
+    with pytest.raises(RuntimeError):
+        random_scene(0, n=60, max_tries=5000)
+
+
+@pytest.mark.parametrize("data", [base(), antipodal_swap(5), random_scene(3)], ids=["base", "swap", "random"])
+def test_scene_to_toml_round_trip(data: dict[str, Any], tmp_path: Path) -> None:
+    text = scene_to_toml(data, comment="a comment\nover two lines")
+    assert text.startswith("# a comment\n# over two lines\n")
+    loaded = tomllib.loads(text)
+    assert loaded == data
+    path = tmp_path / "scene.toml"
+    path.write_text(text)
+    assert dataclasses.replace(load_scenario(path), source="<dict>") == parse_scenario(data)
+
+
+# --------------------------------------------------------------------------- parsing
+
+
+def test_base_parses() -> None:
+    scn = parse_scenario(base())
+    assert scn.source == "<dict>"
+    assert scn.robots[1].priority == 0 and scn.robots[1].link == "sim"
+    assert scn.controller.Q == (1.0, 1.0, 1.0, 1.0)
+    assert all(isinstance(q, float) for q in scn.controller.Q)
+    assert scn.simulation.seed == 1
+    assert isinstance(scn.obstacles[1], Polygon)
+    check_geometry(scn, footprint_of(scn))
+
+
+def test_every_controller_field_accepts_its_default() -> None:
+    default = preset("epuck")
+    table: dict[str, Any] = {}
+    for f in dataclasses.fields(ControllerParams):
+        value = getattr(default, f.name)
+        if value is None:
+            continue
+        if f.name == "wheel":
+            table["wheel"] = dataclasses.asdict(value)
+        else:
+            table[f.name] = list(value) if isinstance(value, tuple) else value
+    data = base()
+    data["controller"] = table
+    assert parse_scenario(data).controller == default
+
+
+def test_preset_override() -> None:
+    data = base()
+    data["controller"] = {"preset": "epuck", "Q": [2, 2, 2, 2], "wheel": {"axle": 0.06}}
+    scn = parse_scenario(data, preset_override="paper")
+    paper = preset("paper")
+    assert scn.controller.preset == "paper"
+    assert scn.controller.K_R == paper.K_R and scn.controller.W == paper.W
+    assert scn.controller.Q == (2.0, 2.0, 2.0, 2.0)
+    assert scn.controller.wheel.axle == 0.06
+    assert scn.controller.wheel.wheel_radius == paper.wheel.wheel_radius
+    del data["controller"]
+    assert parse_scenario(data, preset_override="paper").controller == paper
+    assert parse_scenario(data).controller == preset("epuck")
+
+
+def test_config_error_format_and_pickle() -> None:
+    err = ConfigError("controller.R[1]", "expected a number, got 'abc'")
+    assert str(err) == "controller.R[1]: expected a number, got 'abc'"
+    assert isinstance(err, ValueError)
+    again = pickle.loads(pickle.dumps(err))
+    assert (again.field, again.reason) == (err.field, err.reason)
+
+
+Mutation = Callable[[dict[str, Any]], None]
+
+
+def _set(path: str, value: object) -> Mutation:
+    """Mutation setting a dotted path (``robots.1.id``) of the base dict."""
+
+    def apply(d: dict[str, Any]) -> None:
+        *parents, last = path.split(".")
+        node: Any = d
+        for p in parents:
+            node = node[int(p)] if isinstance(node, list) else node.setdefault(p, {})
+        if isinstance(node, list):
+            node[int(last)] = value
+        else:
+            node[last] = value
+
+    return apply
+
+
+def _delete(path: str) -> Mutation:
+    def apply(d: dict[str, Any]) -> None:
+        *parents, last = path.split(".")
+        node: Any = d
+        for p in parents:
+            node = node[int(p)] if isinstance(node, list) else node[p]
+        del node[int(last) if isinstance(node, list) else last]
+
+    return apply
+
+
+BAD_INPUTS: list[tuple[str, Mutation, str]] = [
+    ("unknown top key", _set("durration", 3.0), "durration"),
+    ("unknown arena key", _set("arena.bound", [0, 1, 0, 1]), "arena.bound"),
+    ("unknown controller key", _set("controller.Rr", [1, 1]), "controller.Rr"),
+    ("unknown wheel key", _set("controller.wheel.axel", 0.05), "controller.wheel.axel"),
+    ("unknown simulation key", _set("simulation.sed", 3), "simulation.sed"),
+    ("unknown robot key", _set("robots.1.prio", 1), "robots[1].prio"),
+    ("unknown obstacle key", _set("obstacles.0.box", [0, 1]), "obstacles[0].box"),
+    ("unknown circle key", _set("obstacles.0.circle.centre", [0, 0]), "obstacles[0].circle.centre"),
+    ("missing name", _delete("name"), "name"),
+    ("missing robots", _delete("robots"), "robots"),
+    ("missing bounds", _delete("arena.bounds"), "arena.bounds"),
+    ("missing goal", _delete("robots.0.goal"), "robots[0].goal"),
+    ("no robots", _set("robots", []), "robots"),
+    ("non-numeric weight", _set("controller.R", [20, "abc"]), "controller.R[1]"),
+    ("bool as number", _set("controller.Ts", True), "controller.Ts"),
+    ("NaN duration", _set("duration", math.nan), "duration"),
+    ("inf weight", _set("controller.Q", [1, 1, math.inf, 1]), "controller.Q[2]"),
+    ("Q length", _set("controller.Q", [1, 1, 1]), "controller.Q"),
+    ("W length", _set("controller.W", [0.001]), "controller.W"),
+    ("start length", _set("robots.0.start", [0.0, 0.0]), "robots[0].start"),
+    ("bounds length", _set("arena.bounds", [-1, 1, -1]), "arena.bounds"),
+    ("float horizon", _set("controller.horizon", 2.5), "controller.horizon"),
+    ("bool horizon", _set("controller.horizon", True), "controller.horizon"),
+    ("short horizon", _set("controller.horizon", 1), "controller.horizon"),
+    ("negative epsilon", _set("controller.epsilon", -0.01), "controller.epsilon"),
+    ("zero R", _set("controller.R", [0, 20]), "controller.R[0]"),
+    ("negative Q", _set("controller.Q", [1, -1, 1, 1]), "controller.Q[1]"),
+    ("zero W", _set("controller.W", [0, 0]), "controller.W"),
+    ("priority_share 1", _set("controller.priority_share", 1.0), "controller.priority_share"),
+    ("penalty not bool", _set("controller.penalty", "yes"), "controller.penalty"),
+    ("negative lookahead", _set("controller.lookahead", -0.01), "controller.lookahead"),
+    ("zero budget", _set("controller.solve_time_budget", 0.0), "controller.solve_time_budget"),
+    ("unknown preset", _set("controller.preset", "fast"), "controller.preset"),
+    ("zero duration", _set("duration", 0.0), "duration"),
+    ("bad bounds order", _set("arena.bounds", [1, -1, -1, 1]), "arena.bounds"),
+    ("unknown disturbance", _set("simulation.disturbance", "gaussian"), "simulation.disturbance"),
+    ("unknown plant", _set("simulation.plant", "bicycle"), "simulation.plant"),
+    ("fraction 0", _set("simulation.disturbance_fraction", 0.0), "simulation.disturbance_fraction"),
+    ("fraction > 1", _set("simulation.disturbance_fraction", 1.5), "simulation.disturbance_fraction"),
+    ("negative seed", _set("simulation.seed", -1), "simulation.seed"),
+    ("duplicate id", _set("robots.1.id", "r1"), "robots[1].id"),
+    ("bad id", _set("robots.0.id", "r 1"), "robots[0].id"),
+    ("empty id", _set("robots.0.id", ""), "robots[0].id"),
+    ("float priority", _set("robots.0.priority", 2.5), "robots[0].priority"),
+    (
+        "non-convex polygon",
+        _set("obstacles.1.polygon", [[0, 0], [1, 0], [0.2, 0.2], [0, 1]]),
+        "obstacles[1].polygon",
+    ),
+    (
+        "self-intersecting polygon",
+        _set("obstacles.1.polygon", [[0, 0], [1, 0], [0, 1], [1, 1]]),
+        "obstacles[1].polygon",
+    ),
+    (
+        "pentagram",
+        _set(
+            "obstacles.1.polygon",
+            [[math.cos(a), math.sin(a)] for a in (2 * math.pi * 2 * k / 5 for k in range(5))],
+        ),
+        "obstacles[1].polygon",
+    ),
+    ("two-vertex polygon", _set("obstacles.1.polygon", [[0, 0], [1, 0]]), "obstacles[1].polygon"),
+    (
+        "repeated vertex",
+        _set("obstacles.1.polygon", [[0, 0], [1, 0], [1, 0], [0, 1]]),
+        "obstacles[1].polygon",
+    ),
+    ("collinear polygon", _set("obstacles.1.polygon", [[0, 0], [1, 0], [2, 0]]), "obstacles[1].polygon"),
+    (
+        "bad polygon vertex",
+        _set("obstacles.1.polygon", [[0, 0], [1, "x"], [0, 1]]),
+        "obstacles[1].polygon[1][1]",
+    ),
+    ("circle and polygon", _set("obstacles.0.polygon", [[0, 0], [1, 0], [0, 1]]), "obstacles[0]"),
+    ("zero radius", _set("obstacles.0.circle.radius", 0.0), "obstacles[0].circle.radius"),
+    ("controller not a table", _set("controller", 3), "controller"),
+]
+
+
+@pytest.mark.parametrize(("mutate", "field"), [c[1:] for c in BAD_INPUTS], ids=[c[0] for c in BAD_INPUTS])
+def test_bad_input(mutate: Mutation, field: str, tmp_path: Path) -> None:
+    data = copy.deepcopy(base())
+    mutate(data)
+    with pytest.raises(ConfigError) as exc:
+        parse_scenario(data)
+    assert exc.value.field == field
+    assert str(exc.value) == f"{field}: {exc.value.reason}"
+    # The same through a TOML file.
+    path = tmp_path / "bad.toml"
+    path.write_text(scene_to_toml(data))
+    with pytest.raises(ConfigError) as exc2:
+        load_scenario(path)
+    assert exc2.value.field == field
+
+
+def test_messages() -> None:
+    data = base()
+    data["controller"]["Rr"] = [1, 1]
+    with pytest.raises(
+        ConfigError, match=r"^controller\.Rr: unknown key \(did you mean 'R'\? expected one of "
+    ):
+        parse_scenario(data)
+    data = base()
+    data["controller"]["R"] = [20, "abc"]
+    with pytest.raises(ConfigError) as exc:
+        parse_scenario(data)
+    assert str(exc.value) == "controller.R[1]: expected a number, got 'abc'"
+    for bad, words in (
+        ([[0, 0], [1, 0], [0.2, 0.2], [0, 1]], "not convex: the boundary turns the other way at vertex 2"),
+        ([[0, 0], [1, 0], [0, 1], [1, 1]], "not convex"),  # bow tie: zero net area, not "collinear"
+        ([[0, 0], [1, 0], [2, 0]], "collinear"),
+    ):
+        data = base()
+        data["obstacles"][1]["polygon"] = bad
+        with pytest.raises(ConfigError) as exc:
+            parse_scenario(data)
+        assert words in exc.value.reason
+
+
+BAD_GEOMETRY: list[tuple[str, Mutation, str, str]] = [
+    (
+        "start inside obstacle",
+        _set("robots.0.start", [0.0, 0.6, 0.0]),
+        "robots[0].start",
+        "inside obstacles[0]",
+    ),
+    ("start near obstacle", _set("robots.0.start", [-0.1, 0.4, 0.0]), "robots[0].start", "from obstacles[0]"),
+    ("goal inside polygon", _set("robots.1.goal", [0.4, -0.6]), "robots[1].goal", "inside obstacles[1]"),
+    (
+        "starts closer than footprints",
+        _set("robots.1.start", [-0.4, 0.0, 0.0]),
+        "robots[1].start",
+        "closer than their footprints",
+    ),
+    (
+        "goals closer than footprints",
+        _set("robots.1.goal", [0.5, 0.1]),
+        "robots[1].goal",
+        "closer than their",
+    ),
+    ("goal outside arena", _set("robots.0.goal", [1.2, 0.0]), "robots[0].goal", "outside the arena"),
+    ("goal near wall", _set("robots.0.goal", [0.9, 0.0]), "robots[0].goal", "from the arena wall x = 1"),
+    (
+        "start near wall",
+        _set("robots.0.start", [-0.95, 0.0, math.pi]),
+        "robots[0].start",
+        "arena wall x = -1",
+    ),
+]
+
+
+@pytest.mark.parametrize(
+    ("mutate", "field", "words"), [c[1:] for c in BAD_GEOMETRY], ids=[c[0] for c in BAD_GEOMETRY]
+)
+def test_bad_geometry(mutate: Mutation, field: str, words: str) -> None:
+    data = copy.deepcopy(base())
+    mutate(data)
+    scn = parse_scenario(data)
+    with pytest.raises(ConfigError) as exc:
+        check_geometry(scn, footprint_of(scn))
+    assert exc.value.field == field
+    assert words in exc.value.reason
+    assert "m" in exc.value.reason
+
+
+def test_geometry_message_units() -> None:
+    data = base()
+    data["obstacles"] = [{"circle": {"center": [0.0, 0.0], "radius": 0.05}}]
+    data["robots"][0]["start"] = [0.06, 0.0, 0.0]  # controlled point (0.10, 0.00), 0.05 m from the disc
+    scn = parse_scenario(data)
+    with pytest.raises(ConfigError) as exc:
+        check_geometry(scn, 0.134)
+    assert str(exc.value) == (
+        "robots[0].start: controlled point (0.10, 0.00) is 0.050 m from obstacles[0], "
+        "less than the footprint radius 0.134 m"
+    )
+
+
+def test_toml_syntax_error(tmp_path: Path) -> None:
+    path = tmp_path / "broken.toml"
+    path.write_text('name = "x"\nduration = 60.0\n[arena\nbounds = [0, 1, 0, 1]\n')
+    with pytest.raises(ConfigError) as exc:
+        load_scenario(path)
+    assert exc.value.field == "file"
+    assert str(path) in exc.value.reason and "line 3" in exc.value.reason
+
+
+def test_missing_file(tmp_path: Path) -> None:
+    path = tmp_path / "nope.toml"
+    with pytest.raises(ConfigError) as exc:
+        load_scenario(path)
+    assert exc.value.field == "file"
+    assert str(path) in exc.value.reason
+
+
+def test_directory_and_non_utf8(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError) as exc:
+        load_scenario(tmp_path)
+    assert exc.value.field == "file"
+    path = tmp_path / "latin1.toml"
+    path.write_bytes(b'name = "\xe9"\n')
+    with pytest.raises(ConfigError) as exc:
+        load_scenario(path)
+    assert exc.value.field == "file"
+
+
+def test_bad_preset_override() -> None:
+    with pytest.raises(ConfigError) as exc:
+        parse_scenario(base(), preset_override="turbo")
+    assert exc.value.field == "controller.preset"
+
+
+def test_toml_nan_literal(tmp_path: Path) -> None:
+    path = tmp_path / "nan.toml"
+    path.write_text(scene_to_toml(base()).replace("duration = 30.0", "duration = nan"))
+    with pytest.raises(ConfigError) as exc:
+        load_scenario(path)
+    assert exc.value.field == "duration"
+
+
+# --------------------------------------------------------------------------- obstacle geometry
+
+
+def test_circle_distance() -> None:
+    c = Circle(center=(1.0, 2.0), radius=0.5)
+    assert c.distance((1.0, 3.0)) == pytest.approx(0.5)
+    assert c.distance((1.0, 2.1)) == 0.0
+    assert c.closest_point((4.0, 2.0)) == pytest.approx([1.5, 2.0])
+    assert c.closest_point((1.0, 2.2)) == pytest.approx([1.0, 2.5])
+    assert np.linalg.norm(c.closest_point((1.0, 2.0)) - np.array(c.center)) == pytest.approx(0.5)
+
+
+def test_polygon_stored_ccw_and_distance() -> None:
+    data = base()
+    # Clockwise square with a collinear midpoint on one edge.
+    data["obstacles"] = [{"polygon": [[0, 0], [0, 1], [1, 1], [1, 0.5], [1, 0]]}]
+    (poly,) = parse_scenario(data).obstacles
+    assert isinstance(poly, Polygon)
+    v = np.array(poly.vertices)
+    area2 = np.sum(v[:, 0] * np.roll(v[:, 1], -1) - np.roll(v[:, 0], -1) * v[:, 1])
+    assert area2 > 0
+    assert len(poly.vertices) == 4
+    assert set(poly.vertices) == {(0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0)}
+    assert poly.distance((2.0, 0.5)) == pytest.approx(1.0)
+    assert poly.distance((2.0, 2.0)) == pytest.approx(math.sqrt(2.0))
+    assert poly.distance((0.5, 0.5)) == 0.0
+    assert poly.distance((1.0, 0.3)) == 0.0
+    assert poly.closest_point((2.0, 2.0)) == pytest.approx([1.0, 1.0])
+    assert poly.closest_point((0.5, -1.0)) == pytest.approx([0.5, 0.0])
+    assert poly.closest_point((0.9, 0.5)) == pytest.approx([1.0, 0.5])  # inside: nearest boundary point
+
+
+def test_controlled_point() -> None:
+    assert controlled_point((1.0, 2.0, math.pi / 2), 0.04) == pytest.approx([1.0, 2.04])
+    assert controlled_point((1.0, 2.0, 0.3), 0.0) == pytest.approx([1.0, 2.0])
