@@ -40,6 +40,10 @@ from agent.qp import StepData, TubeQP
 from agent.sets import Array
 from agent.tube import TubeDesign
 
+TUBE_TOL = 2e-5
+"""Tolerance of the tube check x − x̂ ∈ Z [m, m/s]: twice ProxSuite's eps_abs,
+since the solver may place x̂ on the boundary of Z up to its tolerance."""
+
 PARKED_RADIUS = 0.05
 """A robot that has reached its goal counts as parked within this distance of it [m]."""
 
@@ -250,9 +254,13 @@ class TubeMPC:
             xi = cand
             fallback = True
         if not fallback:
-            xi[qp.iy] = self._repair(xi[qp.iy], data)
+            y_sol = xi[qp.iy].copy()
+            xi[qp.iy] = self._repair(y_sol, data)
+            # Keep the terminal equality exact: x̂_{t+N} moves by B·K_r·E·Δȳ
+            # when v̂_{t+N−1} moves by K_r·E·Δȳ, which is what x̃_{t+N}(ȳ) needs.
+            xi[qp.iv.stop - 2 : qp.iv.stop] += design.K_r @ design.E @ (xi[qp.iy] - y_sol)
         x_hat = xi[0:4]
-        tube_ok = design.contains_error(x - x_hat, tol=1e-7)
+        tube_ok = design.contains_error(x - x_hat, tol=TUBE_TOL)
         if not tube_ok:
             ctr.tube_exits += 1
         a = xi[4:6] + design.K @ (x - x_hat)

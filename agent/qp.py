@@ -297,3 +297,28 @@ class TubeQP:
             qp.results.y[:] = 0.0
             qp.results.z[:] = 0.0
         return SolveResult(status=status, ok=ok, xi=xi, iterations=int(info.iter), solve_time=dt)
+
+
+def daqp_solve(prob: dict[str, Array]) -> tuple[Array | None, int]:
+    """Solve ``prob`` with DAQP, a dual active-set solver (DESIGN §8).
+
+    Used as the second solver in cross-checks and as the benchmark yardstick;
+    needs the optional ``daqp`` package (``pip install -e '.[test]'``).
+    Returns (ξ (n,) or None, DAQP exit flag; 1 means optimal)."""
+    import daqp
+
+    n = prob["H"].shape[0]
+    A = np.vstack([prob["A"], prob["C"]])
+    upper = np.concatenate([prob["u_box"], prob["b"], prob["u"]])
+    lower = np.concatenate([prob["l_box"], prob["b"], prob["l"]])
+    sense = np.zeros(upper.size, dtype=np.int32)
+    sense[n : n + prob["A"].shape[0]] = 5  # equality rows
+    x, _, flag, _ = daqp.solve(
+        np.ascontiguousarray(prob["H"]),
+        np.ascontiguousarray(prob["g"]),
+        np.ascontiguousarray(A),
+        np.ascontiguousarray(upper),
+        np.ascontiguousarray(lower),
+        sense,
+    )
+    return (np.array(x) if flag == 1 else None), int(flag)

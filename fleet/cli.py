@@ -1,0 +1,158 @@
+"""The ``fleet`` command.
+
+* ``fleet design [SCENARIO.toml] [--preset paper|epuck] [--json]`` prints the
+  tube design and exits 1 if it is inadmissible.
+* ``fleet simulate SCENARIO.toml [--out DIR] [--seed N]`` runs the in-process
+  harness, writes ``DIR/summary.json`` and exits 0 only if the run completed
+  with zero collisions and every robot reached its goal.
+
+Bad input gets one line naming the field and the reason, and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+from agent.params import PRESETS, preset
+from agent.sets import SetComputationError
+from agent.tube import synthesize
+from fleet.scenario import ConfigError, check_geometry, load_scenario
+
+DEFAULT_ARENA = (-1.0, 1.0, -1.0, 1.0)
+EXIT_FAIL = 1
+EXIT_BAD_INPUT = 2
+
+
+def _finite(obj: Any) -> Any:
+    """Replace non-finite floats by None so the output is strict JSON."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_finite(v) for v in obj]
+    return obj
+
+
+def _bad(msg: str) -> int:
+    print(f"fleet: error: {msg}", file=sys.stderr)
+    return EXIT_BAD_INPUT
+
+
+def cmd_design(args: argparse.Namespace) -> int:
+    if args.scenario:
+        scn = load_scenario(args.scenario, preset_override=args.preset)
+        params, arena, name = scn.controller, scn.arena, scn.name
+    else:
+        params, arena, name = preset(args.preset or "epuck"), DEFAULT_ARENA, "(no scenario)"
+    try:
+        design = synthesize(params, arena)
+    except SetComputationError as e:
+        return _bad(f"controller: {e}")
+    s = design.summary()
+    s["scenario"] = name
+    s["arena"] = list(arena)
+    if args.json:
+        print(json.dumps(_finite(s), indent=2, ensure_ascii=False))
+    else:
+        zh, ph = s["Z_half_widths"], s["Psi_half_widths"]
+        tight = s["tightened"]
+        lines = [
+            f"tube design for {name} (preset {params.preset}), Ts = {params.Ts} s, N = {params.horizon}",
+            f"  K (u = v̂ + K(x − x̂)), per axis  [{design.K[0, 0]:.4f}, {design.K[0, 1]:.4f}]"
+            f"   ρ(A+BK) = {s['spectral_radius_A_K']:.4f}",
+            f"  Z   half-widths  {zh['position_m'] * 100:.2f} cm, {zh['velocity_m_s'] * 100:.2f} cm/s"
+            f"   ({design.Z.s} terms, α = {design.Z.alpha:.2e}, error ≤ {design.Z.error_bound:.1e},"
+            f" {design.Z_F.shape[0]} facets)",
+            f"  KZ  {design.KZ[0]:.4f} m/s²",
+            f"  Ψ   half-widths  {ph['position_m'] * 100:.2f} cm, {ph['velocity_m_s'] * 100:.2f} cm/s"
+            f"   ({design.Psi.s} terms)",
+            f"  tightened: |v| ≤ {tight['velocity_m_s']:.4f} m/s, |a| ≤ {tight['acceleration_m_s2']:.4f} m/s²,"
+            f" walls − {tight['position_margin_m']:.4f} m",
+            f"  ε = {params.epsilon * 1000:.2f} mm/step, δ = {params.delta * 100:.2f} cm,"
+            f" ρ = {design.rho * 100:.2f} cm, footprint r = {design.footprint:.4f} m",
+        ]
+        if design.admissible:
+            lines.append("  admissible: yes")
+        else:
+            lines.append("  admissible: NO")
+            lines += [f"    - {f}" for f in design.failures]
+        print("\n".join(lines))
+    return 0 if design.admissible else EXIT_FAIL
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    from fleet.harness import run
+
+    scn = load_scenario(args.scenario)
+    try:
+        design = synthesize(scn.controller, scn.arena)
+    except SetComputationError as e:
+        return _bad(f"controller: {e}")
+    if not design.admissible:
+        return _bad(f"controller: inadmissible tube design: {'; '.join(design.failures)}")
+    check_geometry(scn, design.footprint)
+    out = Path(args.out) if args.out else Path("out") / scn.name
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        return _bad(f"--out: cannot create {out}: {e.strerror}")
+    result = run(scn, seed=args.seed, design=design)
+    summary = result.summary()
+    summary["seed"] = scn.simulation.seed if args.seed is None else args.seed
+    (out / "summary.json").write_text(json.dumps(_finite(summary), indent=2) + "\n")
+    ok = summary["collisions"] == 0 and summary["all_goals_reached"]
+    st = summary["step_time_ms"]
+    print(
+        f"{scn.name}: {summary['steps']} steps, {summary['sim_time_s']:.1f} s simulated in "
+        f"{summary['wall_time_s']:.1f} s; collisions {summary['collisions']}, min distance "
+        f"{summary['min_distance_m']:.3f} m, goals reached "
+        f"{sum(r['reached_goal'] for r in summary['robots'].values())}/{len(summary['robots'])}; "
+        f"step time p50 {st['p50']:.2f} ms p99 {st['p99']:.2f} ms"
+    )
+    print(f"summary: {out / 'summary.json'}")
+    if not ok:
+        missing = [rid for rid, r in summary["robots"].items() if not r["reached_goal"]]
+        why = []
+        if summary["collisions"]:
+            why.append(f"{summary['collisions']} collision samples")
+        if missing:
+            why.append(f"goal not reached by {', '.join(missing)}")
+        print(f"fleet: run failed: {'; '.join(why)}", file=sys.stderr)
+    return 0 if ok else EXIT_FAIL
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="fleet", description="Distributed robust tube MPC for E-puck fleets")
+    sub = ap.add_subparsers(dest="command", required=True)
+    d = sub.add_parser("design", help="print the tube design of a scenario or preset")
+    d.add_argument("scenario", nargs="?", help="scenario TOML file")
+    d.add_argument("--preset", choices=PRESETS, help="controller preset (overrides the scenario's)")
+    d.add_argument("--json", action="store_true", help="machine-readable output")
+    d.set_defaults(func=cmd_design)
+    s = sub.add_parser("simulate", help="run a scenario in the in-process closed-loop harness")
+    s.add_argument("scenario", help="scenario TOML file")
+    s.add_argument("--out", help="output directory (default out/<scenario name>)")
+    s.add_argument("--seed", type=int, help="override the scenario's [simulation] seed")
+    s.set_defaults(func=cmd_simulate)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args))
+    except ConfigError as e:
+        return _bad(str(e))
+    except KeyboardInterrupt:
+        print("fleet: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
