@@ -184,6 +184,7 @@ class TubeMPC:
             priority=self.priority,
             rank=self.rank,
             target=np.asarray(self.target, dtype=float).copy(),
+            goal=self.goal.copy(),
             phase=self.phase,
         )
 

@@ -65,6 +65,8 @@ class NeighbourInfo:
     """Tie-break order among equal priorities (lower goes first)."""
     target: Array | None = None
     """j's current navigation waypoint (2,) [m], if known."""
+    goal: Array | None = None
+    """j's goal (2,) [m], if known."""
     phase: int = 0
     """Precedence class: 0 under way (goal never reached), 1 returning (goal
     reached once, now displaced), 2 parked (at its goal).  Lower goes first."""
@@ -276,8 +278,9 @@ class Navigator:
     """Chooses the target of the goal term (shaping only; see module docstring).
 
     Every ``replan_steps`` it plans a grid path to the goal around walls and
-    static obstacles (hard), parked robots (expensive) and moving robots
-    (cheaper), and follows a carrot point ``lookahead`` ahead.  On top of
+    static obstacles (hard), parked robots (expensive) and the moving robots
+    that go first (cheaper), ignoring those that go after it, and follows a
+    carrot point ``lookahead`` ahead.  On top of
     that, the yielding rule: a robot inside the corridor of a nearby robot
     that goes first (the segment to that robot's carrot, widened by
     r_i + r_j + ``corridor_margin``) moves to the best free point out of it.
@@ -333,10 +336,17 @@ class Navigator:
         g = self._grid
         assert g is not None
         cost = g.static.copy()
+        me = (self.phase, *order_key(self.priority, self.rank))
         for nb in neighbours:
+            if nb.phase == PARKED:
+                extra = self.parked_cost
+            elif (nb.phase, *order_key(nb.priority, nb.rank)) < me:
+                extra = self.soft_cost  # goes first: plan around it
+            else:
+                continue  # goes after this robot: it yields, so plan through it
             R = self.footprint + nb.footprint
             d = np.linalg.norm(g.centres - nb.last_point, axis=1)
-            cost[d < R] += self.parked_cost if nb.phase == PARKED else self.soft_cost
+            cost[d < R] += extra
         self._pred = g.field(goal, cost)
         self._since_plan = 0
 

@@ -28,7 +28,7 @@ import numpy as np
 import scipy.linalg
 
 from agent.params import ControllerParams
-from agent.sets import Array, MRPIApprox, Zonotope, mrpi_outer
+from agent.sets import Array, MRPIApprox, SetComputationError, Zonotope, mrpi_outer
 
 
 class InadmissibleDesign(ValueError):
@@ -58,6 +58,17 @@ def dlqr_gain(A: Array, B: Array, Q: Array, R: Array) -> Array:
     """Infinite-horizon discrete LQR gain L with u = −L x (so A − BL is Schur)."""
     P = scipy.linalg.solve_discrete_are(A, B, Q, R)
     return np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
+
+
+def _gain(A: Array, B: Array, Q: tuple[float, ...], R: tuple[float, ...], names: str) -> Array:
+    """LQR gain, or a SetComputationError naming the weights if the Riccati equation has no solution."""
+    try:
+        L = dlqr_gain(A, B, np.diag(Q), np.diag(R))
+    except (ValueError, np.linalg.LinAlgError) as e:
+        raise SetComputationError(f"{names}: no stabilising LQR gain for these weights ({e})") from None
+    if not np.all(np.isfinite(L)) or max(abs(np.linalg.eigvals(A - B @ L))) >= 1.0:
+        raise SetComputationError(f"{names}: the LQR gain for these weights does not stabilise the model")
+    return L
 
 
 def _block_halfspaces(Zn: Zonotope, blocks: list[list[int]]) -> tuple[Array, Array]:
@@ -186,8 +197,8 @@ def synthesize(
     p = params
     A, B, C = double_integrator(p.Ts)
     E = position_to_rest_state()
-    K = -dlqr_gain(A, B, np.diag(p.K_Q), np.diag(p.K_R))
-    K_r = dlqr_gain(A, B, np.diag(p.ref_Q), np.diag(p.ref_R))
+    K = -_gain(A, B, p.K_Q, p.K_R, "K_Q/K_R")
+    K_r = _gain(A, B, p.ref_Q, p.ref_R, "ref_Q/ref_R")
     AK = A + B @ K
     AR = A - B @ K_r
 

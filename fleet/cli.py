@@ -54,7 +54,7 @@ def cmd_design(args: argparse.Namespace) -> int:
         design = synthesize(params, arena)
     except SetComputationError as e:
         return _bad(f"controller: {e}")
-    s = design.summary()
+    s: dict[str, Any] = design.summary()
     s["scenario"] = name
     s["arena"] = list(arena)
     if args.json:
@@ -72,8 +72,8 @@ def cmd_design(args: argparse.Namespace) -> int:
             f"  KZ  {design.KZ[0]:.4f} m/s²",
             f"  Ψ   half-widths  {ph['position_m'] * 100:.2f} cm, {ph['velocity_m_s'] * 100:.2f} cm/s"
             f"   ({design.Psi.s} terms)",
-            f"  tightened: |v| ≤ {tight['velocity_m_s']:.4f} m/s, |a| ≤ {tight['acceleration_m_s2']:.4f} m/s²,"
-            f" walls − {tight['position_margin_m']:.4f} m",
+            f"  tightened: |v| ≤ {tight['velocity_m_s']:.4f} m/s,"
+            f" |a| ≤ {tight['acceleration_m_s2']:.4f} m/s², walls − {tight['position_margin_m']:.4f} m",
             f"  ε = {params.epsilon * 1000:.2f} mm/step, δ = {params.delta * 100:.2f} cm,"
             f" ρ = {design.rho * 100:.2f} cm, footprint r = {design.footprint:.4f} m",
         ]

@@ -1,0 +1,408 @@
+"""The command-line contract of ``fleet`` (fleet/cli.py), exercised through a real subprocess.
+
+Exit codes: 0 success, 1 an inadmissible design or a failed run, 2 bad input with one
+``fleet: error: <field>: <reason>`` line on stderr and no traceback.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from agent.params import preset
+
+ROOT = Path(__file__).resolve().parent.parent
+SCENARIOS = ROOT / "scenarios"
+TIMEOUT = 300  # generous: a two-robot run takes a few seconds
+
+
+def fleet(*args: str | Path, timeout: float = TIMEOUT) -> subprocess.CompletedProcess[str]:
+    env = dict(os.environ, PYTHONIOENCODING="utf-8", OMP_NUM_THREADS="1")
+    return subprocess.run(
+        [sys.executable, "-m", "fleet.cli", *map(str, args)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        encoding="utf-8",
+        timeout=timeout,
+        env=env,
+    )
+
+
+def _reject_constant(name: str) -> Any:
+    raise ValueError(f"non-standard JSON constant {name}")
+
+
+def strict_json(text: str) -> Any:
+    """Parse JSON, refusing NaN / Infinity (not JSON, though Python writes them by default)."""
+    return json.loads(text, parse_constant=_reject_constant)
+
+
+def no_traceback(proc: subprocess.CompletedProcess[str]) -> None:
+    assert "Traceback" not in proc.stderr, proc.stderr
+    assert "Traceback" not in proc.stdout, proc.stdout
+
+
+# --------------------------------------------------------------------------- fleet design
+
+
+def test_design_default_is_admissible():
+    proc = fleet("design")
+    no_traceback(proc)
+    assert proc.returncode == 0, proc.stderr
+    assert "admissible: yes" in proc.stdout
+    assert "admissible: NO" not in proc.stdout
+
+
+def test_design_json_keys_and_consistency():
+    proc = fleet("design", "--json")
+    no_traceback(proc)
+    assert proc.returncode == 0, proc.stderr
+    d = strict_json(proc.stdout)
+    for key in (
+        "K",
+        "Z_half_widths",
+        "Psi_half_widths",
+        "KZ_m_s2",
+        "tightened",
+        "epsilon_m",
+        "footprint_radius_m",
+        "admissible",
+        "failures",
+    ):
+        assert key in d, key
+    assert d["admissible"] is True
+    assert d["failures"] == []
+    p = preset("epuck")
+    zh, ph, tight = d["Z_half_widths"], d["Psi_half_widths"], d["tightened"]
+    # X̂ = X ⊖ Z, Û = U ⊖ KZ: bound minus support.
+    assert tight["velocity_m_s"] == pytest.approx(p.v_max - zh["velocity_m_s"], abs=1e-9)
+    assert tight["acceleration_m_s2"] == pytest.approx(p.a_max - d["KZ_m_s2"][0], abs=1e-9)
+    assert 0 < tight["velocity_m_s"] < p.v_max
+    assert 0 < tight["acceleration_m_s2"] < p.a_max
+    assert d["epsilon_m"] == pytest.approx(p.epsilon, rel=1e-12)
+    # A usable tube (DESIGN §2): centimetre-sized, far from the paper's 0.35 m.
+    assert 0 < zh["position_m"] < 0.03
+    assert 0 < zh["velocity_m_s"] < p.v_max
+    assert 0 < ph["position_m"] and 0 < ph["velocity_m_s"] < tight["velocity_m_s"]
+    assert len(d["KZ_m_s2"]) == 2 and all(k > 0 for k in d["KZ_m_s2"])
+    # K is a 2×4 stabilising gain of the double integrator at Ts: ρ(A + BK) < 1.
+    K = d["K"]
+    assert len(K) == 2 and all(len(row) == 4 for row in K)
+    Ts = p.Ts
+    for row, (i, j) in zip(K, ((0, 1), (2, 3)), strict=True):
+        k1, k2 = row[i], row[j]
+        # Per axis A_K = [[1 + Ts²/2 k1, Ts + Ts²/2 k2], [Ts k1, 1 + Ts k2]].
+        a11, a12, a21, a22 = 1 + Ts * Ts / 2 * k1, Ts + Ts * Ts / 2 * k2, Ts * k1, 1 + Ts * k2
+        tr, det = a11 + a22, a11 * a22 - a12 * a21
+        disc = tr * tr - 4 * det
+        rho = (abs(tr) + math.sqrt(disc)) / 2 if disc >= 0 else math.sqrt(det)
+        assert rho < 1
+    # The footprint covers the body, the look-ahead offset and at least ε.
+    assert d["footprint_radius_m"] >= p.robot_radius + p.lookahead + p.epsilon
+    assert d["footprint_radius_m"] < 0.5
+
+
+def test_design_paper_preset_fails_and_says_why():
+    proc = fleet("design", "--preset", "paper")
+    no_traceback(proc)
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert "admissible: NO" in proc.stdout
+    # Names the failing bound and a negative amount on the same line.
+    lines = [ln for ln in proc.stdout.splitlines() if "velocity" in ln and re.search(r"= -\d", ln)]
+    assert lines, proc.stdout
+
+    proc = fleet("design", "--preset", "paper", "--json")
+    no_traceback(proc)
+    assert proc.returncode == 1
+    d = strict_json(proc.stdout)
+    assert d["admissible"] is False
+    assert d["failures"]
+    assert any("velocity" in f for f in d["failures"])
+    # DESIGN §2: the paper's K with W = ±1 cm gives a ≈ 0.35 m mRPI position half-width.
+    assert 0.30 <= d["Z_half_widths"]["position_m"] <= 0.40
+    assert d["tightened"]["velocity_m_s"] < 0
+    assert d["tightened"]["velocity_m_s"] == pytest.approx(
+        preset("paper").v_max - d["Z_half_widths"]["velocity_m_s"], abs=1e-9
+    )
+
+
+def test_design_of_a_scenario_reports_its_arena(tmp_path):
+    proc = fleet("design", SCENARIOS / "paper_three_robots.toml", "--json")
+    no_traceback(proc)
+    assert proc.returncode == 0, proc.stderr
+    d = strict_json(proc.stdout)
+    assert d["scenario"] == "paper_three_robots"
+    assert d["arena"] == [-1.0, 1.0, -1.0, 1.0]
+    assert d["admissible"] is True
+
+    # A different arena is reported as given (not a default).
+    f = tmp_path / "wide.toml"
+    f.write_text(scenario_toml(arena=(-1.5, 1.25, -1.2, 1.1), name="wide"))
+    proc = fleet("design", f, "--json")
+    no_traceback(proc)
+    assert proc.returncode == 0, proc.stderr
+    d = strict_json(proc.stdout)
+    assert d["scenario"] == "wide"
+    assert d["arena"] == [-1.5, 1.25, -1.2, 1.1]
+
+
+def test_design_scenario_preset_override(tmp_path):
+    f = tmp_path / "s.toml"
+    f.write_text(scenario_toml())
+    proc = fleet("design", f, "--preset", "paper", "--json")
+    no_traceback(proc)
+    assert proc.returncode == 1
+    d = strict_json(proc.stdout)
+    assert d["preset"] == "paper"
+    assert d["admissible"] is False
+
+
+# --------------------------------------------------------------------------- fleet simulate
+
+RUN_KEYS = (
+    "scenario",
+    "completed",
+    "steps",
+    "sim_time_s",
+    "wall_time_s",
+    "min_distance_m",
+    "collisions",
+    "min_reference_separation_m",
+    "required_reference_separation_m",
+    "obstacle_violations",
+    "arena_violations",
+)
+ROBOT_KEYS = (
+    "reached_goal",
+    "time_to_goal_s",
+    "final_error_m",
+    "qp_solves",
+    "qp_failures",
+    "fallbacks",
+    "tube_exits",
+    "step_time_ms",
+)
+
+
+def simulate(scenario: Path, out: Path, *extra: str) -> tuple[subprocess.CompletedProcess[str], dict]:
+    proc = fleet("simulate", scenario, "--out", out, *extra)
+    no_traceback(proc)
+    summary_file = out / "summary.json"
+    summary = strict_json(summary_file.read_text()) if summary_file.exists() else {}
+    return proc, summary
+
+
+@pytest.fixture(scope="module")
+def two_robot_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("two")
+    return simulate(SCENARIOS / "paper_two_robots.toml", out)
+
+
+def test_simulate_two_robots_succeeds_with_full_summary(two_robot_run):
+    proc, s = two_robot_run
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "fleet: error" not in proc.stderr
+    for key in RUN_KEYS:
+        assert key in s, key
+    assert s["scenario"] == "paper_two_robots"
+    assert s["completed"] is True
+    assert s["collisions"] == 0
+    assert s["obstacle_violations"] == 0
+    assert s["arena_violations"] == 0
+    assert s["steps"] > 0
+    assert s["sim_time_s"] == pytest.approx(s["steps"] * preset("epuck").Ts, rel=1e-9)
+    assert s["sim_time_s"] <= 60.0 + 1e-9  # the scenario's duration
+    assert s["wall_time_s"] > 0
+    # The coordination guarantee (DESIGN §5): committed references at least R apart, so the
+    # bodies never touch.
+    assert s["min_reference_separation_m"] >= s["required_reference_separation_m"] - 1e-9
+    assert s["required_reference_separation_m"] > 2 * preset("epuck").robot_radius
+    assert s["min_distance_m"] > 2 * preset("epuck").robot_radius
+    assert set(s["robots"]) == {"r1", "r2"}
+    for rid, r in s["robots"].items():
+        for key in ROBOT_KEYS:
+            assert key in r, (rid, key)
+        assert r["reached_goal"] is True, rid
+        assert r["final_error_m"] <= 0.02
+        assert 0 < r["time_to_goal_s"] <= s["sim_time_s"] + 1e-9
+        assert r["qp_solves"] >= s["steps"] * 0.5
+        assert r["qp_failures"] >= 0 and r["fallbacks"] >= 0
+        assert r["tube_exits"] == 0
+        st = r["step_time_ms"]
+        assert set(st) >= {"p50", "p99", "max"}
+        assert 0 <= st["p50"] <= st["p99"] <= st["max"]
+    assert "summary.json" in proc.stdout
+
+
+def test_simulate_seed_is_recorded_and_deterministic(tmp_path, two_robot_run):
+    _, default = two_robot_run
+    assert default["seed"] == 0  # the scenario's [simulation] seed
+    runs = []
+    for k in range(2):
+        proc, s = simulate(SCENARIOS / "paper_two_robots.toml", tmp_path / f"seed{k}", "--seed", "7")
+        assert proc.returncode == 0, proc.stdout + proc.stderr
+        assert s["seed"] == 7
+        assert s["collisions"] == 0
+        assert all(r["reached_goal"] for r in s["robots"].values())
+        runs.append(s)
+    a, b = runs
+
+    def figures(s: dict) -> tuple:
+        return (
+            s["steps"],
+            s["min_distance_m"],
+            s["min_reference_separation_m"],
+            tuple((rid, r["final_error_m"], r["time_to_goal_s"]) for rid, r in sorted(s["robots"].items())),
+        )
+
+    assert figures(a) == figures(b)
+    # The seed really drives the disturbances: another seed gives another trajectory.
+    assert figures(a) != figures(default)
+
+
+def test_simulate_too_short_fails_and_names_robots(tmp_path):
+    f = tmp_path / "short.toml"
+    f.write_text(scenario_toml(duration=2.0, name="short"))
+    out = tmp_path / "out"
+    proc, s = simulate(f, out)
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert "r1" in proc.stderr and "r2" in proc.stderr
+    assert "goal" in proc.stderr
+    # The summary is still written, and agrees.
+    assert s["steps"] == 20
+    assert s["collisions"] == 0
+    assert not any(r["reached_goal"] for r in s["robots"].values())
+    assert all(r["final_error_m"] > 0.02 for r in s["robots"].values())
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def scenario_toml(
+    *,
+    name: str = "cli_test",
+    duration: float = 60.0,
+    arena: tuple[float, float, float, float] = (-1.0, 1.0, -1.0, 1.0),
+    controller: str = "",
+    robots: str | None = None,
+    obstacles: str = "",
+) -> str:
+    """A valid two-robot head-on scenario, with optional replacements."""
+    if robots is None:
+        robots = """
+[[robots]]
+id = "r1"
+start = [-0.6, 0.0, 0.0]
+goal = [0.6, 0.0]
+
+[[robots]]
+id = "r2"
+start = [0.6, 0.0, 3.141592653589793]
+goal = [-0.6, 0.0]
+"""
+    return (
+        f'name = "{name}"\nduration = {duration}\n\n[arena]\nbounds = {list(arena)}\n\n'
+        f"{controller}\n[simulation]\nseed = 0\n{robots}\n{obstacles}\n"
+    )
+
+
+def _robots(*specs: tuple[str, list[float], list[float]]) -> str:
+    return "".join(f'\n[[robots]]\nid = "{i}"\nstart = {s}\ngoal = {g}\n' for i, s, g in specs)
+
+
+BAD = {
+    "unknown_key": (scenario_toml(controller="[controller]\nhorizn = 20\n"), "controller.horizn"),
+    "non_numeric_weight": (
+        scenario_toml(controller='[controller]\nR = [20.0, "heavy"]\n'),
+        "controller.R[1]",
+    ),
+    "negative_duration": (scenario_toml(duration=-5.0), "duration"),
+    "unknown_preset": (scenario_toml(controller='[controller]\npreset = "fast"\n'), "controller.preset"),
+    "start_in_obstacle": (
+        scenario_toml(obstacles="[[obstacles]]\ncircle = { center = [-0.6, 0.0], radius = 0.1 }\n"),
+        "robots[0].start",
+    ),
+    "starts_too_close": (
+        scenario_toml(
+            robots=_robots(("r1", [-0.1, 0.0, 0.0], [0.6, 0.0]), ("r2", [0.05, 0.1, 0.0], [-0.6, 0.0]))
+        ),
+        "robots[1].start",
+    ),
+    "goal_outside_arena": (
+        scenario_toml(
+            robots=_robots(("r1", [-0.6, 0.0, 0.0], [0.6, 0.0]), ("r2", [0.6, 0.0, 3.14], [-1.4, 0.0]))
+        ),
+        "robots[1].goal",
+    ),
+    "duplicate_id": (
+        scenario_toml(
+            robots=_robots(("r1", [-0.6, 0.0, 0.0], [0.6, 0.0]), ("r1", [0.6, 0.0, 3.14], [-0.6, 0.0]))
+        ),
+        "robots[1].id",
+    ),
+    "toml_syntax": ('name = "broken\nduration = 60\n', "file"),
+    "inadmissible_epsilon": (scenario_toml(controller="[controller]\nepsilon = 0.05\n"), "controller"),
+    "missing_file": (None, "file"),
+    # Allowed by the schema (weights >= 0), but the reference generator's Riccati equation has
+    # no stabilising solution: still bad input, not a crash.
+    "degenerate_ref_weights": (
+        scenario_toml(controller="[controller]\nref_Q = [0.0, 0.0, 0.0, 0.0]\n"),
+        "controller",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD))
+def test_bad_input_exits_2_with_one_line(tmp_path, case):
+    text, field = BAD[case]
+    f = tmp_path / f"{case}.toml"
+    if text is not None:
+        f.write_text(text)
+    proc = fleet("simulate", f, "--out", tmp_path / "out")
+    no_traceback(proc)
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    lines = proc.stderr.strip("\n").split("\n")
+    assert len(lines) == 1, proc.stderr
+    line = lines[0]
+    assert line.startswith("fleet: error: "), line
+    assert f"fleet: error: {field}" in line, line
+    assert not (tmp_path / "out" / "summary.json").exists()
+    if case == "inadmissible_epsilon":
+        assert "epsilon" in line
+    if case == "missing_file":
+        assert str(f.name) in line
+
+
+@pytest.mark.parametrize("case", ["unknown_key", "non_numeric_weight", "toml_syntax", "missing_file"])
+def test_bad_input_design_exits_2_with_one_line(tmp_path, case):
+    text, field = BAD[case]
+    f = tmp_path / f"{case}.toml"
+    if text is not None:
+        f.write_text(text)
+    proc = fleet("design", f, "--json")
+    no_traceback(proc)
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    lines = proc.stderr.strip("\n").split("\n")
+    assert len(lines) == 1 and lines[0].startswith(f"fleet: error: {field}"), proc.stderr
+    assert proc.stdout == ""
+
+
+def test_bad_input_template_is_valid(tmp_path):
+    """The unmodified template runs to success, so each BAD case fails for its own reason only."""
+    f = tmp_path / "ok.toml"
+    f.write_text(scenario_toml())
+    proc, s = simulate(f, tmp_path / "out")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert proc.stderr == ""
+    assert s["scenario"] == "cli_test"
+    assert s["collisions"] == 0
+    assert all(r["reached_goal"] for r in s["robots"].values())
