@@ -27,6 +27,12 @@ def _clean(x: float) -> float:
     return round(float(x), 9) + 0.0
 
 
+COMPACT_CONTROLLER: dict[str, float] = {"delta": 0.005, "lookahead": 0.03, "v_max": 0.068, "epsilon": 0.005}
+"""``[controller]`` overrides of the 16-robot swap: a tighter tube (footprint 0.113 m
+instead of 0.134 m) so that 16 goals fit on a 0.8 m ring in a 2 m arena with room
+to pass between parked robots.  Top speed drops from 0.055 to 0.05 m/s per axis."""
+
+
 def antipodal_swap(
     n: int,
     radius: float = 0.8,
