@@ -240,7 +240,13 @@ class Probe:
             res = solve0(qp, prob, warm)
             if probe._cur_rec:
                 seq = probe.sequences.setdefault(
-                    probe._cur_key, {"design": qp.design, "max_coord_rows": qp.max_coord_rows, "qps": []}
+                    probe._cur_key,
+                    {
+                        "agent": probe.ids.get(probe._cur_key, "synthetic"),
+                        "design": qp.design,
+                        "max_coord_rows": qp.max_coord_rows,
+                        "qps": [],
+                    },
                 )
                 # problem() returns fresh arrays except H (= H0) and A (= Aeq),
                 # which are constant: keeping references is a faithful record.
@@ -440,11 +446,12 @@ def compare_solvers(sequences: list[dict[str, Any]]) -> dict[str, Any]:
     dq_flags: Counter[int] = Counter()
     dv, dv1, dobj, viol_px, viol_dq, dlive, dxi, dyb = [], [], [], [], [], [], [], []
     n_qps = 0
+    px_fail_cases: list[dict[str, Any]] = []
     for seq in sequences:
         qp = TubeQP(seq["design"], max_coord_rows=seq["max_coord_rows"])
         model = None
         last_H = None
-        for rec in seq["qps"]:
+        for k_seq, rec in enumerate(seq["qps"]):
             prob, warm = rec["prob"], rec["warm"]
             n_qps += 1
             # ProxSuite, exactly as the agent does it.
@@ -455,6 +462,16 @@ def compare_solvers(sequences: list[dict[str, Any]]) -> dict[str, Any]:
             x_px = res.xi if res.ok else None
             if not res.ok:
                 px_fail += 1
+                px_fail_cases.append(
+                    {
+                        "index": n_qps - 1,
+                        "agent": seq.get("agent", "?"),
+                        "agent_qp": k_seq,
+                        "status": res.status,
+                        "iterations": res.iterations,
+                        "candidate_violation": TubeQP.violation(prob, warm) if warm is not None else None,
+                    }
+                )
             # DAQP: convert (not timed), then update + solve.
             t0 = time.perf_counter()
             H, f, A, bu, bl, sense = daqp_arrays(prob)
@@ -484,6 +501,8 @@ def compare_solvers(sequences: list[dict[str, Any]]) -> dict[str, Any]:
                     dq1_fail += 1
                 elif x_dq is not None:
                     dv1.append(float(np.max(np.abs(np.asarray(xd1)[4:6] - x_dq[4:6]))))
+            if x_px is None and px_fail_cases and px_fail_cases[-1]["index"] == n_qps - 1:
+                px_fail_cases[-1]["daqp_solved"] = x_dq is not None
             if x_px is not None and x_dq is not None:
                 dv.append(float(np.max(np.abs(x_px[4:6] - x_dq[4:6]))))
                 dxi.append(float(np.max(np.abs(x_px - x_dq))))
@@ -506,6 +525,7 @@ def compare_solvers(sequences: list[dict[str, Any]]) -> dict[str, Any]:
         "ratio_p99": px["p99"] / dq["p99"] if dq["n"] else math.nan,
         "proxsuite_failures": px_fail,
         "proxsuite_status": dict(px_status),
+        "proxsuite_failure_cases": px_fail_cases,
         "daqp_model_failures": dq_fail,
         "daqp_flags": {str(k): v for k, v in dq_flags.items()},
         "daqp_cold_failures": dq1_fail,
@@ -611,8 +631,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  note: 20 robots did not fit at 0.32 m; using min_separation = {sep} m")
     h_steps = 30 if quick else 150  # per robot: 20 x 150 = 3000 agent-steps
     syn_steps = 300 if quick else 2500
-    n_record = 4 if quick else 8  # agents of the 8-nearest run whose QPs are recorded for part 2
-    rec_ids = {rb.id for rb in scn.robots[:n_record]}
+    rec_ids = {rb.id for rb in scn.robots}  # record every agent of the 8-nearest run for part 2
 
     probe_all, res_all = bench_harness(scn, design, h_steps, nearest=None, record=None)
     s_all = probe_all.summary()
@@ -668,6 +687,13 @@ def main(argv: list[str] | None = None) -> int:
         f"DAQP Model {cmp['daqp_model_failures']} (flags {cmp['daqp_flags']}), "
         f"DAQP cold {cmp['daqp_cold_failures']}"
     )
+    for fc in cmp["proxsuite_failure_cases"]:
+        print(
+            f"  ProxSuite failure: agent {fc['agent']} QP {fc['agent_qp']}: {fc['status']} after "
+            f"{fc['iterations']} iterations; "
+            f"shifted candidate violation {fc['candidate_violation']:.1e}; "
+            f"DAQP {'solved it' if fc.get('daqp_solved') else 'failed too'}"
+        )
     print(
         f"  max |v̂_t(ProxSuite) − v̂_t(DAQP)| = {cmp['max_dv_first_input']:.2e} m/s² "
         f"(p99 {cmp['p99_dv_first_input']:.1e}) over {cmp['compared']} QPs; "
