@@ -267,7 +267,7 @@ class TubeMPC:
         a = xi[4:6] + design.K @ (x - x_hat)
         self.xi = xi
         self._append(xi[qp.iy])
-        plan = np.array([qp.S[k] @ xi for k in range(self.N + 1)])[:, [0, 2]]
+        plan = (qp.S_pos @ xi).reshape(self.N + 1, 2)
         self.k += 1
         return StepOutput(
             a=a,
@@ -295,15 +295,19 @@ class TubeMPC:
         put), so ``c_i + λ(ȳ − c_i)`` with the largest feasible λ ∈ [0, 1]
         is exactly feasible and moves ȳ by at most the solver tolerance."""
         c = self.last_point
-        lam = 1.0
-        for n, b in zip(data.coord_normals, data.coord_bounds, strict=True):
-            at_y = float(n @ ybar)
-            if at_y < b:
-                at_c = float(n @ c)
-                lam = min(lam, max(0.0, (at_c - b) / (at_c - at_y)) if at_c > at_y else 0.0)
-        if lam < 1.0:
-            self.counters.repairs += 1
-        return c + lam * (ybar - c)
+        if data.coord_bounds.size == 0:
+            return ybar
+        at_y = data.coord_normals @ ybar
+        bad = at_y < data.coord_bounds
+        if not np.any(bad):
+            return ybar
+        at_c = data.coord_normals[bad] @ c
+        gap = at_c - at_y[bad]
+        # Largest λ with nᵀ(c + λ(ȳ − c)) ≥ b on each violated row (c satisfies it).
+        safe_gap = np.where(gap > 0, gap, 1.0)
+        lam = np.where(gap > 0, np.maximum(0.0, (at_c - data.coord_bounds[bad]) / safe_gap), 0.0)
+        self.counters.repairs += 1
+        return c + float(min(1.0, lam.min())) * (ybar - c)
 
     def _append(self, ybar: Array) -> None:
         """Append ȳ = ỹ_{t+N}, advance the reference generator, drop index t."""

@@ -29,10 +29,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import dijkstra
 
 from agent.sets import Array
 
@@ -175,10 +177,10 @@ def polynomial_penalty(
 
 def point_segment_distance(p: Array, a: Array, b: Array) -> float:
     """Euclidean distance from point p to segment ab [m]."""
-    d = b - a
-    L2 = float(d @ d)
-    t = 0.0 if L2 < 1e-12 else min(1.0, max(0.0, float((p - a) @ d) / L2))
-    return float(np.linalg.norm(p - (a + t * d)))
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    L2 = dx * dx + dy * dy
+    t = 0.0 if L2 < 1e-12 else min(1.0, max(0.0, ((p[0] - a[0]) * dx + (p[1] - a[1]) * dy) / L2))
+    return math.hypot(p[0] - a[0] - t * dx, p[1] - a[1] - t * dy)
 
 
 class GridPlanner:
@@ -232,9 +234,11 @@ class GridPlanner:
             src += [a, b]
             dst += [b, a]
             length += [np.full(a.size, ln), np.full(a.size, ln)]
-        self.src = np.concatenate(src)
-        self.dst = np.concatenate(dst)
-        self.length = np.concatenate(length)
+        src_a, dst_a, len_a = np.concatenate(src), np.concatenate(dst), np.concatenate(length)
+        # Sorted by (src, dst) once, so each plan builds its CSR matrix without sorting.
+        order = np.lexsort((dst_a, src_a))
+        self.src, self.dst, self.length = src_a[order], dst_a[order], len_a[order]
+        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(self.src, minlength=self.nx * self.ny))])
 
     def cell(self, p: Array) -> int:
         i = min(self.nx - 1, max(0, int((p[0] - self.x0) / self.hx)))
@@ -243,12 +247,9 @@ class GridPlanner:
 
     def field(self, goal: Array, cost: Array) -> Array:
         """Predecessor array of shortest paths *to* ``goal`` under cell ``cost``."""
-        from scipy.sparse import csr_matrix
-        from scipy.sparse.csgraph import dijkstra
-
         n = self.nx * self.ny
         w = self.length * 0.5 * (cost[self.src] + cost[self.dst])
-        G = csr_matrix((w, (self.src, self.dst)), shape=(n, n))
+        G = csr_matrix((w, self.dst, self.indptr), shape=(n, n))
         _, pred = dijkstra(G, directed=True, indices=self.cell(goal), return_predecessors=True)
         return np.asarray(pred)
 
@@ -265,7 +266,7 @@ class GridPlanner:
             if nxt < 0:
                 return goal
             p = self.centres[nxt]
-            travelled += float(np.linalg.norm(p - prev))
+            travelled += math.hypot(p[0] - prev[0], p[1] - prev[1])
             prev = p
             c = nxt
             if travelled >= lookahead:
@@ -301,7 +302,7 @@ class Navigator:
     """Extra corridor half-width beyond r_i + r_j [m]."""
     lookahead: float = 0.3
     """Carrot distance along the planned path [m]."""
-    replan_steps: int = 5
+    replan_steps: int = 10
     soft_cost: float = 8.0
     """Extra cost per metre inside the footprint disc of a moving robot."""
     parked_cost: float = 40.0
@@ -313,6 +314,8 @@ class Navigator:
     phase: int = 0
     """This robot's precedence class (set by the controller each step)."""
     _grid: GridPlanner | None = None
+    _ring: Array = field(default_factory=lambda: np.zeros((0, 2)))
+    _ring_norm: Array = field(default_factory=lambda: np.zeros(0))
     _pred: Array | None = None
     _since_plan: int = 10**9
     _escape: Array | None = None
@@ -323,6 +326,10 @@ class Navigator:
 
     def __post_init__(self) -> None:
         self._grid = GridPlanner(self.arena, self.footprint, self.obstacles)
+        ang = np.linspace(0.0, 2.0 * math.pi, 24, endpoint=False)
+        unit = np.column_stack([np.cos(ang), np.sin(ang)])
+        self._ring = np.vstack([0.5 * unit, unit])
+        self._ring_norm = np.linalg.norm(self._ring, axis=1)
         self._rng = np.random.default_rng(self.seed)
 
     def reset_goal(self) -> None:
@@ -337,16 +344,20 @@ class Navigator:
         assert g is not None
         cost = g.static.copy()
         me = (self.phase, *order_key(self.priority, self.rank))
+        pts, radii, extras = [], [], []
         for nb in neighbours:
             if nb.phase == PARKED:
-                extra = self.parked_cost
+                extras.append(self.parked_cost)
             elif (nb.phase, *order_key(nb.priority, nb.rank)) < me:
-                extra = self.soft_cost  # goes first: plan around it
+                extras.append(self.soft_cost)  # goes first: plan around it
             else:
                 continue  # goes after this robot: it yields, so plan through it
-            R = self.footprint + nb.footprint
-            d = np.linalg.norm(g.centres - nb.last_point, axis=1)
-            cost[d < R] += extra
+            pts.append(nb.last_point)
+            radii.append(self.footprint + nb.footprint)
+        if pts:
+            d2 = ((g.centres[:, None, :] - np.array(pts)[None, :, :]) ** 2).sum(axis=2)
+            inside = d2 < np.square(radii)[None, :]
+            cost += inside.astype(float) @ np.array(extras)
         self._pred = g.field(goal, cost)
         self._since_plan = 0
 
@@ -371,7 +382,8 @@ class Navigator:
             if nb.phase == PARKED or (nb.phase, *order_key(nb.priority, nb.rank)) > (self.phase, *me):
                 continue
             R = self.footprint + nb.footprint
-            if np.linalg.norm(nb.last_point - c) > R + self.conflict_range:
+            q = nb.last_point
+            if math.hypot(q[0] - c[0], q[1] - c[1]) > R + self.conflict_range:
                 continue
             end = nb.target if nb.target is not None else nb.last_point
             corridors.append((nb.last_point, end, R + self.corridor_margin))
@@ -413,26 +425,38 @@ class Navigator:
         neighbours: Sequence[NeighbourInfo],
         radius: float = 0.4,
     ) -> Array:
-        """Best free point near ``c``: outside the corridors, clear of others, towards ``wp``."""
+        """Best free point near ``c``: outside the corridors, clear of others, towards ``wp``.
+
+        48 candidates on two rings around ``c``, scored (all at once) by the
+        distance travelled, the distance left to ``wp``, corridor penetration
+        and lack of clearance from the neighbours' committed points."""
         assert self._grid is not None
         g = self._grid
-        ang = np.linspace(0.0, 2.0 * math.pi, 24, endpoint=False)
-        cands = [
-            c + rad * np.array([math.cos(a), math.sin(a)]) for rad in (0.5 * radius, radius) for a in ang
-        ]
-        best, best_score = c, math.inf
-        for p in cands:
-            if g.static[g.cell(p)] >= GridPlanner.BLOCKED:
-                continue
-            score = 0.5 * float(np.linalg.norm(p - c)) + 0.2 * float(np.linalg.norm(wp - p))
-            for a, b, w in corridors:
-                dseg = point_segment_distance(p, a, b)
-                if dseg < w:
-                    score += 10.0 + 5.0 * (w - dseg)
-            for nb in neighbours:
-                clear = float(np.linalg.norm(p - nb.last_point)) - (self.footprint + nb.footprint)
-                if clear < 0.1:
-                    score += 2.0 * (0.1 - clear)
-            if score < best_score:
-                best, best_score = p, score
-        return np.asarray(best, dtype=float)
+        P = c + self._ring * radius  # (48, 2)
+        ix = np.clip(((P[:, 0] - g.x0) / g.hx).astype(int), 0, g.nx - 1)
+        iy = np.clip(((P[:, 1] - g.y0) / g.hy).astype(int), 0, g.ny - 1)
+        free = g.static[ix * g.ny + iy] < GridPlanner.BLOCKED
+        if not np.any(free):
+            return c.copy()
+        score = 0.5 * radius * self._ring_norm + 0.2 * np.hypot(wp[0] - P[:, 0], wp[1] - P[:, 1])
+        for a, b, w in corridors:
+            dseg = _points_segment_distance(P, a, b)
+            score += np.where(dseg < w, 10.0 + 5.0 * (w - dseg), 0.0)
+        if neighbours:
+            Q = np.array([nb.last_point for nb in neighbours])
+            R = self.footprint + np.array([nb.footprint for nb in neighbours])
+            clear = np.hypot(P[:, 0, None] - Q[None, :, 0], P[:, 1, None] - Q[None, :, 1]) - R[None, :]
+            score += 2.0 * np.maximum(0.1 - clear, 0.0).sum(axis=1)
+        score[~free] = np.inf
+        return P[int(np.argmin(score))].copy()
+
+
+def _points_segment_distance(P: Array, a: Array, b: Array) -> Array:
+    """Distances (k,) from points P (k, 2) to segment ab [m]."""
+    dx, dy = float(b[0] - a[0]), float(b[1] - a[1])
+    L2 = dx * dx + dy * dy
+    ex, ey = P[:, 0] - a[0], P[:, 1] - a[1]
+    if L2 < 1e-12:
+        return np.hypot(ex, ey)
+    t = np.minimum(np.maximum((ex * dx + ey * dy) / L2, 0.0), 1.0)
+    return np.hypot(ex - t * dx, ey - t * dy)

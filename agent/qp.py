@@ -98,6 +98,8 @@ class TubeQP:
             S[k + 1] = A @ S[k]
             S[k + 1, :, 4 + 2 * k : 6 + 2 * k] += B
         self.S = S
+        self.S_pos = S[:, [0, 2], :].reshape(-1, n)
+        """Stacked position rows: (S_pos ξ).reshape(N+1, 2) are x̂_t … x̂_{t+N} positions."""
 
         # Cost rows: ‖L ξ − r‖²_Wt with the target r assembled per step.
         Qd = np.diag(p.Q)
