@@ -20,6 +20,7 @@ Nothing here knows about transport or logging; events are returned in
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -138,7 +139,7 @@ class TubeMPC:
         self.reset(np.asarray(start, dtype=float))
 
     # --------------------------------------------------------------- state
-    def reset(self, point: Array, velocity: Array | None = None) -> None:
+    def reset(self, point: Array) -> None:
         """(Re-)initialise at rest at ``point`` (2,): reference and plan stay put there."""
         E = self.design.E
         self.y_ref = np.tile(point, (self.N, 1))
@@ -203,8 +204,6 @@ class TubeMPC:
     # ---------------------------------------------------------------- step
     def step(self, x: Array, neighbours: Sequence[NeighbourInfo]) -> StepOutput:
         """One control step from measured state ``x`` (4,) [m, m/s]."""
-        import time
-
         t0 = time.perf_counter()
         p, design, qp = self.params, self.design, self.qp
         c_i = self.last_point

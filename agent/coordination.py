@@ -209,6 +209,7 @@ class GridPlanner:
         ys = ymin + (np.arange(self.ny) + 0.5) * (ymax - ymin) / self.ny
         self.hx = (xmax - xmin) / self.nx
         self.hy = (ymax - ymin) / self.ny
+        self.xs, self.ys = xs, ys
         X, Y = np.meshgrid(xs, ys, indexing="ij")
         self.centres = np.column_stack([X.ravel(), Y.ravel()])
         r = footprint
@@ -239,6 +240,22 @@ class GridPlanner:
         order = np.lexsort((dst_a, src_a))
         self.src, self.dst, self.length = src_a[order], dst_a[order], len_a[order]
         self.indptr = np.concatenate([[0], np.cumsum(np.bincount(self.src, minlength=self.nx * self.ny))])
+
+    def add_discs(self, cost: Array, centres: list[Array], radii: list[float], extras: list[float]) -> None:
+        """Add ``extras[k]`` to every cell whose centre lies within ``radii[k]`` of ``centres[k]``.
+
+        Works on the bounding block of each disc only."""
+        grid = cost.reshape(self.nx, self.ny)
+        for (px, py), r, extra in zip(centres, radii, extras, strict=True):
+            i0 = max(0, int((px - r - self.x0) / self.hx))
+            i1 = min(self.nx, int((px + r - self.x0) / self.hx) + 1)
+            j0 = max(0, int((py - r - self.y0) / self.hy))
+            j1 = min(self.ny, int((py + r - self.y0) / self.hy) + 1)
+            if i0 >= i1 or j0 >= j1:
+                continue
+            dx = self.xs[i0:i1, None] - px
+            dy = self.ys[None, j0:j1] - py
+            grid[i0:i1, j0:j1] += extra * (dx * dx + dy * dy < r * r)
 
     def cell(self, p: Array) -> int:
         i = min(self.nx - 1, max(0, int((p[0] - self.x0) / self.hx)))
@@ -355,9 +372,7 @@ class Navigator:
             pts.append(nb.last_point)
             radii.append(self.footprint + nb.footprint)
         if pts:
-            d2 = ((g.centres[:, None, :] - np.array(pts)[None, :, :]) ** 2).sum(axis=2)
-            inside = d2 < np.square(radii)[None, :]
-            cost += inside.astype(float) @ np.array(extras)
+            g.add_discs(cost, pts, radii, extras)
         self._pred = g.field(goal, cost)
         self._since_plan = 0
 

@@ -219,9 +219,7 @@ def synthesize(
 
     eye = np.eye(4)
     hZ = Zr.Z.support(eye)  # (4,)
-    hKZ = Zr.Z.support(K)  # h_Z(K_j) per input row
-    KZ = np.abs(K @ Zr.Z.G).sum(axis=1)
-    assert np.allclose(hKZ, KZ)
+    KZ = Zr.Z.support(K)  # h_{KZ}(e_j) = h_Z(K_j) per input row
     x_bound = np.array([np.inf, p.v_max - hZ[1], np.inf, p.v_max - hZ[3]])
     u_hat = np.array([p.a_max - KZ[0], p.a_max - KZ[1]])
 

@@ -99,6 +99,7 @@ class RunResult:
             "qp_failures": ctr.failures,
             "fallbacks": ctr.fallbacks,
             "tube_exits": ctr.tube_exits,
+            "repairs": ctr.repairs,
             "status_counts": dict(ctr.status_counts),
             "max_reference_deviation_m": float(max(tr.ref_deviation, default=0.0)),
             "max_w_ratio": float(max(tr.w_ratio, default=0.0)),

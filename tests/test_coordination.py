@@ -1,0 +1,133 @@
+"""Coordination terms: the split rule's safety and feasibility, obstacles, the navigator's grid."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from agent.coordination import (
+    PARKED,
+    UNDER_WAY,
+    GridPlanner,
+    Navigator,
+    NeighbourInfo,
+    obstacle_halfplanes,
+    shares,
+    split_halfplanes,
+)
+from fleet.scenario import Circle
+
+EPS = 0.0055
+
+
+def _sample_in_rows(rng, c, normals, bounds, eps, count=200):
+    """Points of the ε box around c that satisfy every row nᵀy ≥ b (rejection sampling)."""
+    pts = c + rng.uniform(-eps, eps, (count, 2))
+    ok = np.ones(count, dtype=bool)
+    for n, b in zip(normals, bounds, strict=True):
+        ok &= pts @ n >= b - 1e-15
+    return pts[ok]
+
+
+@pytest.mark.parametrize("prio", [(0, 0), (1, 0), (0, 3)])
+def test_split_rule_keeps_new_points_R_apart_and_stay_put_feasible(prio):
+    """nᵀ(ȳ_i − ȳ_j) ≥ R for every pair of points the two agents may append."""
+    rng = np.random.default_rng(1)
+    r_i, r_j = 0.134, 0.113
+    R = r_i + r_j
+    checked = 0
+    for _ in range(300):
+        c_i = rng.uniform(-0.5, 0.5, 2)
+        ang = rng.uniform(0, 2 * math.pi)
+        c_j = c_i + (R + rng.uniform(0.0, 3 * EPS)) * np.array([math.cos(ang), math.sin(ang)])
+        ni, bi, slack_i = split_halfplanes(
+            c_i, r_i, prio[0], [NeighbourInfo("j", c_j, r_j, priority=prio[1])], 0.8, EPS
+        )
+        nj, bj, slack_j = split_halfplanes(
+            c_j, r_j, prio[1], [NeighbourInfo("i", c_i, r_i, priority=prio[0])], 0.8, EPS
+        )
+        assert slack_i == pytest.approx(slack_j) and slack_i >= -1e-12
+        # Stay put satisfies every row exactly (recursive feasibility).
+        assert all(n @ c_i >= b for n, b in zip(ni, bi, strict=True))
+        assert all(n @ c_j >= b for n, b in zip(nj, bj, strict=True))
+        yi = _sample_in_rows(rng, c_i, ni, bi, EPS)
+        yj = _sample_in_rows(rng, c_j, nj, bj, EPS)
+        if len(yi) and len(yj):
+            d = np.linalg.norm(yi[:, None, :] - yj[None, :, :], axis=2)
+            assert d.min() >= R - 1e-12
+            checked += 1
+    assert checked > 250
+
+
+def test_shares_are_complementary():
+    for a in range(-2, 3):
+        for b in range(-2, 3):
+            assert shares(a, b, 0.8) + shares(b, a, 0.8) == pytest.approx(1.0)
+    assert shares(2, 1, 0.8) == 0.8 and shares(1, 1, 0.8) == 0.5
+
+
+def test_rows_are_omitted_only_when_the_eps_box_implies_them():
+    c_i = np.zeros(2)
+    far = NeighbourInfo("j", np.array([1.0, 0.0]), 0.134)
+    normals, _, _ = split_halfplanes(c_i, 0.134, 0, [far], 0.8, EPS)
+    assert normals == []
+    near = NeighbourInfo("j", np.array([0.268 + 0.002, 0.0]), 0.134)
+    normals, bounds, _ = split_halfplanes(c_i, 0.134, 0, [near], 0.8, EPS)
+    assert len(normals) == 1 and bounds[0] == pytest.approx(-0.5 * 0.002)
+
+
+def test_obstacle_rows_keep_the_footprint_off_the_obstacle():
+    ob = Circle(center=(0.0, 0.0), radius=0.2)
+    rng = np.random.default_rng(3)
+    r = 0.134
+    for _ in range(200):
+        ang = rng.uniform(0, 2 * math.pi)
+        c = (0.2 + r + rng.uniform(0, 2 * EPS)) * np.array([math.cos(ang), math.sin(ang)])
+        normals, bounds = obstacle_halfplanes(c, r, [ob], EPS)
+        for y in _sample_in_rows(rng, c, normals, bounds, EPS):
+            assert ob.distance(y) >= r - 1e-12
+
+
+def test_grid_discs_match_brute_force_and_paths_avoid_walls():
+    g = GridPlanner((-1, 1, -1, 1), 0.134, [Circle(center=(0.0, 0.0), radius=0.3)])
+    rng = np.random.default_rng(0)
+    pts = [rng.uniform(-1, 1, 2) for _ in range(12)]
+    radii = list(rng.uniform(0.1, 0.3, 12))
+    extras = list(rng.uniform(1, 10, 12))
+    cost = g.static.copy()
+    g.add_discs(cost, pts, radii, extras)
+    d2 = ((g.centres[:, None, :] - np.array(pts)[None]) ** 2).sum(axis=2)
+    assert np.allclose(cost, g.static + (d2 < np.square(radii)).astype(float) @ np.array(extras))
+    # A path across the obstacle goes around it and never through blocked cells.
+    start, goal = np.array([-0.7, 0.0]), np.array([0.7, 0.0])
+    pred = g.field(goal, g.static)
+    c, visited = g.cell(start), 0
+    while c != g.cell(goal) and visited < 2000:
+        c = int(pred[c])
+        assert g.static[c] < GridPlanner.BLOCKED
+        visited += 1
+    assert c == g.cell(goal)
+
+
+def test_lower_robot_in_the_corridor_yields_and_parked_robots_yield_to_all():
+    nav = Navigator(footprint=0.134, arena=(-1, 1, -1, 1), rank=5)
+    me = np.array([0.0, 0.0])
+    goal = np.array([0.0, 0.8])
+    first = NeighbourInfo("a", np.array([-0.35, 0.0]), 0.134, rank=0, target=np.array([0.3, 0.0]))
+    tgt, mode = nav.target(me, goal, [first])
+    assert mode == "yield"
+    # The escape point is out of the corridor of the robot that goes first.
+    assert abs(tgt[1]) > 0.134 * 2
+    # A robot that goes after this one is not yielded to.
+    nav2 = Navigator(footprint=0.134, arena=(-1, 1, -1, 1), rank=0)
+    later = NeighbourInfo("b", np.array([-0.35, 0.0]), 0.134, rank=5, target=np.array([0.3, 0.0]))
+    assert nav2.target(me, goal, [later])[1] != "yield"
+    # A parked robot yields even to a lower-ranked robot under way.
+    nav3 = Navigator(footprint=0.134, arena=(-1, 1, -1, 1), rank=0)
+    nav3.phase = PARKED
+    mover = NeighbourInfo(
+        "c", np.array([-0.35, 0.0]), 0.134, rank=9, phase=UNDER_WAY, target=np.array([0.3, 0.0])
+    )
+    assert nav3.target(me, me, [mover])[1] == "yield"
