@@ -1,0 +1,363 @@
+"""The wire contract: Zenoh key expressions and msgpack message schemas (DESIGN §6).
+
+Every message is a msgpack map ``{"schema": SCHEMA_VERSION, "type": <name>, ...fields}``.
+Arrays travel as ``{"dtype": "<f8", "shape": [...], "data": <raw bytes>}``, about
+ten times cheaper than nested lists.  Decoding is strict: anything malformed
+(garbage bytes, another schema version, a missing or unknown field, a wrong
+type, NaN or infinity, a wrong or huge shape, a plan that claims another
+robot's id) raises :class:`WireError` with a short reason, and nothing else.
+A process counts the rejection (:class:`RejectCounter`) and carries on.
+
+Keys, for a fleet named ``F`` and a robot id ``R``:
+
+=========================  ==============================================
+``fleet/F/pose/R``         tracker → all: measured pose (:class:`Pose`)
+``fleet/F/truth/R``        simulated tracker → supervisor: true pose
+``fleet/F/plan/R``         agent → all: committed reference (:class:`Plan`)
+``fleet/F/cmd/R``          agent → robot: command (:class:`Command`)
+``fleet/F/goal/R``         operator → agent: new goal (:class:`Goal`)
+``fleet/F/clock``          lockstep tick (:class:`Tick`)
+``fleet/F/alive/R``        liveliness token of agent R
+=========================  ==============================================
+
+Units are SI; positions and headings are in the world frame.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass, field, fields
+from typing import Any, ClassVar, TypeVar
+
+import msgpack
+import numpy as np
+from numpy.typing import NDArray
+
+SCHEMA_VERSION = 1
+MAX_PAYLOAD = 64 * 1024
+"""Largest accepted message [bytes]."""
+MAX_HORIZON = 200
+"""Largest accepted committed-reference length [points]."""
+ROBOT_ID = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
+_DTYPES = {"<f8": np.float64, "<f4": np.float32}
+
+
+class WireError(ValueError):
+    """A payload was rejected; ``reason`` is short and names the field."""
+
+    def __init__(self, reason: str):
+        self.reason = reason
+        super().__init__(reason)
+
+
+class Keys:
+    """Key expressions of one fleet."""
+
+    def __init__(self, fleet: str):
+        if not ROBOT_ID.match(fleet):
+            raise ValueError(f"fleet name {fleet!r} must match {ROBOT_ID.pattern}")
+        self.root = f"fleet/{fleet}"
+
+    def pose(self, robot: str = "*") -> str:
+        return f"{self.root}/pose/{robot}"
+
+    def truth(self, robot: str = "*") -> str:
+        return f"{self.root}/truth/{robot}"
+
+    def plan(self, robot: str = "*") -> str:
+        return f"{self.root}/plan/{robot}"
+
+    def cmd(self, robot: str = "*") -> str:
+        return f"{self.root}/cmd/{robot}"
+
+    def goal(self, robot: str = "*") -> str:
+        return f"{self.root}/goal/{robot}"
+
+    def alive(self, robot: str = "*") -> str:
+        return f"{self.root}/alive/{robot}"
+
+    @property
+    def clock(self) -> str:
+        return f"{self.root}/clock"
+
+    def robot_of(self, key: str) -> str:
+        """The robot id at the end of a per-robot key; raises WireError otherwise."""
+        rid = str(key).rsplit("/", 1)[-1]
+        if not ROBOT_ID.match(rid):
+            raise WireError(f"key {key!r}: bad robot id")
+        return rid
+
+
+# ---------------------------------------------------------------- arrays
+def encode_array(a: NDArray[Any]) -> dict[str, Any]:
+    a = np.ascontiguousarray(a, dtype=np.float64)
+    return {"dtype": "<f8", "shape": list(a.shape), "data": a.tobytes()}
+
+
+def decode_array(obj: Any, name: str, shape: tuple[int | None, ...]) -> NDArray[np.float64]:
+    """Strictly decode an array; ``None`` in ``shape`` is a free dimension (≤ MAX_HORIZON)."""
+    if not isinstance(obj, dict) or set(obj) != {"dtype", "shape", "data"}:
+        raise WireError(f"{name}: expected an array map with dtype, shape, data")
+    dt = _DTYPES.get(obj["dtype"]) if isinstance(obj["dtype"], str) else None
+    if dt is None:
+        raise WireError(f"{name}: unsupported dtype {obj['dtype']!r}")
+    shp = obj["shape"]
+    if not isinstance(shp, list) or len(shp) != len(shape) or not all(type(s) is int for s in shp):
+        raise WireError(f"{name}: expected {len(shape)} dimensions")
+    for got, want in zip(shp, shape, strict=True):
+        if want is None:
+            if not 1 <= got <= MAX_HORIZON:
+                raise WireError(f"{name}: dimension {got} outside 1..{MAX_HORIZON}")
+        elif got != want:
+            raise WireError(f"{name}: expected shape {shape}, got {tuple(shp)}")
+    data = obj["data"]
+    count = math.prod(shp)
+    if not isinstance(data, bytes) or len(data) != count * np.dtype(dt).itemsize:
+        raise WireError(f"{name}: data length does not match shape {tuple(shp)}")
+    a = np.frombuffer(data, dtype=dt).astype(np.float64).reshape(shp)
+    if not np.all(np.isfinite(a)):
+        raise WireError(f"{name}: non-finite value")
+    return a
+
+
+# -------------------------------------------------------------- messages
+def _num(v: Any, name: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, int | float):
+        raise WireError(f"{name}: expected a number")
+    f = float(v)
+    if not math.isfinite(f):
+        raise WireError(f"{name}: non-finite value")
+    return f
+
+
+def _int(v: Any, name: str, lo: int = 0, hi: int = 2**62) -> int:
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise WireError(f"{name}: expected an integer")
+    if not lo <= v <= hi:
+        raise WireError(f"{name}: {v} outside {lo}..{hi}")
+    return v
+
+
+def _str(v: Any, name: str, pattern: re.Pattern[str] | None = None, maxlen: int = 64) -> str:
+    if not isinstance(v, str) or len(v) > maxlen or (pattern is not None and not pattern.match(v)):
+        raise WireError(f"{name}: bad string")
+    return v
+
+
+M = TypeVar("M", bound="Message")
+
+
+@dataclass(frozen=True)
+class Message:
+    """Base class: subclasses list their fields and how each is checked."""
+
+    TYPE: ClassVar[str] = ""
+    robot: str
+
+    def _fields(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            out[f.name] = encode_array(v) if isinstance(v, np.ndarray) else v
+        return out
+
+    def encode(self) -> bytes:
+        body = {"schema": SCHEMA_VERSION, "type": self.TYPE, **self._fields()}
+        return bytes(msgpack.packb(body, use_bin_type=True))
+
+    @classmethod
+    def _check(cls, d: dict[str, Any]) -> dict[str, Any]:
+        raise NotImplementedError
+
+
+@dataclass(frozen=True)
+class Pose(Message):
+    """Measured pose of a robot's axle centre."""
+
+    TYPE: ClassVar[str] = "pose"
+    seq: int
+    """Sequence number of the camera frame / simulation step."""
+    t: float
+    """Capture time [s] on the fleet clock."""
+    x: float
+    y: float
+    """Position [m], world frame."""
+    theta: float
+    """Heading [rad], counter-clockwise from the world x axis."""
+
+    @classmethod
+    def _check(cls, d: dict[str, Any]) -> dict[str, Any]:
+        return {
+            "seq": _int(d["seq"], "seq"),
+            "t": _num(d["t"], "t"),
+            "x": _num(d["x"], "x"),
+            "y": _num(d["y"], "y"),
+            "theta": _num(d["theta"], "theta"),
+        }
+
+
+@dataclass(frozen=True)
+class Plan(Message):
+    """An agent's committed reference and what neighbours need to coordinate."""
+
+    TYPE: ClassVar[str] = "plan"
+    step: int
+    """Step k at which the plan was committed."""
+    t0: float
+    """Time of ``committed[0]`` [s]."""
+    Ts: float
+    """Sampling period [s]."""
+    committed: NDArray[np.float64] = field(compare=False)
+    """Committed reference ỹ_{k+1} … ỹ_{k+N}, (N, 2) [m]."""
+    footprint: float
+    """Footprint radius r_i [m]."""
+    priority: int
+    rank: int
+    phase: int
+    """Precedence phase (0 under way, 1 returning, 2 parked)."""
+    target: NDArray[np.float64] = field(compare=False)
+    """Navigation waypoint (2,) [m]."""
+    goal: NDArray[np.float64] = field(compare=False)
+    """Goal (2,) [m]."""
+    status: str
+    """Solver status of this step."""
+    solve_time: float
+    """QP update + solve time [s]."""
+
+    @classmethod
+    def _check(cls, d: dict[str, Any]) -> dict[str, Any]:
+        Ts = _num(d["Ts"], "Ts")
+        fp = _num(d["footprint"], "footprint")
+        if not 0 < Ts <= 10:
+            raise WireError("Ts: outside (0, 10] s")
+        if not 0 < fp <= 10:
+            raise WireError("footprint: outside (0, 10] m")
+        return {
+            "step": _int(d["step"], "step"),
+            "t0": _num(d["t0"], "t0"),
+            "Ts": Ts,
+            "committed": decode_array(d["committed"], "committed", (None, 2)),
+            "footprint": fp,
+            "priority": _int(d["priority"], "priority", -(2**31), 2**31),
+            "rank": _int(d["rank"], "rank", 0, 2**31),
+            "phase": _int(d["phase"], "phase", 0, 2),
+            "target": decode_array(d["target"], "target", (2,)),
+            "goal": decode_array(d["goal"], "goal", (2,)),
+            "status": _str(d["status"], "status"),
+            "solve_time": _num(d["solve_time"], "solve_time"),
+        }
+
+
+@dataclass(frozen=True)
+class Command(Message):
+    """Agent → robot: the unicycle command and its wheel speeds."""
+
+    TYPE: ClassVar[str] = "cmd"
+    step: int
+    v: float
+    """Forward speed [m/s]."""
+    omega: float
+    """Turn rate [rad/s], counter-clockwise."""
+    left: float
+    right: float
+    """Wheel speeds [steps/s], saturated."""
+
+    @classmethod
+    def _check(cls, d: dict[str, Any]) -> dict[str, Any]:
+        return {
+            "step": _int(d["step"], "step"),
+            "v": _num(d["v"], "v"),
+            "omega": _num(d["omega"], "omega"),
+            "left": _num(d["left"], "left"),
+            "right": _num(d["right"], "right"),
+        }
+
+
+@dataclass(frozen=True)
+class Goal(Message):
+    """Operator → agent: a new goal at run time."""
+
+    TYPE: ClassVar[str] = "goal"
+    goal: NDArray[np.float64] = field(compare=False)
+    """Goal (2,) [m]."""
+
+    @classmethod
+    def _check(cls, d: dict[str, Any]) -> dict[str, Any]:
+        return {"goal": decode_array(d["goal"], "goal", (2,))}
+
+
+@dataclass(frozen=True)
+class Tick(Message):
+    """Lockstep clock: step k starts at time t.  ``robot`` is the sender (the tracker)."""
+
+    TYPE: ClassVar[str] = "tick"
+    step: int
+    t: float
+
+    @classmethod
+    def _check(cls, d: dict[str, Any]) -> dict[str, Any]:
+        return {"step": _int(d["step"], "step"), "t": _num(d["t"], "t")}
+
+
+MESSAGES: dict[str, type[Message]] = {m.TYPE: m for m in (Pose, Plan, Command, Goal, Tick)}
+
+
+def decode(payload: bytes, expected: type[M], robot: str | None = None) -> M:
+    """Decode ``payload`` as message type ``expected``.
+
+    ``robot``, when given, is the id the key names: a message claiming another
+    id is rejected.  Raises :class:`WireError` and nothing else."""
+    if not isinstance(payload, bytes | bytearray | memoryview):
+        raise WireError("payload: not bytes")
+    if len(payload) > MAX_PAYLOAD:
+        raise WireError(f"payload: {len(payload)} bytes exceeds {MAX_PAYLOAD}")
+    try:
+        d = msgpack.unpackb(
+            bytes(payload), raw=False, strict_map_key=True, max_bin_len=MAX_PAYLOAD, max_str_len=4096,
+            max_array_len=64, max_map_len=64,
+        )  # fmt: skip
+    except (ValueError, TypeError, OverflowError) as e:  # msgpack's errors for garbage
+        raise WireError(f"payload: not msgpack ({type(e).__name__})") from None
+    if not isinstance(d, dict):
+        raise WireError("payload: not a map")
+    if d.get("schema") != SCHEMA_VERSION or isinstance(d.get("schema"), bool):
+        raise WireError(f"schema: version {d.get('schema')!r}, expected {SCHEMA_VERSION}")
+    if d.get("type") != expected.TYPE:
+        raise WireError(f"type: {d.get('type')!r}, expected {expected.TYPE!r}")
+    names = {f.name for f in fields(expected)}
+    keys = set(d) - {"schema", "type"}
+    if keys != names:
+        missing, extra = sorted(names - keys), sorted(map(str, keys - names))
+        raise WireError(f"fields: missing {missing}, unknown {extra}")
+    rid = _str(d["robot"], "robot", ROBOT_ID)
+    if robot is not None and rid != robot:
+        raise WireError(f"robot: message claims {rid!r} on the key of {robot!r}")
+    try:
+        checked = expected._check(d)
+    except WireError:
+        raise
+    except (TypeError, ValueError, KeyError, OverflowError) as e:
+        raise WireError(f"payload: {type(e).__name__}") from None
+    return expected(robot=rid, **checked)
+
+
+class RejectCounter:
+    """Counts rejected payloads per (source, reason); reports each source once."""
+
+    def __init__(self, report: Any = None):
+        self.counts: dict[tuple[str, str], int] = {}
+        self._reported: set[str] = set()
+        self._report = report
+
+    def reject(self, source: str, err: WireError) -> None:
+        key = (source, err.reason.split(":", 1)[0])
+        self.counts[key] = self.counts.get(key, 0) + 1
+        if source not in self._reported:
+            self._reported.add(source)
+            if self._report is not None:
+                self._report(f"rejected payload from {source}: {err.reason} (further rejections are counted)")
+
+    @property
+    def total(self) -> int:
+        return sum(self.counts.values())

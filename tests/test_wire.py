@@ -1,0 +1,176 @@
+"""The wire contract: round trips, strict rejection, and a fuzz test of the decoders."""
+
+from __future__ import annotations
+
+import zlib
+
+import msgpack
+import numpy as np
+import pytest
+
+from fleet.wire import (
+    MAX_PAYLOAD,
+    SCHEMA_VERSION,
+    Command,
+    Goal,
+    Keys,
+    Plan,
+    Pose,
+    RejectCounter,
+    Tick,
+    WireError,
+    decode,
+    encode_array,
+)
+
+
+def _plan(robot="r1", n=20):
+    rng = np.random.default_rng(0)
+    return Plan(
+        robot=robot, step=7, t0=0.8, Ts=0.1, committed=rng.uniform(-1, 1, (n, 2)), footprint=0.134,
+        priority=1, rank=2, phase=0, target=np.array([0.1, 0.2]), goal=np.array([0.5, -0.5]),
+        status="PROXQP_SOLVED", solve_time=2.5e-4,
+    )  # fmt: skip
+
+
+SAMPLES = {
+    "pose": Pose(robot="r1", seq=3, t=0.3, x=0.1, y=-0.2, theta=1.5),
+    "plan": _plan(),
+    "cmd": Command(robot="r1", step=4, v=0.05, omega=-0.3, left=380.0, right=395.5),
+    "goal": Goal(robot="r1", goal=np.array([0.3, 0.4])),
+    "tick": Tick(robot="tracker", step=12, t=1.2),
+}
+
+
+@pytest.mark.parametrize("name", sorted(SAMPLES))
+def test_round_trip(name):
+    msg = SAMPLES[name]
+    back = decode(msg.encode(), type(msg), robot=msg.robot)
+    assert back == msg
+    for f in ("committed", "target", "goal"):
+        if hasattr(msg, f):
+            assert np.array_equal(getattr(back, f), getattr(msg, f))
+
+
+def test_arrays_travel_as_raw_bytes():
+    raw = msgpack.unpackb(_plan().encode(), raw=False)
+    assert raw["schema"] == SCHEMA_VERSION and raw["type"] == "plan"
+    assert raw["committed"]["dtype"] == "<f8" and raw["committed"]["shape"] == [20, 2]
+    assert isinstance(raw["committed"]["data"], bytes) and len(raw["committed"]["data"]) == 320
+
+
+def _mutate(msg, **changes):
+    d = msgpack.unpackb(msg.encode(), raw=False)
+    for k, v in changes.items():
+        if v is KeyError:
+            del d[k]
+        else:
+            d[k] = v
+    return msgpack.packb(d, use_bin_type=True)
+
+
+BAD = [
+    ("garbage", lambda: b"\xc1\xff\x00garbage", Pose, "payload"),
+    ("not a map", lambda: msgpack.packb([1, 2, 3]), Pose, "payload"),
+    ("old version", lambda: _mutate(SAMPLES["pose"], schema=0), Pose, "schema"),
+    ("wrong type", lambda: SAMPLES["cmd"].encode(), Pose, "type"),
+    ("missing field", lambda: _mutate(SAMPLES["pose"], x=KeyError), Pose, "fields"),
+    ("unknown field", lambda: _mutate(SAMPLES["pose"], z=1.0), Pose, "fields"),
+    ("NaN", lambda: _mutate(SAMPLES["pose"], x=float("nan")), Pose, "x"),
+    ("infinity", lambda: _mutate(SAMPLES["cmd"], v=float("inf")), Command, "v"),
+    ("bool as number", lambda: _mutate(SAMPLES["pose"], y=True), Pose, "y"),
+    ("string as number", lambda: _mutate(SAMPLES["pose"], theta="1.0"), Pose, "theta"),
+    ("negative seq", lambda: _mutate(SAMPLES["pose"], seq=-1), Pose, "seq"),
+    ("bad robot id", lambda: _mutate(SAMPLES["pose"], robot="r1/../x"), Pose, "robot"),
+    ("NaN in array", lambda: _mutate(SAMPLES["goal"], goal=encode_array(np.array([np.nan, 0.0]))), Goal,
+     "goal"),
+    ("wrong shape", lambda: _mutate(SAMPLES["goal"], goal=encode_array(np.zeros(3))), Goal, "goal"),
+    ("huge array", lambda: _mutate(_plan(), committed=encode_array(np.zeros((1000, 2)))), Plan, "committed"),
+    ("short data", lambda: _mutate(_plan(), committed={"dtype": "<f8", "shape": [20, 2], "data": b"\0" * 8}),
+     Plan, "committed"),
+    ("bad dtype", lambda: _mutate(_plan(), committed={"dtype": "|O", "shape": [1, 2], "data": b"\0" * 16}),
+     Plan, "committed"),
+    ("zero footprint", lambda: _mutate(_plan(), footprint=0.0), Plan, "footprint"),
+    ("bad phase", lambda: _mutate(_plan(), phase=7), Plan, "phase"),
+    ("oversize", lambda: b"\x00" * (MAX_PAYLOAD + 1), Plan, "payload"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(("case", "make", "typ", "field"), BAD, ids=[b[0] for b in BAD])
+def test_malformed_payloads_are_rejected_with_the_field(case, make, typ, field):
+    with pytest.raises(WireError) as ei:
+        decode(make(), typ)
+    assert ei.value.reason.startswith(field), ei.value.reason
+
+
+def test_a_plan_claiming_another_robots_id_is_rejected():
+    payload = _plan(robot="r2").encode()
+    with pytest.raises(WireError, match="claims 'r2'"):
+        decode(payload, Plan, robot="r1")
+    assert decode(payload, Plan, robot="r2").robot == "r2"
+
+
+def test_keys():
+    k = Keys("lab")
+    assert k.plan("r1") == "fleet/lab/plan/r1" and k.pose() == "fleet/lab/pose/*"
+    assert k.clock == "fleet/lab/clock"
+    assert k.robot_of("fleet/lab/cmd/r7") == "r7"
+    with pytest.raises(WireError):
+        k.robot_of("fleet/lab/cmd/r 7")
+    with pytest.raises(ValueError):
+        Keys("a/b")
+
+
+def test_reject_counter_reports_once_per_source():
+    lines = []
+    rc = RejectCounter(report=lines.append)
+    for _ in range(5):
+        rc.reject("fleet/lab/plan/r1", WireError("x: bad"))
+    rc.reject("fleet/lab/plan/r2", WireError("payload: not msgpack"))
+    assert rc.total == 6 and len(lines) == 2
+    assert rc.counts[("fleet/lab/plan/r1", "x")] == 5
+
+
+@pytest.mark.parametrize("name", sorted(SAMPLES))
+def test_fuzz_decoders_never_raise_anything_but_wire_error(name):
+    """10,000 generated payloads per message type: byte flips, truncations, splices,
+    random bytes and type-confused fields.  Each decodes to a valid message or raises
+    WireError; a decoded message never carries a non-finite number."""
+    msg = SAMPLES[name]
+    typ = type(msg)
+    good = msg.encode()
+    rng = np.random.default_rng(zlib.crc32(name.encode()))
+    junk_values = [None, True, -1, 2**64 - 1, 1e308, float("nan"), "x" * 100, b"\x00" * 9, [1, 2], {"a": 1}]
+    base = msgpack.unpackb(good, raw=False)
+    accepted = 0
+    for i in range(10_000):
+        kind = i % 5
+        if kind == 0:
+            b = bytearray(good)
+            for _ in range(int(rng.integers(1, 6))):
+                b[int(rng.integers(len(b)))] = int(rng.integers(256))
+            payload = bytes(b)
+        elif kind == 1:
+            payload = good[: int(rng.integers(len(good)))]
+        elif kind == 2:
+            payload = rng.bytes(int(rng.integers(0, 200)))
+        elif kind == 3:
+            d = dict(base)
+            key = list(d)[int(rng.integers(len(d)))]
+            d[key] = junk_values[int(rng.integers(len(junk_values)))]
+            payload = msgpack.packb(d, use_bin_type=True)
+        else:
+            cut = int(rng.integers(len(good)))
+            payload = good[cut:] + good[:cut]
+        try:
+            out = decode(payload, typ)
+        except WireError:
+            continue
+        accepted += 1
+        for f in out.__dataclass_fields__:
+            v = getattr(out, f)
+            if isinstance(v, float):
+                assert np.isfinite(v)
+            if isinstance(v, np.ndarray):
+                assert np.all(np.isfinite(v))
+    assert accepted < 10_000  # the generator really produced bad payloads
