@@ -67,13 +67,16 @@ def unicycle_from_wheels(left: float, right: float, geom: WheelGeometry) -> tupl
 
 
 def integrate_unicycle(pose: Array, v: float, omega: float, dt: float) -> Array:
-    """Exact pose after ``dt`` [s] at constant (v, ω): an arc, or a line if ω ≈ 0."""
+    """Exact pose after ``dt`` [s] at constant (v, ω).
+
+    The chord of the arc is ``v·dt·sinc(ω dt/2)`` along ``θ + ω dt/2``; this form
+    has no switch between arc and line and no cancellation for small ω."""
     x, y, th = pose
-    if abs(omega) < 1e-9:
-        return np.array([x + v * dt * math.cos(th), y + v * dt * math.sin(th), th])
-    th1 = th + omega * dt
-    r = v / omega
-    return np.array([x + r * (math.sin(th1) - math.sin(th)), y - r * (math.cos(th1) - math.cos(th)), th1])
+    h = 0.5 * omega * dt
+    sinc = 1.0 - h * h / 6.0 if abs(h) < 1e-4 else math.sin(h) / h
+    chord = v * dt * sinc
+    mid = th + h
+    return np.array([x + chord * math.cos(mid), y + chord * math.sin(mid), th + omega * dt])
 
 
 def wrap_angle(a: float) -> float:
