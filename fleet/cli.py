@@ -127,6 +127,32 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0 if ok else EXIT_FAIL
 
 
+def cmd_run(args: argparse.Namespace) -> int:
+    from fleet.launch import run_fleet
+
+    scn = load_scenario(args.scenario)
+    design = synthesize(scn.controller, scn.arena)
+    if not design.admissible:
+        return _bad(f"controller: inadmissible tube design: {'; '.join(design.failures)}")
+    check_geometry(scn, design.footprint)
+    out = Path(args.out) if args.out else Path("out") / scn.name
+    out.mkdir(parents=True, exist_ok=True)
+    code, verdict, summary = run_fleet(
+        str(Path(args.scenario).resolve()), [r.id for r in scn.robots], out.resolve(), args.seed
+    )
+    if summary is not None:
+        print(
+            f"{scn.name}: {summary['steps']} steps in {summary['wall_time_s']:.1f} s over "
+            f"{len(summary.get('processes', {}))} processes; collisions {summary['collisions']}, "
+            f"goals reached {sum(r['reached_goal'] for r in summary['robots'].values())}"
+            f"/{len(summary['robots'])}"
+        )
+        print(f"summary: {out / 'summary.json'}")
+    if code:
+        print(f"fleet: run failed: {verdict}", file=sys.stderr)
+    return code
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="fleet", description="Distributed robust tube MPC for E-puck fleets")
     sub = ap.add_subparsers(dest="command", required=True)
@@ -140,6 +166,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", help="output directory (default out/<scenario name>)")
     s.add_argument("--seed", type=int, help="override the scenario's [simulation] seed")
     s.set_defaults(func=cmd_simulate)
+    r = sub.add_parser("run", help="run the fleet as separate processes over Zenoh (lockstep clock)")
+    r.add_argument("scenario", help="scenario TOML file")
+    r.add_argument("--out", help="output directory (default out/<scenario name>)")
+    r.add_argument("--seed", type=int, help="override the scenario's [simulation] seed")
+    r.set_defaults(func=cmd_run)
     return ap
 
 

@@ -88,7 +88,7 @@ class RunResult:
         if reached:
             bad = np.flatnonzero(err > GOAL_TOLERANCE)
             first = 0 if bad.size == 0 else int(bad[-1]) + 1
-            ttg = float(self.times[first])
+            ttg = float(self.times[first + 1])  # goal_error[i] is the state after step i
         st = np.array(tr.step_ms) if tr.step_ms else np.zeros(1)
         sv = np.array(tr.solve_ms) if tr.solve_ms else np.zeros(1)
         return {

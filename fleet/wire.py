@@ -13,8 +13,9 @@ Keys, for a fleet named ``F`` and a robot id ``R``:
 =========================  ==============================================
 ``fleet/F/pose/R``         tracker → all: measured pose (:class:`Pose`)
 ``fleet/F/truth/R``        simulated tracker → supervisor: true pose
+``fleet/F/odom/R``         robot side → agent: inner-loop velocity (:class:`Odom`)
 ``fleet/F/plan/R``         agent → all: committed reference (:class:`Plan`)
-``fleet/F/cmd/R``          agent → robot: command (:class:`Command`)
+``fleet/F/cmd/R``          agent → robot side: acceleration (:class:`Command`)
 ``fleet/F/goal/R``         operator → agent: new goal (:class:`Goal`)
 ``fleet/F/clock``          lockstep tick (:class:`Tick`)
 ``fleet/F/alive/R``        liveliness token of agent R
@@ -70,6 +71,9 @@ class Keys:
 
     def cmd(self, robot: str = "*") -> str:
         return f"{self.root}/cmd/{robot}"
+
+    def odom(self, robot: str = "*") -> str:
+        return f"{self.root}/odom/{robot}"
 
     def goal(self, robot: str = "*") -> str:
         return f"{self.root}/goal/{robot}"
@@ -224,9 +228,13 @@ class Plan(Message):
     """Solver status of this step."""
     solve_time: float
     """QP update + solve time [s]."""
+    tube_ok: bool
+    """x − x̂ ∈ Z held at this step."""
 
     @classmethod
     def _check(cls, d: dict[str, Any]) -> dict[str, Any]:
+        if not isinstance(d["tube_ok"], bool):
+            raise WireError("tube_ok: expected a boolean")
         Ts = _num(d["Ts"], "Ts")
         fp = _num(d["footprint"], "footprint")
         if not 0 < Ts <= 10:
@@ -246,31 +254,47 @@ class Plan(Message):
             "goal": decode_array(d["goal"], "goal", (2,)),
             "status": _str(d["status"], "status"),
             "solve_time": _num(d["solve_time"], "solve_time"),
+            "tube_ok": d["tube_ok"],
         }
 
 
 @dataclass(frozen=True)
 class Command(Message):
-    """Agent → robot: the unicycle command and its wheel speeds."""
+    """Agent → robot side: the acceleration to hold for one step.
+
+    The robot side (simulated tracker or ``epuck_link``) runs the inner loop at
+    ≥ 50 Hz on it; holding (v, ω) for a whole step instead costs about half of
+    W (docs/runtime-notes.md)."""
 
     TYPE: ClassVar[str] = "cmd"
     step: int
-    v: float
-    """Forward speed [m/s]."""
-    omega: float
-    """Turn rate [rad/s], counter-clockwise."""
-    left: float
-    right: float
-    """Wheel speeds [steps/s], saturated."""
+    ax: float
+    ay: float
+    """Acceleration of the controlled point [m/s²], world frame, u = v̂ + K(x − x̂)."""
+
+    @classmethod
+    def _check(cls, d: dict[str, Any]) -> dict[str, Any]:
+        return {"step": _int(d["step"], "step"), "ax": _num(d["ax"], "ax"), "ay": _num(d["ay"], "ay")}
+
+
+@dataclass(frozen=True)
+class Odom(Message):
+    """Robot side → agent: velocity of the controlled point from the inner loop's state."""
+
+    TYPE: ClassVar[str] = "odom"
+    seq: int
+    t: float
+    vx: float
+    vy: float
+    """Velocity [m/s], world frame."""
 
     @classmethod
     def _check(cls, d: dict[str, Any]) -> dict[str, Any]:
         return {
-            "step": _int(d["step"], "step"),
-            "v": _num(d["v"], "v"),
-            "omega": _num(d["omega"], "omega"),
-            "left": _num(d["left"], "left"),
-            "right": _num(d["right"], "right"),
+            "seq": _int(d["seq"], "seq"),
+            "t": _num(d["t"], "t"),
+            "vx": _num(d["vx"], "vx"),
+            "vy": _num(d["vy"], "vy"),
         }
 
 
@@ -289,18 +313,21 @@ class Goal(Message):
 
 @dataclass(frozen=True)
 class Tick(Message):
-    """Lockstep clock: step k starts at time t.  ``robot`` is the sender (the tracker)."""
+    """Lockstep clock: step k starts at time t; ``stop`` ends the run.  ``robot`` is the sender."""
 
     TYPE: ClassVar[str] = "tick"
     step: int
     t: float
+    stop: bool
 
     @classmethod
     def _check(cls, d: dict[str, Any]) -> dict[str, Any]:
-        return {"step": _int(d["step"], "step"), "t": _num(d["t"], "t")}
+        if not isinstance(d["stop"], bool):
+            raise WireError("stop: expected a boolean")
+        return {"step": _int(d["step"], "step"), "t": _num(d["t"], "t"), "stop": d["stop"]}
 
 
-MESSAGES: dict[str, type[Message]] = {m.TYPE: m for m in (Pose, Plan, Command, Goal, Tick)}
+MESSAGES: dict[str, type[Message]] = {m.TYPE: m for m in (Pose, Odom, Plan, Command, Goal, Tick)}
 
 
 def decode(payload: bytes, expected: type[M], robot: str | None = None) -> M:

@@ -14,6 +14,7 @@ from fleet.wire import (
     Command,
     Goal,
     Keys,
+    Odom,
     Plan,
     Pose,
     RejectCounter,
@@ -29,16 +30,17 @@ def _plan(robot="r1", n=20):
     return Plan(
         robot=robot, step=7, t0=0.8, Ts=0.1, committed=rng.uniform(-1, 1, (n, 2)), footprint=0.134,
         priority=1, rank=2, phase=0, target=np.array([0.1, 0.2]), goal=np.array([0.5, -0.5]),
-        status="PROXQP_SOLVED", solve_time=2.5e-4,
+        status="PROXQP_SOLVED", solve_time=2.5e-4, tube_ok=True,
     )  # fmt: skip
 
 
 SAMPLES = {
     "pose": Pose(robot="r1", seq=3, t=0.3, x=0.1, y=-0.2, theta=1.5),
     "plan": _plan(),
-    "cmd": Command(robot="r1", step=4, v=0.05, omega=-0.3, left=380.0, right=395.5),
+    "cmd": Command(robot="r1", step=4, ax=0.05, ay=-0.3),
+    "odom": Odom(robot="r1", seq=4, t=0.4, vx=0.05, vy=-0.01),
     "goal": Goal(robot="r1", goal=np.array([0.3, 0.4])),
-    "tick": Tick(robot="tracker", step=12, t=1.2),
+    "tick": Tick(robot="tracker", step=12, t=1.2, stop=False),
 }
 
 
@@ -77,7 +79,8 @@ BAD = [
     ("missing field", lambda: _mutate(SAMPLES["pose"], x=KeyError), Pose, "fields"),
     ("unknown field", lambda: _mutate(SAMPLES["pose"], z=1.0), Pose, "fields"),
     ("NaN", lambda: _mutate(SAMPLES["pose"], x=float("nan")), Pose, "x"),
-    ("infinity", lambda: _mutate(SAMPLES["cmd"], v=float("inf")), Command, "v"),
+    ("infinity", lambda: _mutate(SAMPLES["cmd"], ax=float("inf")), Command, "ax"),
+    ("non-bool stop", lambda: _mutate(SAMPLES["tick"], stop=1), Tick, "stop"),
     ("bool as number", lambda: _mutate(SAMPLES["pose"], y=True), Pose, "y"),
     ("string as number", lambda: _mutate(SAMPLES["pose"], theta="1.0"), Pose, "theta"),
     ("negative seq", lambda: _mutate(SAMPLES["pose"], seq=-1), Pose, "seq"),

@@ -1,0 +1,163 @@
+"""The agent process: a thin Zenoh shell around :class:`agent.controller.TubeMPC`.
+
+``python -m agent --scenario S --robot ID [--fleet F] [--connect E] [--listen E]``
+
+Lockstep protocol (docs/runtime-notes.md): at step k the agent waits for the
+tracker's tick k, its own pose and odometry of step k and the plans that the
+live neighbours committed at step k−1 (liveliness says who is live; every
+wait is bounded).  It then steps the controller and publishes its plan and
+its command for step k.  A neighbour whose plan of step k−1 does not arrive in
+time is used with its last known plan, and the event is counted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from functools import partial
+
+import numpy as np
+
+from agent.controller import TubeMPC
+from agent.coordination import NeighbourInfo
+from agent.tube import synthesize
+from fleet.runtime import Inbox, add_common_args, announce, log, open_session
+from fleet.scenario import ConfigError, check_geometry, controlled_point, load_scenario
+from fleet.wire import Command, Goal, Keys, Odom, Plan, Pose, Tick
+
+
+def _neighbour(plan: Plan) -> NeighbourInfo:
+    return NeighbourInfo(
+        id=plan.robot,
+        last_point=plan.committed[-1].copy(),
+        footprint=plan.footprint,
+        priority=plan.priority,
+        rank=plan.rank,
+        target=plan.target.copy(),
+        goal=plan.goal.copy(),
+        phase=plan.phase,
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m agent", description=__doc__.splitlines()[0])
+    add_common_args(ap)
+    ap.add_argument("--robot", required=True, help="robot id from the scenario")
+    args = ap.parse_args(argv)
+    role = f"agent {args.robot}"
+    try:
+        scn = load_scenario(args.scenario)
+        ids = [r.id for r in scn.robots]
+        if args.robot not in ids:
+            raise ConfigError("--robot", f"{args.robot!r} is not in the scenario (robots: {', '.join(ids)})")
+        design = synthesize(scn.controller, scn.arena)
+        if design.failures:
+            raise ConfigError("controller", "inadmissible tube design: " + "; ".join(design.failures))
+        check_geometry(scn, design.footprint)
+    except ConfigError as e:
+        print(f"agent: error: {e}", file=sys.stderr)
+        return 2
+    rank = ids.index(args.robot)
+    spec = scn.robots[rank]
+    p = design.params
+    ctrl = TubeMPC(
+        design,
+        controlled_point(spec.start, p.lookahead),
+        np.array(spec.goal, dtype=float),
+        scn.arena,
+        obstacles=scn.obstacles,
+        priority=spec.priority,
+        rank=rank,
+        seed=scn.simulation.seed * 1000 + rank,
+    )
+    keys = Keys(args.fleet)
+    me = args.robot
+    session = open_session(args)
+    inbox = Inbox(keys, role)
+    subs = [
+        inbox.subscribe(session, keys.pose(me), Pose, keep=True),
+        inbox.subscribe(session, keys.odom(me), Odom, keep=True),
+        inbox.subscribe(session, keys.plan(), Plan, keep=True),
+        inbox.subscribe(session, keys.goal(me), Goal),
+        inbox.subscribe(session, keys.clock, Tick),
+        inbox.watch_liveliness(session),
+    ]
+    pub_plan = session.declare_publisher(keys.plan(me))
+    pub_cmd = session.declare_publisher(keys.cmd(me))
+    token = session.liveliness().declare_token(keys.alive(me))
+    announce("agent", robot=me)
+    stale = 0
+    k = 0
+    goal_seen: Goal | None = None
+    try:
+        while True:
+            if not inbox.wait(partial(_tick_at_least, inbox, k), args.timeout):
+                log(role, f"no tick {k} within {args.timeout} s; stopping")
+                return 1
+            tick = inbox.get(Tick, "tracker")
+            assert tick is not None
+            if tick.stop:
+                break
+            if not inbox.wait(partial(_measured, inbox, me, k), args.timeout):
+                log(role, f"no pose/odometry for step {k}; stopping")
+                return 1
+            others = [r for r in ids if r != me]
+            if k > 0:
+                ok = inbox.wait(partial(_plans_in, inbox, others, k - 1), args.timeout)
+                if not ok:
+                    stale += 1
+            goal = inbox.get(Goal, me)
+            if goal is not None and goal is not goal_seen:
+                goal_seen = goal
+                ctrl.set_goal(goal.goal)
+                log(role, f"new goal {goal.goal.round(3).tolist()}")
+            with inbox.cond:
+                pose = inbox.get(Pose, me, k)
+                odom = inbox.get(Odom, me, k)
+                plans = [inbox.get(Plan, j, k - 1) or inbox.get(Plan, j) for j in others]
+            assert pose is not None and odom is not None
+            px = pose.x + p.lookahead * math.cos(pose.theta)
+            py = pose.y + p.lookahead * math.sin(pose.theta)
+            x = np.array([px, odom.vx, py, odom.vy])
+            nbs = [_neighbour(pl) for pl in plans if pl is not None]
+            out = ctrl.step(x, nbs)
+            info = ctrl.info()
+            pub_plan.put(
+                Plan(
+                    robot=me, step=k, t0=(k + 1) * p.Ts, Ts=p.Ts, committed=out.committed,
+                    footprint=design.footprint, priority=spec.priority, rank=rank, phase=info.phase,
+                    target=out.target, goal=ctrl.goal, status=out.status, solve_time=out.solve_time,
+                    tube_ok=out.tube_ok,
+                ).encode()
+            )  # fmt: skip
+            pub_cmd.put(Command(robot=me, step=k, ax=float(out.a[0]), ay=float(out.a[1])).encode())
+            inbox.prune(k - 2)
+            k += 1
+    finally:
+        c = ctrl.counters
+        log(
+            role,
+            f"stopped after {k} steps: {c.solves} solves, {c.fallbacks} fallbacks, "
+            f"{c.tube_exits} tube exits, {stale} late neighbour plans, "
+            f"{inbox.rejects.total} rejected payloads",
+        )
+        token.undeclare()
+        for s in subs:
+            s.undeclare()
+        session.close()
+    return 0
+
+
+def _measured(inbox: Inbox, me: str, k: int) -> bool:
+    return inbox.get(Pose, me, k) is not None and inbox.get(Odom, me, k) is not None
+
+
+def _plans_in(inbox: Inbox, others: list[str], step: int) -> bool:
+    """Every live neighbour's plan of ``step`` has arrived."""
+    return all(inbox.get(Plan, j, step) is not None for j in others if j in inbox.live)
+
+
+def _tick_at_least(inbox: Inbox, k: int) -> bool:
+    t = inbox.get(Tick, "tracker")
+    return t is not None and (t.stop or t.step >= k)

@@ -1,0 +1,147 @@
+"""``fleet run``: start the fleet as separate OS processes and judge the run.
+
+Processes are started with ``subprocess`` (fork + exec, so no parent state is
+inherited; never a bare fork after Zenoh is open): the tracker listens on a
+free loopback port, the supervisor and one agent per robot connect to it.
+Readiness is each process's ``{"event": "ready"}`` line, waited on with a
+timeout.  The run ends when the tracker exits; everything still running is
+then stopped by pid (SIGTERM, then SIGKILL).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+from fleet.net import free_port, loopback
+
+
+@dataclass
+class Proc:
+    role: str
+    popen: subprocess.Popen[str]
+    lines: queue.Queue[str] = field(default_factory=queue.Queue)
+
+    @property
+    def pid(self) -> int:
+        return self.popen.pid
+
+
+def _pump(stream: IO[str], q: queue.Queue[str]) -> None:
+    for line in stream:
+        q.put(line)
+
+
+def _start(role: str, module: str, args: list[str], env: dict[str, str]) -> Proc:
+    popen = subprocess.Popen(
+        [sys.executable, "-m", module, *args],
+        stdout=subprocess.PIPE,
+        stdin=subprocess.DEVNULL,
+        text=True,
+        env=env,
+    )
+    proc = Proc(role, popen)
+    assert popen.stdout is not None
+    threading.Thread(target=_pump, args=(popen.stdout, proc.lines), daemon=True).start()
+    return proc
+
+
+def _wait_ready(procs: list[Proc], timeout: float) -> list[str]:
+    """Roles that did not announce readiness within ``timeout`` [s] (or died)."""
+    deadline = time.monotonic() + timeout
+    pending = {p.role: p for p in procs}
+    while pending and time.monotonic() < deadline:
+        for role, p in list(pending.items()):
+            try:
+                line = p.lines.get(timeout=0.05)
+            except queue.Empty:
+                if p.popen.poll() is not None:
+                    return [role]
+                continue
+            try:
+                if json.loads(line).get("event") == "ready":
+                    del pending[role]
+            except (json.JSONDecodeError, AttributeError):
+                continue
+    return sorted(pending)
+
+
+def _stop(procs: list[Proc], grace: float = 5.0) -> None:
+    for p in procs:
+        if p.popen.poll() is None:
+            p.popen.send_signal(signal.SIGTERM)
+    deadline = time.monotonic() + grace
+    for p in procs:
+        try:
+            p.popen.wait(timeout=max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            p.popen.kill()
+            p.popen.wait(timeout=5)
+
+
+def run_fleet(
+    scenario: str, robots: list[str], out: Path, seed: int | None, fleet: str = "lab", timeout: float = 600.0
+) -> tuple[int, str, dict[str, Any] | None]:
+    """Run the fleet; returns (exit code, one-line verdict, summary or None)."""
+    port = free_port()
+    hub = loopback(port)
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "RERUN_ANALYTICS": "0"}
+    common = ["--scenario", scenario, "--fleet", fleet]
+    seed_args = [] if seed is None else ["--seed", str(seed)]
+    procs: list[Proc] = []
+    try:
+        procs.append(_start("tracker", "tracker", [*common, "--listen", hub, *seed_args], env))
+        if _wait_ready(procs, 60.0):
+            return 1, "tracker did not start", None
+        procs.append(_start("supervisor", "supervisor", [*common, "--connect", hub, "--out", str(out)], env))
+        for rid in robots:
+            procs.append(_start(f"agent {rid}", "agent", [*common, "--connect", hub, "--robot", rid], env))
+        late = _wait_ready(procs[1:], 120.0)
+        if late:
+            return 1, f"not ready: {', '.join(late)}", None
+        tracker = procs[0]
+        try:
+            tracker.popen.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            return 1, f"run did not finish within {timeout:.0f} s", None
+        sup = procs[1]
+        try:
+            sup.popen.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            sup.popen.send_signal(signal.SIGTERM)
+            sup.popen.wait(timeout=30)
+        agents = procs[2:]
+        for a in agents:
+            try:
+                a.popen.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                pass
+    finally:
+        _stop(procs)
+    codes = {p.role: p.popen.returncode for p in procs}
+    summary_path = out / "summary.json"
+    summary = json.loads(summary_path.read_text()) if summary_path.exists() else None
+    if summary is not None:
+        summary["processes"] = {p.role: p.pid for p in procs}
+        summary["exit_codes"] = codes
+        summary_path.write_text(json.dumps(summary, indent=2) + "\n")
+    crashed = [r for r, c in codes.items() if c not in (0, None)]
+    if crashed:
+        return 1, "process failed: " + ", ".join(f"{r} (exit {codes[r]})" for r in crashed), summary
+    if summary is None:
+        return 1, "supervisor wrote no summary", None
+    if summary["collisions"]:
+        return 1, f"{summary['collisions']} collision samples", summary
+    missing = [r for r, v in summary["robots"].items() if not v["reached_goal"]]
+    if missing:
+        return 1, "goal not reached by " + ", ".join(missing), summary
+    return 0, "ok", summary

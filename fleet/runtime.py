@@ -1,0 +1,124 @@
+"""Shared plumbing of the fleet's processes: arguments, session, inbox, readiness.
+
+Each process prints one JSON line ``{"event": "ready", "role": ..., "pid": ...}``
+on stdout once its subscriptions are declared; the launcher waits on those
+lines (with a timeout) instead of sleeping.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import threading
+import time
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+from fleet.net import NetConfig, loopback
+from fleet.wire import Keys, Message, RejectCounter, WireError, decode
+
+M = TypeVar("M", bound=Message)
+
+
+def add_common_args(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--scenario", required=True, help="scenario TOML file")
+    ap.add_argument("--fleet", default="lab", help="fleet name in the Zenoh keys (default lab)")
+    ap.add_argument("--listen", action="append", default=None, help="Zenoh endpoint to listen on")
+    ap.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
+    ap.add_argument("--timeout", type=float, default=30.0, help="lockstep wait limit [s]")
+
+
+def net_config(args: argparse.Namespace) -> NetConfig:
+    return NetConfig(listen=args.listen or [loopback(0)], connect=list(args.connect))
+
+
+def open_session(args: argparse.Namespace) -> Any:
+    import zenoh
+
+    return zenoh.open(net_config(args).zenoh())
+
+
+def announce(role: str, **info: Any) -> None:
+    """Print the readiness line the launcher waits for."""
+    print(json.dumps({"event": "ready", "role": role, "pid": os.getpid(), **info}), flush=True)
+
+
+def log(role: str, msg: str) -> None:
+    print(f"[{role}] {msg}", file=sys.stderr, flush=True)
+
+
+class Inbox:
+    """Latest decoded messages per (type, robot), with a condition to wait on.
+
+    Subscriber callbacks run on Zenoh's threads; the process's main loop waits
+    on :meth:`wait` with a deadline, never sleeps."""
+
+    def __init__(self, keys: Keys, role: str):
+        self.keys = keys
+        self.role = role
+        self.cond = threading.Condition()
+        self.latest: dict[tuple[str, str], Any] = {}
+        self.history: dict[tuple[str, str], dict[int, Any]] = {}
+        self.live: set[str] = set()
+        self.rejects = RejectCounter(report=lambda m: log(role, m))
+
+    def subscribe(self, session: Any, key: str, typ: type[M], keep: bool = False) -> Any:
+        """Declare a subscriber on ``key`` that decodes ``typ`` and checks the robot id against the key."""
+
+        def on_sample(sample: Any) -> None:
+            k = str(sample.key_expr)
+            try:
+                rid = self.keys.robot_of(k) if not k.endswith("/clock") else None
+                msg = decode(sample.payload.to_bytes(), typ, robot=rid)
+            except WireError as e:
+                with self.cond:
+                    self.rejects.reject(k, e)
+                return
+            with self.cond:
+                self.latest[(typ.TYPE, msg.robot)] = msg
+                if keep:
+                    step = getattr(msg, "step", getattr(msg, "seq", None))
+                    if step is not None:
+                        self.history.setdefault((typ.TYPE, msg.robot), {})[step] = msg
+                self.cond.notify_all()
+
+        return session.declare_subscriber(key, on_sample)
+
+    def watch_liveliness(self, session: Any) -> Any:
+        import zenoh
+
+        def on_token(sample: Any) -> None:
+            rid = str(sample.key_expr).rsplit("/", 1)[-1]
+            with self.cond:
+                if sample.kind == zenoh.SampleKind.DELETE:
+                    self.live.discard(rid)
+                else:
+                    self.live.add(rid)
+                self.cond.notify_all()
+
+        return session.liveliness().declare_subscriber(self.keys.alive(), on_token, history=True)
+
+    def wait(self, predicate: Callable[[], bool], timeout: float) -> bool:
+        """Wait until ``predicate()`` holds (checked under the lock) or ``timeout`` [s] passes."""
+        deadline = time.monotonic() + timeout
+        with self.cond:
+            while not predicate():
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self.cond.wait(left)
+            return True
+
+    def prune(self, before: int) -> None:
+        """Forget kept messages of steps < ``before``."""
+        with self.cond:
+            for hist in self.history.values():
+                for s in [s for s in hist if s < before]:
+                    del hist[s]
+
+    def get(self, typ: type[M], robot: str, step: int | None = None) -> M | None:
+        if step is None:
+            return self.latest.get((typ.TYPE, robot))
+        return self.history.get((typ.TYPE, robot), {}).get(step)

@@ -1,0 +1,7 @@
+"""``python -m supervisor``: see :mod:`supervisor.monitor`."""
+
+import sys
+
+from supervisor.monitor import main
+
+sys.exit(main())

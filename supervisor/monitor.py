@@ -1,0 +1,215 @@
+"""The supervisor process: live safety monitor from ground truth, and ``summary.json``.
+
+``python -m supervisor --scenario S --out DIR [--fleet F] [--connect E]``
+
+It subscribes to the true poses, the plans and the clock, and for every
+step computes, from ground truth: centre distances and collisions (two
+centres closer than two body radii), arena and obstacle violations, the
+separation of the references committed at that step, and per-robot solver
+statistics.  When the tracker's stop tick arrives (or on SIGTERM) it writes
+``DIR/summary.json`` with the schema of ``fleet simulate``.  Rerun logging is
+a later step of issue 3.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import signal
+import sys
+import time
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from agent.tube import synthesize
+from fleet.harness import GOAL_TOLERANCE
+from fleet.runtime import Inbox, add_common_args, announce, log, open_session
+from fleet.scenario import ConfigError, load_scenario
+from fleet.wire import Keys, Plan, Pose, Tick
+
+
+class Monitor:
+    """Ground-truth safety figures, updated one step at a time."""
+
+    def __init__(self, scn: Any, footprint: float, lookahead: float, radius: float):
+        self.scn = scn
+        self.ids = [r.id for r in scn.robots]
+        self.goals = {r.id: np.array(r.goal, dtype=float) for r in scn.robots}
+        self.lookahead = lookahead
+        self.radius = radius
+        self.required = 2.0 * footprint
+        self.min_distance = math.inf
+        self.collisions = self.obstacle_violations = self.arena_violations = 0
+        self.min_ref = math.inf
+        self.ref_violations = 0
+        self.errors: dict[str, list[float]] = {r: [] for r in self.ids}
+        self.robot: dict[str, dict[str, Any]] = {
+            r: {"solves": 0, "failures": 0, "tube_exits": 0, "status": {}, "solve_ms": []} for r in self.ids
+        }
+        self.steps = 0
+
+    def truth(self, poses: dict[str, Pose]) -> None:
+        xmin, xmax, ymin, ymax = self.scn.arena
+        centres = {r: np.array([poses[r].x, poses[r].y]) for r in self.ids}
+        for i, a in enumerate(self.ids):
+            c = centres[a]
+            if not (xmin + self.radius - 1e-9 <= c[0] <= xmax - self.radius + 1e-9) or not (
+                ymin + self.radius - 1e-9 <= c[1] <= ymax - self.radius + 1e-9
+            ):
+                self.arena_violations += 1
+            for ob in self.scn.obstacles:
+                if ob.distance(c) < self.radius - 1e-9:
+                    self.obstacle_violations += 1
+            for b in self.ids[i + 1 :]:
+                d = float(np.linalg.norm(c - centres[b]))
+                self.min_distance = min(self.min_distance, d)
+                if d < 2.0 * self.radius:
+                    self.collisions += 1
+            th = poses[a].theta
+            pt = c + self.lookahead * np.array([math.cos(th), math.sin(th)])
+            self.errors[a].append(float(np.linalg.norm(pt - self.goals[a])))
+
+    def plans(self, plans: dict[str, Plan]) -> None:
+        for i, a in enumerate(self.ids):
+            pa = plans[a]
+            st = self.robot[a]
+            st["solves"] += 1
+            st["status"][pa.status] = st["status"].get(pa.status, 0) + 1
+            st["failures"] += pa.status != "PROXQP_SOLVED"
+            st["tube_exits"] += not pa.tube_ok
+            st["solve_ms"].append(pa.solve_time * 1e3)
+            for b in self.ids[i + 1 :]:
+                pb = plans[b]
+                d = float(np.linalg.norm(pa.committed[-1] - pb.committed[-1]))
+                self.min_ref = min(self.min_ref, d)
+                if d < pa.footprint + pb.footprint - 1e-9:
+                    self.ref_violations += 1
+        self.steps += 1
+
+    def summary(self, Ts: float, wall: float, completed: bool) -> dict[str, Any]:
+        robots = {}
+        for r in self.ids:
+            err = np.array(self.errors[r]) if self.errors[r] else np.array([math.inf])
+            reached = bool(err[-1] <= GOAL_TOLERANCE)
+            ttg = None
+            if reached:
+                bad = np.flatnonzero(err > GOAL_TOLERANCE)
+                ttg = float((0 if bad.size == 0 else int(bad[-1]) + 1) * Ts)
+            st = self.robot[r]
+            sv = np.array(st["solve_ms"]) if st["solve_ms"] else np.zeros(1)
+            robots[r] = {
+                "reached_goal": reached,
+                "time_to_goal_s": ttg,
+                "final_error_m": float(err[-1]),
+                "qp_solves": st["solves"],
+                "qp_failures": st["failures"],
+                "fallbacks": st["failures"],
+                "tube_exits": st["tube_exits"],
+                "status_counts": st["status"],
+                "solve_time_ms": {
+                    "p50": float(np.percentile(sv, 50)),
+                    "p99": float(np.percentile(sv, 99)),
+                    "max": float(sv.max()),
+                },
+            }
+        fin = lambda v: v if math.isfinite(v) else None  # noqa: E731
+        return {
+            "scenario": self.scn.name,
+            "completed": completed,
+            "steps": self.steps,
+            "sim_time_s": self.steps * Ts,
+            "wall_time_s": wall,
+            "min_distance_m": fin(self.min_distance),
+            "collision_distance_m": 2.0 * self.radius,
+            "collisions": self.collisions,
+            "min_reference_separation_m": fin(self.min_ref),
+            "required_reference_separation_m": self.required,
+            "reference_separation_violations": self.ref_violations,
+            "obstacle_violations": self.obstacle_violations,
+            "arena_violations": self.arena_violations,
+            "all_goals_reached": all(v["reached_goal"] for v in robots.values()),
+            "deadline_misses": 0,
+            "robots": robots,
+        }
+
+
+def _progress(inbox: Inbox, ids: list[str], k_truth: int, k_plan: int, stopping: dict[str, bool]) -> bool:
+    """Something to process: a full step of truth or plans, a stop tick or SIGTERM."""
+    tick = inbox.get(Tick, "tracker")
+    return (
+        stopping["signal"]
+        or (tick is not None and tick.stop)
+        or all(inbox.get(Pose, r, k_truth) is not None for r in ids)
+        or all(inbox.get(Plan, r, k_plan) is not None for r in ids)
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m supervisor", description=__doc__.splitlines()[0])
+    add_common_args(ap)
+    ap.add_argument("--out", required=True, help="output directory")
+    args = ap.parse_args(argv)
+    role = "supervisor"
+    try:
+        scn = load_scenario(args.scenario)
+        design = synthesize(scn.controller, scn.arena)
+    except ConfigError as e:
+        print(f"supervisor: error: {e}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    p = design.params
+    mon = Monitor(scn, design.footprint, p.lookahead, p.robot_radius)
+    keys = Keys(args.fleet)
+    session = open_session(args)
+    inbox = Inbox(keys, role)
+    subs = [
+        inbox.subscribe(session, keys.truth(), Pose, keep=True),
+        inbox.subscribe(session, keys.plan(), Plan, keep=True),
+        inbox.subscribe(session, keys.clock, Tick),
+    ]
+    stopping = {"signal": False}
+
+    def on_term(signum: int, frame: Any) -> None:
+        stopping["signal"] = True
+        with inbox.cond:
+            inbox.cond.notify_all()
+
+    signal.signal(signal.SIGTERM, on_term)
+    token = session.liveliness().declare_token(keys.alive(role))
+    announce(role)
+    t0 = time.monotonic()
+    ids = mon.ids
+    k_truth = k_plan = 0
+    completed = False
+    try:
+        while True:
+            inbox.wait(partial(_progress, inbox, ids, k_truth, k_plan, stopping), 1.0)
+            with inbox.cond:
+                while all(inbox.get(Pose, r, k_truth) is not None for r in ids):
+                    mon.truth({r: inbox.get(Pose, r, k_truth) for r in ids})  # type: ignore[misc]
+                    k_truth += 1
+                while all(inbox.get(Plan, r, k_plan) is not None for r in ids):
+                    mon.plans({r: inbox.get(Plan, r, k_plan) for r in ids})  # type: ignore[misc]
+                    k_plan += 1
+                inbox.prune(min(k_truth, k_plan) - 1)
+                tick = inbox.get(Tick, "tracker")
+            if stopping["signal"]:
+                break
+            if tick is not None and tick.stop and k_truth > tick.step:
+                completed = True
+                break
+    finally:
+        summary = mon.summary(p.Ts, time.monotonic() - t0, completed)
+        summary["rejected_payloads"] = inbox.rejects.total
+        (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        log(role, f"summary written to {out / 'summary.json'} after {mon.steps} steps")
+        token.undeclare()
+        for s in subs:
+            s.undeclare()
+        session.close()
+    return 0

@@ -1,0 +1,1 @@
+"""Pose sources: the simulated tracker (and, later, the ArUco camera tracker)."""

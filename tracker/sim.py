@@ -1,0 +1,146 @@
+"""The simulated tracker: robot plants, camera poses and the lockstep clock.
+
+``python -m tracker --scenario S --source sim [--seed N] [--fleet F] [--listen E]``
+
+It integrates each robot's unicycle with the inner loop at 20 substeps per
+Ts, driven by the accelerations the agents publish, and perturbs it with a
+disturbance inside W (the harness's :class:`fleet.harness.Disturbance`, same
+seed, same order, so a lockstep run reproduces ``fleet simulate``).  It
+publishes the measured pose, the inner loop's velocity (odometry) and the
+ground truth, then the tick.  In lockstep it waits until every live agent
+has answered the step (bounded by ``--timeout``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from functools import partial
+
+import numpy as np
+
+from agent.tube import synthesize
+from fleet.harness import GOAL_TOLERANCE, Disturbance, make_plant
+from fleet.runtime import Inbox, add_common_args, announce, log, open_session
+from fleet.scenario import ConfigError, check_geometry, load_scenario
+from fleet.wire import Command, Keys, Odom, Plan, Pose, Tick
+
+SUPERVISOR = "supervisor"
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m tracker", description=__doc__.splitlines()[0])
+    add_common_args(ap)
+    ap.add_argument("--source", choices=["sim"], default="sim", help="pose source (camera: a later issue)")
+    ap.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
+    ap.add_argument("--steps", type=int, default=None, help="override the scenario's duration [steps]")
+    ap.add_argument("--start-timeout", type=float, default=60.0, help="wait for agents to come up [s]")
+    args = ap.parse_args(argv)
+    role = "tracker"
+    try:
+        scn = load_scenario(args.scenario)
+        design = synthesize(scn.controller, scn.arena)
+        if design.failures:
+            raise ConfigError("controller", "inadmissible tube design: " + "; ".join(design.failures))
+        check_geometry(scn, design.footprint)
+    except ConfigError as e:
+        print(f"tracker: error: {e}", file=sys.stderr)
+        return 2
+    p = design.params
+    seed = scn.simulation.seed if args.seed is None else args.seed
+    rng = np.random.default_rng(seed)
+    dist = Disturbance(scn.simulation.disturbance, p.W, scn.simulation.disturbance_fraction, rng)
+    ids = [r.id for r in scn.robots]
+    plants = {
+        r.id: make_plant(scn.simulation.plant, np.array(r.start, dtype=float), design) for r in scn.robots
+    }
+    goals = {r.id: np.array(r.goal, dtype=float) for r in scn.robots}
+    steps = args.steps if args.steps is not None else round(scn.duration / p.Ts)
+    keys = Keys(args.fleet)
+    session = open_session(args)
+    inbox = Inbox(keys, role)
+    subs = [
+        inbox.subscribe(session, keys.cmd(), Command, keep=True),
+        inbox.subscribe(session, keys.plan(), Plan),
+        inbox.watch_liveliness(session),
+    ]
+    pubs = {
+        rid: (
+            session.declare_publisher(keys.pose(rid)),
+            session.declare_publisher(keys.odom(rid)),
+            session.declare_publisher(keys.truth(rid)),
+        )
+        for rid in ids
+    }
+    clock = session.declare_publisher(keys.clock)
+    announce(role, robots=ids, steps=steps)
+    code = 0
+    try:
+        expected = {*ids, SUPERVISOR}
+        if not inbox.wait(lambda: expected <= inbox.live, args.start_timeout):
+            missing = sorted(expected - inbox.live)
+            log(role, f"not up within {args.start_timeout} s: {', '.join(missing)}")
+            return 1
+        k = 0
+        for k in range(steps):
+            t = k * p.Ts
+            for rid in ids:
+                plant = plants[rid]
+                x, y, th = (float(v) for v in plant.pose)
+                state = plant.state()
+                pose = Pose(robot=rid, seq=k, t=t, x=x, y=y, theta=th).encode()
+                pub_pose, pub_odom, pub_truth = pubs[rid]
+                pub_truth.put(pose)
+                pub_pose.put(pose)
+                pub_odom.put(Odom(robot=rid, seq=k, t=t, vx=float(state[1]), vy=float(state[3])).encode())
+            clock.put(Tick(robot=role, step=k, t=t, stop=False).encode())
+            answered = inbox.wait(partial(_answered, inbox, ids, k), args.timeout)
+            if not answered:
+                late = [r for r in ids if inbox.get(Command, r, k) is None]
+                log(role, f"step {k}: no command from {', '.join(late)} within {args.timeout} s")
+            dead = [r for r in ids if r not in inbox.live]
+            if dead:
+                log(role, f"step {k}: agent(s) {', '.join(dead)} not alive; stopping the run")
+                code = 3
+                break
+            for rid in ids:
+                cmd = inbox.get(Command, rid, k)
+                a = np.zeros(2) if cmd is None else np.array([cmd.ax, cmd.ay])
+                plant = plants[rid]
+                x_before = plant.state()
+                plant.step(a, p.Ts)
+                plant.perturb(dist.sample(x_before * 0.0))
+            inbox.prune(k)
+            if _all_home(inbox, ids, plants, goals):
+                k += 1
+                break
+        else:
+            k = steps
+        # Final poses, then stop.
+        for rid in ids:
+            x, y, th = (float(v) for v in plants[rid].pose)
+            pubs[rid][2].put(Pose(robot=rid, seq=k, t=k * p.Ts, x=x, y=y, theta=th).encode())
+        clock.put(Tick(robot=role, step=k, t=k * p.Ts, stop=True).encode())
+        log(role, f"run ended at step {k}")
+    finally:
+        for s in subs:
+            s.undeclare()
+        session.close()
+    return code
+
+
+def _answered(inbox: Inbox, ids: list[str], k: int) -> bool:
+    """Every live agent's command of step k has arrived."""
+    return all(inbox.get(Command, r, k) is not None for r in ids if r in inbox.live)
+
+
+def _all_home(inbox: Inbox, ids: list[str], plants: dict, goals: dict) -> bool:
+    """Every controlled point within half the goal tolerance and every plan parked at its goal."""
+    for rid in ids:
+        pt = plants[rid].state()[[0, 2]]
+        if np.linalg.norm(pt - goals[rid]) > 0.5 * GOAL_TOLERANCE:
+            return False
+        plan = inbox.get(Plan, rid)
+        if plan is None or np.linalg.norm(plan.committed[-1] - goals[rid]) >= 1e-3:
+            return False
+    return True
