@@ -125,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
             info = ctrl.info()
             pub_plan.put(
                 Plan(
-                    robot=me, step=k, t0=(k + 1) * p.Ts, Ts=p.Ts, committed=out.committed,
+                    robot=me, step=k, t0=(k + 1) * p.Ts, Ts=p.Ts, committed=out.committed, nominal=out.plan,
                     footprint=design.footprint, priority=spec.priority, rank=rank, phase=info.phase,
                     target=out.target, goal=ctrl.goal, status=out.status, solve_time=out.solve_time,
                     tube_ok=out.tube_ok,

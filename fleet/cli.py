@@ -103,6 +103,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     except OSError as e:
         return _bad(f"--out: cannot create {out}: {e.strerror}")
     result = run(scn, seed=args.seed, design=design)
+    from fleet.trace import from_harness
+
+    from_harness(result, scn).save(out / "trace.npz")
     summary = result.summary()
     summary["seed"] = scn.simulation.seed if args.seed is None else args.seed
     (out / "summary.json").write_text(json.dumps(_finite(summary), indent=2) + "\n")
@@ -138,8 +141,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else Path("out") / scn.name
     out.mkdir(parents=True, exist_ok=True)
     code, verdict, summary = run_fleet(
-        str(Path(args.scenario).resolve()), [r.id for r in scn.robots], out.resolve(), args.seed
-    )
+        str(Path(args.scenario).resolve()), [r.id for r in scn.robots], out.resolve(), args.seed,
+        viewer=args.viewer,
+    )  # fmt: skip
     if summary is not None:
         print(
             f"{scn.name}: {summary['steps']} steps in {summary['wall_time_s']:.1f} s over "
@@ -151,6 +155,17 @@ def cmd_run(args: argparse.Namespace) -> int:
     if code:
         print(f"fleet: run failed: {verdict}", file=sys.stderr)
     return code
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from fleet.report import write_report
+
+    out = Path(args.dir)
+    if not (out / "trace.npz").is_file():
+        return _bad(f"DIR: {out / 'trace.npz'} not found (run fleet simulate or fleet run with --out {out})")
+    for p in write_report(out):
+        print(p)
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -170,7 +185,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("scenario", help="scenario TOML file")
     r.add_argument("--out", help="output directory (default out/<scenario name>)")
     r.add_argument("--seed", type=int, help="override the scenario's [simulation] seed")
+    r.add_argument("--viewer", action="store_true", help="open the Rerun viewer live")
     r.set_defaults(func=cmd_run)
+    rp = sub.add_parser("report", help="write PNG figures of a run (trajectories, pairwise distances)")
+    rp.add_argument("dir", help="output directory of fleet simulate or fleet run")
+    rp.set_defaults(func=cmd_report)
     return ap
 
 

@@ -89,7 +89,13 @@ def _stop(procs: list[Proc], grace: float = 5.0) -> None:
 
 
 def run_fleet(
-    scenario: str, robots: list[str], out: Path, seed: int | None, fleet: str = "lab", timeout: float = 600.0
+    scenario: str,
+    robots: list[str],
+    out: Path,
+    seed: int | None,
+    fleet: str = "lab",
+    timeout: float = 600.0,
+    viewer: bool = False,
 ) -> tuple[int, str, dict[str, Any] | None]:
     """Run the fleet; returns (exit code, one-line verdict, summary or None)."""
     port = free_port()
@@ -102,7 +108,8 @@ def run_fleet(
         procs.append(_start("tracker", "tracker", [*common, "--listen", hub, *seed_args], env))
         if _wait_ready(procs, 60.0):
             return 1, "tracker did not start", None
-        procs.append(_start("supervisor", "supervisor", [*common, "--connect", hub, "--out", str(out)], env))
+        sup_args = [*common, "--connect", hub, "--out", str(out), *(["--viewer"] if viewer else [])]
+        procs.append(_start("supervisor", "supervisor", sup_args, env))
         for rid in robots:
             procs.append(_start(f"agent {rid}", "agent", [*common, "--connect", hub, "--robot", rid], env))
         late = _wait_ready(procs[1:], 120.0)

@@ -214,6 +214,8 @@ class Plan(Message):
     """Sampling period [s]."""
     committed: NDArray[np.float64] = field(compare=False)
     """Committed reference ỹ_{k+1} … ỹ_{k+N}, (N, 2) [m]."""
+    nominal: NDArray[np.float64] = field(compare=False)
+    """Nominal positions x̂_k … x̂_{k+N} of the applied plan, (N+1, 2) [m]."""
     footprint: float
     """Footprint radius r_i [m]."""
     priority: int
@@ -246,6 +248,7 @@ class Plan(Message):
             "t0": _num(d["t0"], "t0"),
             "Ts": Ts,
             "committed": decode_array(d["committed"], "committed", (None, 2)),
+            "nominal": decode_array(d["nominal"], "nominal", (None, 2)),
             "footprint": fp,
             "priority": _int(d["priority"], "priority", -(2**31), 2**31),
             "rank": _int(d["rank"], "rank", 0, 2**31),

@@ -29,7 +29,12 @@ from agent.tube import synthesize
 from fleet.harness import GOAL_TOLERANCE
 from fleet.runtime import Inbox, add_common_args, announce, log, open_session
 from fleet.scenario import ConfigError, load_scenario
+from fleet.trace import Trace, outlines
 from fleet.wire import Keys, Plan, Pose, Tick
+from supervisor.recorder import Recorder
+
+STOP_GRACE = 5.0
+"""Seconds to wait for the last plans after the stop tick [s]."""
 
 
 class Monitor:
@@ -47,6 +52,8 @@ class Monitor:
         self.min_ref = math.inf
         self.ref_violations = 0
         self.errors: dict[str, list[float]] = {r: [] for r in self.ids}
+        self.poses: dict[str, list[tuple[float, float, float]]] = {r: [] for r in self.ids}
+        self.refs: dict[str, list[Any]] = {r: [] for r in self.ids}
         self.robot: dict[str, dict[str, Any]] = {
             r: {"solves": 0, "failures": 0, "tube_exits": 0, "status": {}, "solve_ms": []} for r in self.ids
         }
@@ -70,7 +77,10 @@ class Monitor:
                 if d < 2.0 * self.radius:
                     self.collisions += 1
             th = poses[a].theta
+            self.poses[a].append((poses[a].x, poses[a].y, th))
             pt = c + self.lookahead * np.array([math.cos(th), math.sin(th)])
+            if not self.refs[a]:
+                self.refs[a].append(pt)  # the initial reference stays put at the start
             self.errors[a].append(float(np.linalg.norm(pt - self.goals[a])))
 
     def plans(self, plans: dict[str, Plan]) -> None:
@@ -82,6 +92,7 @@ class Monitor:
             st["failures"] += pa.status != "PROXQP_SOLVED"
             st["tube_exits"] += not pa.tube_ok
             st["solve_ms"].append(pa.solve_time * 1e3)
+            self.refs[a].append(pa.committed[0].copy())
             for b in self.ids[i + 1 :]:
                 pb = plans[b]
                 d = float(np.linalg.norm(pa.committed[-1] - pb.committed[-1]))
@@ -89,6 +100,19 @@ class Monitor:
                 if d < pa.footprint + pb.footprint - 1e-9:
                     self.ref_violations += 1
         self.steps += 1
+
+    def trace(self, Ts: float, footprint: float) -> Trace:
+        T = min(len(v) for v in self.poses.values())
+        refs = np.full((len(self.ids), T, 2), np.nan)
+        for i, r in enumerate(self.ids):
+            got = np.array(self.refs[r][:T]).reshape(-1, 2)
+            refs[i, : len(got)] = got
+        return Trace(
+            name=self.scn.name, ids=self.ids, Ts=Ts,
+            poses=np.array([self.poses[r][:T] for r in self.ids]).reshape(len(self.ids), T, 3),
+            refs=refs, goals=np.array([self.goals[r] for r in self.ids]), footprint=footprint,
+            robot_radius=self.radius, arena=tuple(self.scn.arena), obstacles=outlines(self.scn.obstacles),
+        )  # fmt: skip
 
     def summary(self, Ts: float, wall: float, completed: bool) -> dict[str, Any]:
         robots = {}
@@ -138,11 +162,9 @@ class Monitor:
 
 
 def _progress(inbox: Inbox, ids: list[str], k_truth: int, k_plan: int, stopping: dict[str, bool]) -> bool:
-    """Something to process: a full step of truth or plans, a stop tick or SIGTERM."""
-    tick = inbox.get(Tick, "tracker")
+    """Something to process: a full step of truth or plans, or SIGTERM."""
     return (
         stopping["signal"]
-        or (tick is not None and tick.stop)
         or all(inbox.get(Pose, r, k_truth) is not None for r in ids)
         or all(inbox.get(Plan, r, k_plan) is not None for r in ids)
     )
@@ -152,6 +174,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m supervisor", description=__doc__.splitlines()[0])
     add_common_args(ap)
     ap.add_argument("--out", required=True, help="output directory")
+    ap.add_argument("--viewer", action="store_true", help="also stream to a live Rerun viewer")
     args = ap.parse_args(argv)
     role = "supervisor"
     try:
@@ -169,8 +192,10 @@ def main(argv: list[str] | None = None) -> int:
     inbox = Inbox(keys, role)
     subs = [
         inbox.subscribe(session, keys.truth(), Pose, keep=True),
+        inbox.subscribe(session, keys.pose(), Pose),
         inbox.subscribe(session, keys.plan(), Plan, keep=True),
         inbox.subscribe(session, keys.clock, Tick),
+        inbox.watch_liveliness(session),
     ]
     stopping = {"signal": False}
 
@@ -180,32 +205,52 @@ def main(argv: list[str] | None = None) -> int:
             inbox.cond.notify_all()
 
     signal.signal(signal.SIGTERM, on_term)
+    recorder = Recorder(out / "recording.rrd", scn, design.footprint, design.rho, p.robot_radius, args.viewer)
     token = session.liveliness().declare_token(keys.alive(role))
     announce(role)
     t0 = time.monotonic()
     ids = mon.ids
     k_truth = k_plan = 0
+    live_seen: set[str] = set()
+    stop_deadline = 0.0
     completed = False
     try:
         while True:
-            inbox.wait(partial(_progress, inbox, ids, k_truth, k_plan, stopping), 1.0)
+            inbox.wait(partial(_progress, inbox, ids, k_truth, k_plan, stopping), 0.2)
             with inbox.cond:
                 while all(inbox.get(Pose, r, k_truth) is not None for r in ids):
-                    mon.truth({r: inbox.get(Pose, r, k_truth) for r in ids})  # type: ignore[misc]
+                    truth = {r: inbox.get(Pose, r, k_truth) for r in ids}
+                    measured = {r: inbox.latest.get(("pose", r)) for r in ids}
+                    mon.truth(truth)  # type: ignore[arg-type]
+                    recorder.truth(k_truth, p.Ts, truth, measured)  # type: ignore[arg-type]
                     k_truth += 1
                 while all(inbox.get(Plan, r, k_plan) is not None for r in ids):
-                    mon.plans({r: inbox.get(Plan, r, k_plan) for r in ids})  # type: ignore[misc]
+                    plans = {r: inbox.get(Plan, r, k_plan) for r in ids}
+                    mon.plans(plans)  # type: ignore[arg-type]
+                    recorder.plans(k_plan, p.Ts, plans)  # type: ignore[arg-type]
                     k_plan += 1
+                for rid in sorted(inbox.live.symmetric_difference(live_seen)):
+                    recorder.event(f"{rid} {'joined' if rid in inbox.live else 'left'} the fleet")
+                live_seen = set(inbox.live)
                 inbox.prune(min(k_truth, k_plan) - 1)
                 tick = inbox.get(Tick, "tracker")
             if stopping["signal"]:
                 break
-            if tick is not None and tick.stop and k_truth > tick.step:
-                completed = True
-                break
+            if tick is not None and tick.stop:
+                # Every step's truth and plans are in, or a grace period has passed
+                # (an agent that died never sends its last plans).
+                stop_deadline = stop_deadline or time.monotonic() + STOP_GRACE
+                if k_truth > tick.step and k_plan >= tick.step:
+                    completed = True
+                    break
+                if time.monotonic() > stop_deadline:
+                    completed = k_truth > tick.step
+                    break
     finally:
         summary = mon.summary(p.Ts, time.monotonic() - t0, completed)
         summary["rejected_payloads"] = inbox.rejects.total
+        mon.trace(p.Ts, design.footprint).save(out / "trace.npz")
+        recorder.close()
         (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
         log(role, f"summary written to {out / 'summary.json'} after {mon.steps} steps")
         token.undeclare()

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import json
 import os
+import queue
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -94,6 +96,38 @@ def test_three_robots_as_processes(three):
         assert r["final_error_m"] <= 0.02 and r["qp_failures"] == 0 and r["tube_exits"] == 0
 
 
+def _entities(rrd: Path) -> set[str]:
+    from rerun.chunk import RrdReader
+
+    return {str(ch.entity_path) for ch in RrdReader(rrd).stream()}
+
+
+def test_recording_has_every_robot_and_the_distance_series(three):
+    _, out = three
+    ents = _entities(out / "recording.rrd")
+    assert {
+        "/world/arena",
+        "/world/goals",
+        "/separation/true/collision",
+        "/separation/reference/required",
+    } <= ents
+    for rid in ("r1", "r2", "r3"):
+        for part in ("true", "heading", "measured", "footprint", "tube", "reference", "plan"):
+            assert f"/world/robots/{rid}/{part}" in ents, (rid, part)
+        assert f"/solve_ms/{rid}" in ents
+    for pair in ("r1-r2", "r1-r3", "r2-r3"):
+        assert f"/separation/true/{pair}" in ents and f"/separation/reference/{pair}" in ents
+
+
+def test_report_writes_the_figures(three):
+    _, out = three
+    res = _fleet("report", str(out))
+    assert res.returncode == 0, res.stderr
+    for name in ("trajectories.png", "distances.png"):
+        data = (out / name).read_bytes()
+        assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 20_000
+
+
 def test_lockstep_reproduces_the_in_process_harness(three, tmp_path):
     """Same seed, same disturbance order: the process runtime gives the harness's trajectories."""
     _, out = three
@@ -114,7 +148,7 @@ def test_lockstep_runs_are_deterministic(three, tmp_path):
     again = _fleet("run", str(SCENARIOS / "paper_three_robots.toml"), "--out", str(tmp_path))
     assert again.returncode == 0, again.stderr[-2000:]
     second = json.loads((tmp_path / "summary.json").read_text())
-    timing = {"wall_time_s", "processes", "exit_codes", "solve_time_ms"}
+    timing = {"wall_time_s", "processes", "exit_codes", "solve_time_ms"}  # the only fields that may differ
 
     def strip(d):
         if isinstance(d, dict):
@@ -130,22 +164,31 @@ def test_killed_agent_fails_the_run_and_names_the_robot(tmp_path):
         [sys.executable, "-m", "fleet.cli", "run", str(SCENARIOS / "swap_4.toml"), "--out", str(tmp_path)],
         cwd=ROOT, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
+    lines: queue.Queue[str] = queue.Queue()
+    reader = threading.Thread(target=lambda: [lines.put(x) for x in launcher.stderr], daemon=True)
+    reader.start()
+    err_lines: list[str] = []
     try:
-        victim = None
+        # Mid-run: wait for the tracker's progress line of step 50 (bounded).
         deadline = time.monotonic() + 120
-        while victim is None and time.monotonic() < deadline and launcher.poll() is None:
-            for child in _children(launcher.pid):
-                cmd = _cmdline(child)
-                if "agent" in cmd and "r2" in cmd:
-                    victim = child
-            if victim is None:
-                time.sleep(0.05)  # polling /proc for the child to appear; bounded by the deadline
-        assert victim is not None, "agent r2 never appeared"
-        # Let it get going: wait for the agent's first Zenoh socket, bounded.
-        while not _listening(victim) and time.monotonic() < deadline:
-            time.sleep(0.05)
+        while time.monotonic() < deadline:
+            try:
+                line = lines.get(timeout=1.0)
+            except queue.Empty:
+                assert launcher.poll() is None, "the run ended before step 50"
+                continue
+            err_lines.append(line)
+            if "[tracker] step 50" in line:
+                break
+        else:
+            raise AssertionError("no progress line within 120 s")
+        victim = next(c for c in _children(launcher.pid) if {"agent", "r2"} <= set(_cmdline(c)))
         os.kill(victim, signal.SIGKILL)
-        _, err = launcher.communicate(timeout=180)
+        launcher.wait(timeout=180)
+        reader.join(timeout=30)  # the pipe closes when the launcher exits
+        while not lines.empty():
+            err_lines.append(lines.get())
+        err = "".join(err_lines)
     finally:
         if launcher.poll() is None:
             launcher.kill()
@@ -155,6 +198,8 @@ def test_killed_agent_fails_the_run_and_names_the_robot(tmp_path):
     s = json.loads((tmp_path / "summary.json").read_text())
     assert s["exit_codes"]["agent r2"] == -signal.SIGKILL
     assert s["collisions"] == 0
+    # The recording is complete and readable.
+    assert "/world/robots/r2/true" in _entities(tmp_path / "recording.rrd")
 
 
 def test_nothing_listens_beyond_loopback(tmp_path):

@@ -28,7 +28,8 @@ from fleet.wire import (
 def _plan(robot="r1", n=20):
     rng = np.random.default_rng(0)
     return Plan(
-        robot=robot, step=7, t0=0.8, Ts=0.1, committed=rng.uniform(-1, 1, (n, 2)), footprint=0.134,
+        robot=robot, step=7, t0=0.8, Ts=0.1, committed=rng.uniform(-1, 1, (n, 2)),
+        nominal=rng.uniform(-1, 1, (n + 1, 2)), footprint=0.134,
         priority=1, rank=2, phase=0, target=np.array([0.1, 0.2]), goal=np.array([0.5, -0.5]),
         status="PROXQP_SOLVED", solve_time=2.5e-4, tube_ok=True,
     )  # fmt: skip

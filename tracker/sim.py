@@ -26,6 +26,8 @@ from fleet.scenario import ConfigError, check_geometry, load_scenario
 from fleet.wire import Command, Keys, Odom, Plan, Pose, Tick
 
 SUPERVISOR = "supervisor"
+PROGRESS_EVERY = 50
+"""Steps between progress lines on stderr."""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -94,6 +96,8 @@ def main(argv: list[str] | None = None) -> int:
                 pub_pose.put(pose)
                 pub_odom.put(Odom(robot=rid, seq=k, t=t, vx=float(state[1]), vy=float(state[3])).encode())
             clock.put(Tick(robot=role, step=k, t=t, stop=False).encode())
+            if k % PROGRESS_EVERY == 0 and k:
+                log(role, f"step {k}")
             answered = inbox.wait(partial(_answered, inbox, ids, k), args.timeout)
             if not answered:
                 late = [r for r in ids if inbox.get(Command, r, k) is None]

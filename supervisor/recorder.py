@@ -1,0 +1,108 @@
+"""Rerun logging of the fleet (the supervisor is the only logger; DESIGN §6).
+
+Entity paths (2-D, world frame, metres):
+
+* ``world/arena``, ``world/obstacles/<k>``, ``world/goals`` — static;
+* ``world/robots/<id>/true`` (centre, body radius), ``.../heading``,
+  ``.../measured``, ``.../footprint`` (r_i around the current reference),
+  ``.../tube`` (ρ around the current reference: where the robot must be),
+  ``.../reference`` (the committed ỹ), ``.../plan`` (nominal x̂);
+* ``separation/true/<a>-<b>`` and ``separation/true/collision`` (2 body radii),
+  ``separation/reference/<a>-<b>`` and ``separation/reference/required``
+  (paper Fig. 7 and 9);
+* ``solve_ms/<id>``; ``events`` (fallbacks, tube exits, stale plans, rejections).
+
+Timelines: ``step`` (sequence) and ``sim_time`` (duration).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from itertools import combinations
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fleet.trace import outlines
+from fleet.wire import Plan, Pose
+
+
+class Recorder:
+    """Writes ``DIR/recording.rrd``; :meth:`close` flushes it completely."""
+
+    def __init__(
+        self, path: Path, scn: Any, footprint: float, rho: float, radius: float, viewer: bool = False
+    ):
+        os.environ.setdefault("RERUN_ANALYTICS", "0")
+        import rerun as rr
+
+        self.rr = rr
+        self.ids = [r.id for r in scn.robots]
+        self.footprint, self.rho, self.radius = footprint, rho, radius
+        self.rec = rr.RecordingStream("epuck-fleet", recording_id=scn.name)
+        if viewer:
+            # The viewer listens on 127.0.0.1; the file is written as well.
+            rr.spawn(connect=False)
+            self.rec.set_sinks(rr.FileSink(str(path)), rr.GrpcSink())
+        else:
+            self.rec.save(str(path))
+        xmin, xmax, ymin, ymax = scn.arena
+        log = self.rec.log
+        box = [[xmin, ymin], [xmax, ymin], [xmax, ymax], [xmin, ymax], [xmin, ymin]]
+        log("world/arena", rr.LineStrips2D([box]), static=True)
+        for k, ol in enumerate(outlines(scn.obstacles)):
+            log(f"world/obstacles/{k}", rr.LineStrips2D([np.vstack([ol, ol[:1]])], colors=[[120, 120, 120]]),
+                static=True)  # fmt: skip
+        log(
+            "world/goals", rr.Points2D([r.goal for r in scn.robots], labels=self.ids, radii=0.01), static=True
+        )
+        self.pairs = list(combinations(self.ids, 2))
+
+    def _time(self, step: int, Ts: float) -> None:
+        self.rec.set_time("step", sequence=step)
+        self.rec.set_time("sim_time", duration=step * Ts)
+
+    def truth(self, step: int, Ts: float, truth: dict[str, Pose], measured: dict[str, Pose]) -> None:
+        rr, log = self.rr, self.rec.log
+        self._time(step, Ts)
+        for rid in self.ids:
+            p = truth[rid]
+            log(f"world/robots/{rid}/true", rr.Points2D([[p.x, p.y]], radii=self.radius, labels=[rid]))
+            head = [[0.06 * math.cos(p.theta), 0.06 * math.sin(p.theta)]]
+            log(f"world/robots/{rid}/heading", rr.Arrows2D(origins=[[p.x, p.y]], vectors=head))
+            m = measured.get(rid)
+            if m is not None:
+                log(f"world/robots/{rid}/measured", rr.Points2D([[m.x, m.y]], radii=0.005))
+        for a, b in self.pairs:
+            d = math.hypot(truth[a].x - truth[b].x, truth[a].y - truth[b].y)
+            log(f"separation/true/{a}-{b}", rr.Scalars(d))
+        log("separation/true/collision", rr.Scalars(2.0 * self.radius))
+
+    def plans(self, step: int, Ts: float, plans: dict[str, Plan]) -> None:
+        rr, log = self.rr, self.rec.log
+        self._time(step + 1, Ts)  # committed[0] is the reference for the next sample
+        for rid in self.ids:
+            pl = plans[rid]
+            y = pl.committed[0]
+            log(f"world/robots/{rid}/footprint", rr.Ellipses2D(centers=[y], half_sizes=[[pl.footprint] * 2]))
+            log(f"world/robots/{rid}/tube", rr.Ellipses2D(centers=[y], half_sizes=[[self.rho] * 2]))
+            log(f"world/robots/{rid}/reference", rr.LineStrips2D([pl.committed]))
+            log(f"world/robots/{rid}/plan", rr.LineStrips2D([pl.nominal]))
+            log(f"solve_ms/{rid}", rr.Scalars(pl.solve_time * 1e3))
+            if pl.status != "PROXQP_SOLVED":
+                self.event(f"{rid}: fallback at step {step} ({pl.status})", "WARN")
+            if not pl.tube_ok:
+                self.event(f"{rid}: tube exit at step {step}", "WARN")
+        for a, b in self.pairs:
+            d = float(np.linalg.norm(plans[a].committed[-1] - plans[b].committed[-1]))
+            log(f"separation/reference/{a}-{b}", rr.Scalars(d))
+        log("separation/reference/required", rr.Scalars(2.0 * self.footprint))
+
+    def event(self, text: str, level: str = "INFO") -> None:
+        self.rec.log("events", self.rr.TextLog(text, level=level))
+
+    def close(self) -> None:
+        self.rec.flush()
+        self.rec.disconnect()
