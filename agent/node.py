@@ -104,7 +104,9 @@ def main(argv: list[str] | None = None) -> int:
                 return 1
             others = [r for r in ids if r != me]
             if k > 0:
-                ok = inbox.wait(partial(_plans_in, inbox, others, k - 1), args.timeout)
+                # Realtime: the neighbours' plans must not hold up this step's deadline.
+                limit = args.timeout if args.clock == "lockstep" else 0.3 * p.Ts
+                ok = inbox.wait(partial(_plans_in, inbox, others, k - 1), limit)
                 if not ok:
                     stale += 1
             goal = inbox.get(Goal, me)

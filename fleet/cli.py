@@ -142,12 +142,14 @@ def cmd_run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     code, verdict, summary = run_fleet(
         str(Path(args.scenario).resolve()), [r.id for r in scn.robots], out.resolve(), args.seed,
-        viewer=args.viewer,
+        viewer=args.viewer, clock=args.clock,
     )  # fmt: skip
     if summary is not None:
         print(
             f"{scn.name}: {summary['steps']} steps in {summary['wall_time_s']:.1f} s over "
-            f"{len(summary.get('processes', {}))} processes; collisions {summary['collisions']}, "
+            f"{len(summary.get('processes', {}))} processes ({args.clock}); "
+            f"collisions {summary['collisions']}, "
+            f"deadline misses {summary.get('deadline_misses', 0)}, "
             f"goals reached {sum(r['reached_goal'] for r in summary['robots'].values())}"
             f"/{len(summary['robots'])}"
         )
@@ -186,6 +188,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", help="output directory (default out/<scenario name>)")
     r.add_argument("--seed", type=int, help="override the scenario's [simulation] seed")
     r.add_argument("--viewer", action="store_true", help="open the Rerun viewer live")
+    r.add_argument("--clock", choices=["lockstep", "realtime"], default="lockstep", help="default lockstep")
     r.set_defaults(func=cmd_run)
     rp = sub.add_parser("report", help="write PNG figures of a run (trajectories, pairwise distances)")
     rp.add_argument("dir", help="output directory of fleet simulate or fleet run")

@@ -96,12 +96,13 @@ def run_fleet(
     fleet: str = "lab",
     timeout: float = 600.0,
     viewer: bool = False,
+    clock: str = "lockstep",
 ) -> tuple[int, str, dict[str, Any] | None]:
     """Run the fleet; returns (exit code, one-line verdict, summary or None)."""
     port = free_port()
     hub = loopback(port)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "RERUN_ANALYTICS": "0"}
-    common = ["--scenario", scenario, "--fleet", fleet]
+    common = ["--scenario", scenario, "--fleet", fleet, "--clock", clock]
     seed_args = [] if seed is None else ["--seed", str(seed)]
     procs: list[Proc] = []
     try:

@@ -28,6 +28,10 @@ def add_common_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--listen", action="append", default=None, help="Zenoh endpoint to listen on")
     ap.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
     ap.add_argument("--timeout", type=float, default=30.0, help="lockstep wait limit [s]")
+    ap.add_argument(
+        "--clock", choices=["lockstep", "realtime"], default="lockstep",
+        help="lockstep: step when every agent answered; realtime: wall-clock steps at Ts",
+    )  # fmt: skip
 
 
 def net_config(args: argparse.Namespace) -> NetConfig:

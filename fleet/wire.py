@@ -316,18 +316,25 @@ class Goal(Message):
 
 @dataclass(frozen=True)
 class Tick(Message):
-    """Lockstep clock: step k starts at time t; ``stop`` ends the run.  ``robot`` is the sender."""
+    """The clock: step k starts at time t; ``stop`` ends the run.  ``robot`` is the sender."""
 
     TYPE: ClassVar[str] = "tick"
     step: int
     t: float
     stop: bool
+    misses: int
+    """Commands that missed their deadline so far (realtime clock; 0 in lockstep)."""
 
     @classmethod
     def _check(cls, d: dict[str, Any]) -> dict[str, Any]:
         if not isinstance(d["stop"], bool):
             raise WireError("stop: expected a boolean")
-        return {"step": _int(d["step"], "step"), "t": _num(d["t"], "t"), "stop": d["stop"]}
+        return {
+            "step": _int(d["step"], "step"),
+            "t": _num(d["t"], "t"),
+            "stop": d["stop"],
+            "misses": _int(d["misses"], "misses"),
+        }
 
 
 MESSAGES: dict[str, type[Message]] = {m.TYPE: m for m in (Pose, Odom, Plan, Command, Goal, Tick)}

@@ -41,7 +41,7 @@ SAMPLES = {
     "cmd": Command(robot="r1", step=4, ax=0.05, ay=-0.3),
     "odom": Odom(robot="r1", seq=4, t=0.4, vx=0.05, vy=-0.01),
     "goal": Goal(robot="r1", goal=np.array([0.3, 0.4])),
-    "tick": Tick(robot="tracker", step=12, t=1.2, stop=False),
+    "tick": Tick(robot="tracker", step=12, t=1.2, stop=False, misses=0),
 }
 
 

@@ -8,13 +8,17 @@ disturbance inside W (the harness's :class:`fleet.harness.Disturbance`, same
 seed, same order, so a lockstep run reproduces ``fleet simulate``).  It
 publishes the measured pose, the inner loop's velocity (odometry) and the
 ground truth, then the tick.  In lockstep it waits until every live agent
-has answered the step (bounded by ``--timeout``).
+has answered the step (bounded by ``--timeout``).  With ``--clock realtime``
+steps start every Ts of wall time; a command later than ``--deadline``·Ts
+after its tick is a deadline miss (the previous acceleration is held).
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+import threading
+import time
 from functools import partial
 
 import numpy as np
@@ -37,6 +41,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
     ap.add_argument("--steps", type=int, default=None, help="override the scenario's duration [steps]")
     ap.add_argument("--start-timeout", type=float, default=60.0, help="wait for agents to come up [s]")
+    ap.add_argument(
+        "--deadline",
+        type=float,
+        default=0.5,
+        help="realtime: command deadline after the tick, as a fraction of Ts",
+    )
     args = ap.parse_args(argv)
     role = "tracker"
     try:
@@ -84,8 +94,14 @@ def main(argv: list[str] | None = None) -> int:
             log(role, f"not up within {args.start_timeout} s: {', '.join(missing)}")
             return 1
         k = 0
+        misses = 0
+        last_a = {rid: np.zeros(2) for rid in ids}
+        realtime = args.clock == "realtime"
+        t_start = time.monotonic()
         for k in range(steps):
             t = k * p.Ts
+            if realtime:
+                _until(t_start + t)
             for rid in ids:
                 plant = plants[rid]
                 x, y, th = (float(v) for v in plant.pose)
@@ -95,13 +111,23 @@ def main(argv: list[str] | None = None) -> int:
                 pub_truth.put(pose)
                 pub_pose.put(pose)
                 pub_odom.put(Odom(robot=rid, seq=k, t=t, vx=float(state[1]), vy=float(state[3])).encode())
-            clock.put(Tick(robot=role, step=k, t=t, stop=False).encode())
+            clock.put(Tick(robot=role, step=k, t=t, stop=False, misses=misses).encode())
             if k % PROGRESS_EVERY == 0 and k:
                 log(role, f"step {k}")
-            answered = inbox.wait(partial(_answered, inbox, ids, k), args.timeout)
-            if not answered:
-                late = [r for r in ids if inbox.get(Command, r, k) is None]
-                log(role, f"step {k}: no command from {', '.join(late)} within {args.timeout} s")
+            if realtime:
+                # A command must arrive within the deadline; otherwise the robot side
+                # holds the previous acceleration and the miss is counted.
+                wait = t_start + t + args.deadline * p.Ts - time.monotonic()
+                inbox.wait(partial(_answered, inbox, ids, k), max(0.0, wait))
+                late = [r for r in ids if inbox.get(Command, r, k) is None and r in inbox.live]
+                if late:
+                    misses += len(late)
+                    log(role, f"step {k}: deadline missed by {', '.join(late)}")
+            else:
+                answered = inbox.wait(partial(_answered, inbox, ids, k), args.timeout)
+                if not answered:
+                    late = [r for r in ids if inbox.get(Command, r, k) is None]
+                    log(role, f"step {k}: no command from {', '.join(late)} within {args.timeout} s")
             dead = [r for r in ids if r not in inbox.live]
             if dead:
                 log(role, f"step {k}: agent(s) {', '.join(dead)} not alive; stopping the run")
@@ -109,7 +135,8 @@ def main(argv: list[str] | None = None) -> int:
                 break
             for rid in ids:
                 cmd = inbox.get(Command, rid, k)
-                a = np.zeros(2) if cmd is None else np.array([cmd.ax, cmd.ay])
+                a = last_a[rid] if cmd is None else np.array([cmd.ax, cmd.ay])
+                last_a[rid] = a
                 plant = plants[rid]
                 x_before = plant.state()
                 plant.step(a, p.Ts)
@@ -124,13 +151,20 @@ def main(argv: list[str] | None = None) -> int:
         for rid in ids:
             x, y, th = (float(v) for v in plants[rid].pose)
             pubs[rid][2].put(Pose(robot=rid, seq=k, t=k * p.Ts, x=x, y=y, theta=th).encode())
-        clock.put(Tick(robot=role, step=k, t=k * p.Ts, stop=True).encode())
-        log(role, f"run ended at step {k}")
+        clock.put(Tick(robot=role, step=k, t=k * p.Ts, stop=True, misses=misses).encode())
+        log(role, f"run ended at step {k}; {misses} deadline misses")
     finally:
         for s in subs:
             s.undeclare()
         session.close()
     return code
+
+
+def _until(when: float) -> None:
+    """Wait for the monotonic clock to reach ``when`` [s] (the realtime clock's pacing)."""
+    left = when - time.monotonic()
+    if left > 0:
+        threading.Event().wait(left)
 
 
 def _answered(inbox: Inbox, ids: list[str], k: int) -> bool:
