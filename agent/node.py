@@ -22,7 +22,7 @@ import numpy as np
 from agent.controller import TubeMPC
 from agent.coordination import NeighbourInfo
 from agent.tube import synthesize
-from fleet.runtime import Inbox, add_common_args, announce, log, open_session
+from fleet.runtime import Inbox, add_common_args, announce, log, open_session, publisher
 from fleet.scenario import ConfigError, check_geometry, controlled_point, load_scenario
 from fleet.wire import Command, Goal, Keys, Odom, Plan, Pose, Tick
 
@@ -83,8 +83,8 @@ def main(argv: list[str] | None = None) -> int:
         inbox.subscribe(session, keys.clock, Tick),
         inbox.watch_liveliness(session),
     ]
-    pub_plan = session.declare_publisher(keys.plan(me))
-    pub_cmd = session.declare_publisher(keys.cmd(me))
+    pub_plan = publisher(session, keys.plan(me))
+    pub_cmd = publisher(session, keys.cmd(me))
     token = session.liveliness().declare_token(keys.alive(me))
     announce("agent", robot=me)
     stale = 0

@@ -44,6 +44,16 @@ def open_session(args: argparse.Namespace) -> Any:
     return zenoh.open(net_config(args).zenoh())
 
 
+def publisher(session: Any, key: str) -> Any:
+    """A publisher that blocks rather than drops when a receiver lags.
+
+    Lockstep correctness needs every plan, pose and tick delivered; the default
+    congestion control drops samples under load."""
+    import zenoh
+
+    return session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+
+
 def announce(role: str, **info: Any) -> None:
     """Print the readiness line the launcher waits for."""
     print(json.dumps({"event": "ready", "role": role, "pid": os.getpid(), **info}), flush=True)

@@ -217,18 +217,31 @@ def main(argv: list[str] | None = None) -> int:
     try:
         while True:
             inbox.wait(partial(_progress, inbox, ids, k_truth, k_plan, stopping), 0.2)
+            # Take the complete steps under the lock; log them outside it, so the
+            # Zenoh callbacks are never held up by Rerun.
+            truths: list[tuple[dict[str, Any], dict[str, Any]]] = []
+            plan_steps: list[dict[str, Any]] = []
             with inbox.cond:
-                while all(inbox.get(Pose, r, k_truth) is not None for r in ids):
-                    truth = {r: inbox.get(Pose, r, k_truth) for r in ids}
+                while all(inbox.get(Pose, r, k_truth + len(truths)) is not None for r in ids):
+                    kk = k_truth + len(truths)
                     measured = {r: inbox.latest.get(("pose", r)) for r in ids}
-                    mon.truth(truth)  # type: ignore[arg-type]
-                    recorder.truth(k_truth, p.Ts, truth, measured)  # type: ignore[arg-type]
-                    k_truth += 1
-                while all(inbox.get(Plan, r, k_plan) is not None for r in ids):
-                    plans = {r: inbox.get(Plan, r, k_plan) for r in ids}
-                    mon.plans(plans)  # type: ignore[arg-type]
-                    recorder.plans(k_plan, p.Ts, plans)  # type: ignore[arg-type]
-                    k_plan += 1
+                    truths.append(({r: inbox.get(Pose, r, kk) for r in ids}, measured))
+                while all(inbox.get(Plan, r, k_plan + len(plan_steps)) is not None for r in ids):
+                    kk = k_plan + len(plan_steps)
+                    plan_steps.append({r: inbox.get(Plan, r, kk) for r in ids})
+            for truth, measured in truths:
+                mon.truth(truth)  # type: ignore[arg-type]
+                recorder.truth(k_truth, p.Ts, truth, measured)  # type: ignore[arg-type]
+                if k_truth == 0:
+                    t0 = time.monotonic()  # wall time counts from the first step, not from start-up
+                k_truth += 1
+            for plans in plan_steps:
+                mon.plans(plans)  # type: ignore[arg-type]
+                recorder.plans(k_plan, p.Ts, plans)  # type: ignore[arg-type]
+                k_plan += 1
+            if truths or plan_steps:
+                stop_deadline = 0.0  # still making progress: the grace period restarts
+            with inbox.cond:
                 for rid in sorted(inbox.live.symmetric_difference(live_seen)):
                     recorder.event(f"{rid} {'joined' if rid in inbox.live else 'left'} the fleet")
                 live_seen = set(inbox.live)
@@ -237,8 +250,8 @@ def main(argv: list[str] | None = None) -> int:
             if stopping["signal"]:
                 break
             if tick is not None and tick.stop:
-                # Every step's truth and plans are in, or a grace period has passed
-                # (an agent that died never sends its last plans).
+                # Every step's truth and plans are in, or nothing arrived for a grace
+                # period (an agent that died never sends its last plans).
                 stop_deadline = stop_deadline or time.monotonic() + STOP_GRACE
                 if k_truth > tick.step and k_plan >= tick.step:
                     completed = True

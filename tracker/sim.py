@@ -25,7 +25,7 @@ import numpy as np
 
 from agent.tube import synthesize
 from fleet.harness import GOAL_TOLERANCE, Disturbance, make_plant
-from fleet.runtime import Inbox, add_common_args, announce, log, open_session
+from fleet.runtime import Inbox, add_common_args, announce, log, open_session, publisher
 from fleet.scenario import ConfigError, check_geometry, load_scenario
 from fleet.wire import Command, Keys, Odom, Plan, Pose, Tick
 
@@ -78,13 +78,13 @@ def main(argv: list[str] | None = None) -> int:
     ]
     pubs = {
         rid: (
-            session.declare_publisher(keys.pose(rid)),
-            session.declare_publisher(keys.odom(rid)),
-            session.declare_publisher(keys.truth(rid)),
+            publisher(session, keys.pose(rid)),
+            publisher(session, keys.odom(rid)),
+            publisher(session, keys.truth(rid)),
         )
         for rid in ids
     }
-    clock = session.declare_publisher(keys.clock)
+    clock = publisher(session, keys.clock)
     announce(role, robots=ids, steps=steps)
     code = 0
     try:
