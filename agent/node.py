@@ -21,9 +21,8 @@ import numpy as np
 
 from agent.controller import TubeMPC
 from agent.coordination import NeighbourInfo
-from agent.tube import synthesize
-from fleet.runtime import Inbox, add_common_args, announce, log, open_session, publisher
-from fleet.scenario import ConfigError, check_geometry, controlled_point, load_scenario
+from fleet.runtime import Inbox, add_common_args, announce, load_validated, log, open_session, publisher
+from fleet.scenario import ConfigError, controlled_point
 from fleet.wire import Command, Goal, Keys, Odom, Plan, Pose, Tick
 
 
@@ -47,14 +46,10 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     role = f"agent {args.robot}"
     try:
-        scn = load_scenario(args.scenario)
+        scn, design = load_validated(args.scenario)
         ids = [r.id for r in scn.robots]
         if args.robot not in ids:
             raise ConfigError("--robot", f"{args.robot!r} is not in the scenario (robots: {', '.join(ids)})")
-        design = synthesize(scn.controller, scn.arena)
-        if design.failures:
-            raise ConfigError("controller", "inadmissible tube design: " + "; ".join(design.failures))
-        check_geometry(scn, design.footprint)
     except ConfigError as e:
         print(f"agent: error: {e}", file=sys.stderr)
         return 2

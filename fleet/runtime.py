@@ -54,6 +54,23 @@ def publisher(session: Any, key: str) -> Any:
     return session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
 
 
+def load_validated(path: str) -> tuple[Any, Any]:
+    """(scenario, admissible tube design) for ``path``, geometry checked; raises ConfigError."""
+    from agent.sets import SetComputationError
+    from agent.tube import synthesize
+    from fleet.scenario import ConfigError, check_geometry, load_scenario
+
+    scn = load_scenario(path)
+    try:
+        design = synthesize(scn.controller, scn.arena)
+    except SetComputationError as e:
+        raise ConfigError("controller", str(e)) from None
+    if design.failures:
+        raise ConfigError("controller", "inadmissible tube design: " + "; ".join(design.failures))
+    check_geometry(scn, design.footprint)
+    return scn, design
+
+
 def announce(role: str, **info: Any) -> None:
     """Print the readiness line the launcher waits for."""
     print(json.dumps({"event": "ready", "role": role, "pid": os.getpid(), **info}), flush=True)

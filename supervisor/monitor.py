@@ -25,10 +25,9 @@ from typing import Any
 
 import numpy as np
 
-from agent.tube import synthesize
 from fleet.harness import GOAL_TOLERANCE
-from fleet.runtime import Inbox, add_common_args, announce, log, open_session
-from fleet.scenario import ConfigError, load_scenario
+from fleet.runtime import Inbox, add_common_args, announce, load_validated, log, open_session
+from fleet.scenario import ConfigError
 from fleet.trace import Trace, outlines
 from fleet.wire import Keys, Plan, Pose, Tick
 from supervisor.recorder import Recorder
@@ -178,8 +177,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     role = "supervisor"
     try:
-        scn = load_scenario(args.scenario)
-        design = synthesize(scn.controller, scn.arena)
+        scn, design = load_validated(args.scenario)
     except ConfigError as e:
         print(f"supervisor: error: {e}", file=sys.stderr)
         return 2

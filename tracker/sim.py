@@ -23,10 +23,9 @@ from functools import partial
 
 import numpy as np
 
-from agent.tube import synthesize
 from fleet.harness import GOAL_TOLERANCE, Disturbance, make_plant
-from fleet.runtime import Inbox, add_common_args, announce, log, open_session, publisher
-from fleet.scenario import ConfigError, check_geometry, load_scenario
+from fleet.runtime import Inbox, add_common_args, announce, load_validated, log, open_session, publisher
+from fleet.scenario import ConfigError
 from fleet.wire import Command, Keys, Odom, Plan, Pose, Tick
 
 SUPERVISOR = "supervisor"
@@ -50,11 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     role = "tracker"
     try:
-        scn = load_scenario(args.scenario)
-        design = synthesize(scn.controller, scn.arena)
-        if design.failures:
-            raise ConfigError("controller", "inadmissible tube design: " + "; ".join(design.failures))
-        check_geometry(scn, design.footprint)
+        scn, design = load_validated(args.scenario)
     except ConfigError as e:
         print(f"tracker: error: {e}", file=sys.stderr)
         return 2
