@@ -82,7 +82,17 @@ class ControllerParams:
     ref_R: tuple[float, ...] = (0.3, 0.3)
 
     W: tuple[float, float] = (0.001, 0.001)
-    """Disturbance box half-widths per axis: (position [m], velocity [m/s])."""
+    """Disturbance box half-widths per axis: (position [m], velocity [m/s]).
+
+    W bounds the one-step error of the *measured* state, so it includes the
+    pose noise: a measurement error n moves it by n⁺ − n, up to
+    2·``point_noise`` per position axis."""
+    pose_noise: tuple[float, float] = (0.0001, 0.001)
+    """Bound on the tracker's pose error: (position per axis [m], heading [rad]).
+
+    The controlled point's measured position is then off by at most
+    ``point_noise`` per axis; ρ and the footprint grow by √2 of that so the
+    guarantee holds for the true body, not only for the measured one."""
     epsilon: float = 0.0055
     """Reference increment bound ‖ȳ − ỹ_{t+N−1}‖∞ ≤ ε [m] (B_ε)."""
     delta: float = 0.01
@@ -133,6 +143,11 @@ class ControllerParams:
     penalty_weight: float = 50.0
     """Scale of the penalty polynomial."""
 
+    @property
+    def point_noise(self) -> float:
+        """Per-axis bound on the measured controlled point's error [m]: η_p + ℓ·η_θ."""
+        return self.pose_noise[0] + self.lookahead * self.pose_noise[1]
+
     def replace(self, **changes: object) -> ControllerParams:
         """Return a copy with ``changes`` applied."""
         return dataclasses.replace(self, **changes)  # type: ignore[arg-type]
@@ -149,6 +164,7 @@ def preset(name: str) -> ControllerParams:
             K_Q=(1.0, 1.0, 1.0, 1.0),
             K_R=(20.0, 20.0),
             W=(0.01, 0.0),
+            pose_noise=(0.002, 0.0),
             lookahead=0.0,
         )
     raise ValueError(f"unknown preset {name!r}; expected one of {', '.join(PRESETS)}")

@@ -14,7 +14,8 @@ Synthesised objects:
 * X̂ = X ⊖ Z and Û = U ⊖ KZ (boxes: bound − support).
 * K_r, the reference generator ``ũ_k = −K_r(x̃_k − E ỹ_{k+1})``, and Ψ, the
   mRPI set of the lag ``e = x̃ − Eỹ``: ``e⁺ = (A − BK_r)(e − EΔ)``, Δ ∈ B_ε.
-* ρ = max ‖C(Z ⊕ Ψ) ⊕ Δ^z‖₂ + ε and the footprint r = robot_radius + ℓ + ρ.
+* ρ = max ‖C(Z ⊕ Ψ) ⊕ Δ^z‖₂ + ε + √2·η (η the pose noise on the controlled
+  point, per axis) and the footprint r = robot_radius + ℓ + ρ.
 
 Every admissibility failure is reported with the bound that fails and by
 how much (:class:`InadmissibleDesign`).
@@ -22,6 +23,7 @@ how much (:class:`InadmissibleDesign`).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -133,9 +135,12 @@ class TubeDesign:
     KZ: Array
     """h_{KZ} per input axis (2,) [m/s²]."""
     rho: float
-    """Bound on ‖p − ỹ_k‖₂ between the real controlled point and its reference [m]."""
+    """Bound on ‖p − ỹ_k‖₂ between the true controlled point and its reference [m]:
+    the measured point's bound plus √2·``point_noise`` (the camera's error)."""
     footprint: float
     """Footprint radius r_i = robot_radius + ℓ + ρ [m]."""
+    noise_margin: float = 0.0
+    """√2·``point_noise``: the part of ρ that covers the pose measurement error [m]."""
     failures: list[str] = field(default_factory=list)
 
     @property
@@ -178,6 +183,8 @@ class TubeDesign:
             },
             "epsilon_m": self.params.epsilon,
             "delta_m": self.params.delta,
+            "pose_noise": {"position_m": self.params.pose_noise[0], "heading_rad": self.params.pose_noise[1]},
+            "noise_margin_m": self.noise_margin,
             "rho_m": self.rho,
             "footprint_radius_m": self.footprint,
             "admissible": self.admissible,
@@ -228,7 +235,8 @@ def synthesize(
     CPsi = Pr.Z.linear_map(C)
     dz = Zonotope.box(np.array([p.delta, p.delta]))
     sum_set = CZ.minkowski_sum(CPsi).minkowski_sum(dz)
-    rho = max_norm_2d(sum_set.support) + eps
+    noise_margin = math.sqrt(2.0) * p.point_noise
+    rho = max_norm_2d(sum_set.support) + eps + noise_margin
     footprint = p.robot_radius + p.lookahead + rho
 
     failures: list[str] = []
@@ -260,6 +268,13 @@ def synthesize(
         failures.append(
             f"epsilon {eps:.4g} m too large: reference input h_{{K_r(Ψ⊕EB_ε)}} {hKrPsi:.4g} m/s² exceeds "
             f"{1 - margin:.2f}·Û bound {u_hat[0]:.4g} m/s² by {hKrPsi - (1 - margin) * u_hat[0]:.4g} m/s²"
+        )
+    # Pose noise: the measured state's one-step error includes n⁺ − n, up to
+    # 2·point_noise per position axis, which W must cover with room to spare.
+    if 2.0 * p.point_noise > (1.0 - margin) * p.W[0]:
+        failures.append(
+            f"pose_noise too large: it moves the measured point by up to 2·{p.point_noise:.4g} m per "
+            f"step, more than {1 - margin:.2f}·W position bound {p.W[0]:.4g} m"
         )
     if p.delta <= 0:
         failures.append(f"delta {p.delta} m must be > 0")
@@ -299,6 +314,7 @@ def synthesize(
         KZ=KZ,
         rho=rho,
         footprint=footprint,
+        noise_margin=noise_margin,
         failures=failures,
     )
 

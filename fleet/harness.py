@@ -3,13 +3,15 @@
 Each step, synchronously:
 
 1. every robot measures its double-integrator state ``x = [px, vx, py, vy]``
-   (controlled point, world frame) from its plant;
+   (controlled point, world frame): the camera's pose, off the plant's by
+   :class:`PoseNoise`, plus the odometry's velocity (exact in simulation);
 2. every agent steps its :class:`agent.controller.TubeMPC` against the
    neighbours' references committed in the *previous* step (the synchronous
    exchange of DESIGN §5);
 3. every plant integrates its acceleration for Ts and receives a disturbance
-   ``w ∈ f·W`` (``f`` = ``disturbance_fraction``; the rest of W is left for
-   the inner loop's discretisation error, which is measured);
+   ``w``; with the pose noise, the measured state's one-step error stays in
+   ``f·W`` (``f`` = ``disturbance_fraction``; the rest of W is left for the
+   inner loop's discretisation error, which is measured);
 4. ground truth is checked: centre distances, collisions, reference
    separation, obstacles, arena, tube membership, ‖p − ỹ‖ ≤ ρ.
 
@@ -31,6 +33,7 @@ from agent.controller import TubeMPC
 from agent.models import DoubleIntegratorPlant, UnicyclePlant, make_inner_loop
 from agent.sets import Array
 from agent.tube import TubeDesign, require_admissible, synthesize
+from fleet.scenario import controlled_point
 
 GOAL_TOLERANCE = 0.02
 """A goal is reached when the controlled point ends within this distance [m]."""
@@ -147,11 +150,22 @@ def _stats(a: Array) -> dict[str, float]:
 
 
 class Disturbance:
-    """Samples w ∈ f·W; ``kind`` is uniform, adversarial or none."""
+    """Samples the process disturbance w (4,) [m, m/s]; ``kind`` is uniform, adversarial or none.
 
-    def __init__(self, kind: str, W: tuple[float, float], fraction: float, rng: np.random.Generator):
+    Its box is f·W less 2·``point_noise`` on the position axes [m], so that
+    w plus the change of the pose noise between two measurements stays in f·W."""
+
+    def __init__(
+        self,
+        kind: str,
+        W: tuple[float, float],
+        fraction: float,
+        rng: np.random.Generator,
+        point_noise: float = 0.0,
+    ):
         self.kind = kind
-        self.half = fraction * np.array([W[0], W[1], W[0], W[1]])
+        budget = fraction * np.array([W[0], W[1], W[0], W[1]])
+        self.half = np.maximum(budget - 2.0 * point_noise * np.array([1.0, 0.0, 1.0, 0.0]), 0.0)
         self.rng = rng
 
     def sample(self, tube_error: Array) -> Array:
@@ -163,6 +177,37 @@ class Disturbance:
         zero = s == 0
         s[zero] = self.rng.choice([-1.0, 1.0], size=int(zero.sum()))
         return s * self.half
+
+
+class PoseNoise:
+    """The simulated camera's pose error: a normal with σ = bound/2, clipped to ±bound.
+
+    ``bounds`` = (position per axis [m], heading [rad]).  It draws from its own
+    generator, seeded from the run's seed, so the disturbance sequence does
+    not depend on it and the tracker process reproduces the harness exactly."""
+
+    def __init__(self, bounds: tuple[float, float], seed: int):
+        self.bound = np.array([bounds[0], bounds[0], bounds[1]], dtype=float)
+        self.rng = np.random.default_rng([seed, 1])
+
+    def sample(self) -> Array:
+        """One pose error (3,): [m, m, rad]."""
+        n = self.rng.normal(0.0, 0.5, 3) * self.bound
+        return np.clip(n, -self.bound, self.bound)
+
+
+def measured_state(pose: Array, velocity: Array, lookahead: float) -> Array:
+    """The controller's state [px, vx, py, vy] (4,) [m, m/s] from a camera pose
+    (x, y, θ) [m, m, rad] and the odometry's controlled-point velocity (2,) [m/s]."""
+    cp = controlled_point(pose, lookahead)
+    return np.array([cp[0], float(velocity[0]), cp[1], float(velocity[1])])
+
+
+def measure(plant: UnicyclePlant | DoubleIntegratorPlant, noise: PoseNoise, lookahead: float) -> Array:
+    """One measurement of ``plant``: its state (4,) as the agent sees it, from a
+    noisy camera pose and exact odometry (the tracker publishes the same)."""
+    pose = plant.pose + noise.sample()
+    return measured_state(pose, plant.state()[[1, 3]], lookahead)
 
 
 def make_plant(kind: str, start: Array, design: TubeDesign) -> UnicyclePlant | DoubleIntegratorPlant:
@@ -195,10 +240,11 @@ def run(
     p = design.params
     Ts = p.Ts
     n_steps = steps if steps is not None else round(scenario.duration / Ts)
-    dist = Disturbance(sim.disturbance, p.W, sim.disturbance_fraction, rng)
+    dist = Disturbance(sim.disturbance, p.W, sim.disturbance_fraction, rng, p.point_noise)
+    noise = PoseNoise(p.pose_noise, seed)
     W4 = np.array([p.W[0], p.W[1], p.W[0], p.W[1]])
     robots = list(scenario.robots)
-    plants, ctrls, traces = {}, {}, {}
+    plants, ctrls, traces, meas = {}, {}, {}, {}
     for rank, rb in enumerate(robots):
         plant = make_plant(sim.plant, np.array(rb.start, dtype=float), design)
         start_pt = plant.state()[[0, 2]]
@@ -217,6 +263,7 @@ def run(
             solver_fault=fault,
         )
         plants[rb.id] = plant
+        meas[rb.id] = measure(plant, noise, p.lookahead)
         tr = RobotTrace(rb.id)
         tr.pose.append(plant.pose.copy())
         tr.point.append(start_pt)
@@ -261,7 +308,7 @@ def run(
             infos[rid] = inf
         outs = {}
         for rid in ids:
-            x = plants[rid].state()
+            x = meas[rid]
             nbs = [infos[j] for j in ids if j != rid]
             out = ctrls[rid].step(x, nbs)
             outs[rid] = (x, out)
@@ -276,7 +323,8 @@ def run(
                     w = w + extra
             plant.perturb(w)
             xn = plant.state()
-            w_real = xn - (design.A @ x + design.B @ out.a)
+            meas[rid] = measure(plant, noise, p.lookahead)
+            w_real = meas[rid] - (design.A @ x + design.B @ out.a)
             tr = traces[rid]
             tr.w_ratio.append(float(np.max(np.abs(w_real) / W4)))
             tr.pose.append(plant.pose.copy())

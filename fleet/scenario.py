@@ -17,7 +17,7 @@ obstacles.  Example::
     seed = 1
     disturbance = "uniform"              # "uniform" | "adversarial" | "none"
     plant = "unicycle"                   # "unicycle" | "double_integrator"
-    disturbance_fraction = 0.9           # injected w lies in fraction·W, 0 < f <= 1
+    disturbance_fraction = 0.9           # measured-state error (w + pose noise) in f·W, 0 < f <= 1
     [[robots]]
     id = "r1"
     start = [-0.6, 0.0, 0.0]             # axle centre x [m], y [m], heading [rad]
@@ -184,7 +184,9 @@ class SimulationSpec:
     plant: str = "unicycle"
     """Simulated plant: "unicycle" | "double_integrator"."""
     disturbance_fraction: float = 0.9
-    """The injected disturbance lies in fraction·W, 0 < fraction <= 1."""
+    """The measured state's one-step error lies in fraction·W, 0 < fraction <= 1:
+    the process disturbance gets what the pose noise (2·point_noise per
+    position axis) leaves of it."""
 
 
 @dataclass(frozen=True)
@@ -374,6 +376,7 @@ _CONTROLLER_RULES: dict[str, Rule] = {
     "ref_Q": _weights(4),
     "ref_R": _weights(2, positive=True),
     "W": _disturbance_box,
+    "pose_noise": lambda v, p: _vector(v, p, 2, ge=0.0),
     "epsilon": _positive,
     "delta": _positive,
     "v_max": _positive,
@@ -657,7 +660,7 @@ def load_scenario(path: str | Path, preset_override: str | None = None) -> Scena
 # --------------------------------------------------------------------------- geometry
 
 
-def controlled_point(start: Sequence[float], lookahead: float) -> np.ndarray:
+def controlled_point(start: Sequence[float] | np.ndarray, lookahead: float) -> np.ndarray:
     """Controlled point (2,) [m] of a pose (x, y, θ): ``start[:2] + ℓ (cos θ, sin θ)``."""
     x, y, th = float(start[0]), float(start[1]), float(start[2])
     return np.array([x + lookahead * math.cos(th), y + lookahead * math.sin(th)])
@@ -687,6 +690,46 @@ def _describe(obs: Obstacle) -> str:
     )
 
 
+def check_point(scn: Scenario, p: np.ndarray, footprint: float, field: str, label: str = "goal") -> None:
+    """Check that a controlled point ``p`` (2,) [m] clears the walls and obstacles by ``footprint`` [m].
+
+    Raises :class:`ConfigError` naming ``field``; used for the scenario's
+    starts and goals and for goals given at run time."""
+    xmin, xmax, ymin, ymax = scn.arena
+    fp = float(footprint)
+    x, y = float(p[0]), float(p[1])
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise ConfigError(field, f"{label} must be finite, got ({x}, {y})")
+    if not (xmin <= x <= xmax and ymin <= y <= ymax):
+        raise ConfigError(
+            field,
+            f"{label} {_xy(p)} lies outside the arena [{xmin:g}, {xmax:g}] × [{ymin:g}, {ymax:g}] m",
+        )
+    walls = [
+        (x - xmin, f"x = {xmin:g}"),
+        (xmax - x, f"x = {xmax:g}"),
+        (y - ymin, f"y = {ymin:g}"),
+        (ymax - y, f"y = {ymax:g}"),
+    ]
+    d, wall = min(walls, key=lambda w: w[0])
+    if d < fp:
+        sd, sf = _pair(d, fp)
+        raise ConfigError(
+            field,
+            f"{label} {_xy(p)} is {sd} m from the arena wall {wall}, less than the footprint radius {sf} m",
+        )
+    for k, obs in enumerate(scn.obstacles):
+        d = obs.distance(p)
+        if d <= 0.0:
+            raise ConfigError(field, f"{label} {_xy(p)} lies inside obstacles[{k}] ({_describe(obs)})")
+        if d < fp:
+            sd, sf = _pair(d, fp)
+            raise ConfigError(
+                field,
+                f"{label} {_xy(p)} is {sd} m from obstacles[{k}], less than the footprint radius {sf} m",
+            )
+
+
 def check_geometry(scn: Scenario, footprint: float) -> None:
     """Check starts and goals against the footprint radius [m] of the design.
 
@@ -694,47 +737,13 @@ def check_geometry(scn: Scenario, footprint: float) -> None:
     outside the arena or closer than ``footprint`` to a wall or an obstacle, or
     when two starts (or two goals) are closer than ``2·footprint``."""
     ell = scn.controller.lookahead
-    xmin, xmax, ymin, ymax = scn.arena
     starts = [controlled_point(r.start, ell) for r in scn.robots]
     goals = [np.asarray(r.goal, dtype=float) for r in scn.robots]
     fp = float(footprint)
 
     for i in range(len(scn.robots)):
         for kind, p, label in (("start", starts[i], "controlled point"), ("goal", goals[i], "goal")):
-            field = f"robots[{i}].{kind}"
-            x, y = float(p[0]), float(p[1])
-            if not (xmin <= x <= xmax and ymin <= y <= ymax):
-                raise ConfigError(
-                    field,
-                    f"{label} {_xy(p)} lies outside the arena [{xmin:g}, {xmax:g}] × [{ymin:g}, {ymax:g}] m",
-                )
-            walls = [
-                (x - xmin, f"x = {xmin:g}"),
-                (xmax - x, f"x = {xmax:g}"),
-                (y - ymin, f"y = {ymin:g}"),
-                (ymax - y, f"y = {ymax:g}"),
-            ]
-            d, wall = min(walls, key=lambda w: w[0])
-            if d < fp:
-                sd, sf = _pair(d, fp)
-                raise ConfigError(
-                    field,
-                    f"{label} {_xy(p)} is {sd} m from the arena wall {wall}, "
-                    f"less than the footprint radius {sf} m",
-                )
-            for k, obs in enumerate(scn.obstacles):
-                d = obs.distance(p)
-                if d <= 0.0:
-                    raise ConfigError(
-                        field, f"{label} {_xy(p)} lies inside obstacles[{k}] ({_describe(obs)})"
-                    )
-                if d < fp:
-                    sd, sf = _pair(d, fp)
-                    raise ConfigError(
-                        field,
-                        f"{label} {_xy(p)} is {sd} m from obstacles[{k}], "
-                        f"less than the footprint radius {sf} m",
-                    )
+            check_point(scn, p, fp, f"robots[{i}].{kind}", label)
 
     for kind, pts, label in (("start", starts, "controlled point"), ("goal", goals, "goal")):
         for j in range(len(pts)):

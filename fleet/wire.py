@@ -202,6 +202,14 @@ class Pose(Message):
 
 
 @dataclass(frozen=True)
+class Truth(Pose):
+    """Ground-truth pose of a robot's axle centre (simulation only, on the truth
+    key): what the supervisor's safety monitor checks.  Same fields as Pose."""
+
+    TYPE: ClassVar[str] = "truth"
+
+
+@dataclass(frozen=True)
 class Plan(Message):
     """An agent's committed reference and what neighbours need to coordinate."""
 
@@ -337,7 +345,7 @@ class Tick(Message):
         }
 
 
-MESSAGES: dict[str, type[Message]] = {m.TYPE: m for m in (Pose, Odom, Plan, Command, Goal, Tick)}
+MESSAGES: dict[str, type[Message]] = {m.TYPE: m for m in (Pose, Truth, Odom, Plan, Command, Goal, Tick)}
 
 
 def decode(payload: bytes, expected: type[M], robot: str | None = None) -> M:

@@ -29,7 +29,7 @@ from fleet.harness import GOAL_TOLERANCE
 from fleet.runtime import Inbox, add_common_args, announce, load_validated, log, open_session
 from fleet.scenario import ConfigError
 from fleet.trace import Trace, outlines
-from fleet.wire import Keys, Plan, Pose, Tick
+from fleet.wire import Keys, Plan, Pose, Tick, Truth
 from supervisor.recorder import Recorder
 
 STOP_GRACE = 5.0
@@ -56,9 +56,18 @@ class Monitor:
         self.robot: dict[str, dict[str, Any]] = {
             r: {"solves": 0, "failures": 0, "tube_exits": 0, "status": {}, "solve_ms": []} for r in self.ids
         }
+        self.pose_error: dict[str, list[float]] = {r: [0.0, 0.0] for r in self.ids}
+        """Largest camera error per robot: [per-axis position [m], heading [rad]]."""
         self.steps = 0
 
-    def truth(self, poses: dict[str, Pose]) -> None:
+    def truth(self, poses: dict[str, Pose], measured: dict[str, Pose | None] | None = None) -> None:
+        """Check one step of ground truth; ``measured`` (the camera poses) feeds the pose-error figures."""
+        for r, m in (measured or {}).items():
+            if m is not None:
+                t = poses[r]
+                err = self.pose_error[r]
+                err[0] = max(err[0], abs(m.x - t.x), abs(m.y - t.y))
+                err[1] = max(err[1], abs(math.remainder(m.theta - t.theta, math.tau)))
         xmin, xmax, ymin, ymax = self.scn.arena
         centres = {r: np.array([poses[r].x, poses[r].y]) for r in self.ids}
         for i, a in enumerate(self.ids):
@@ -91,6 +100,7 @@ class Monitor:
             st["failures"] += pa.status != "PROXQP_SOLVED"
             st["tube_exits"] += not pa.tube_ok
             st["solve_ms"].append(pa.solve_time * 1e3)
+            self.goals[a] = pa.goal.copy()  # a goal changed at run time counts from here on
             self.refs[a].append(pa.committed[0].copy())
             for b in self.ids[i + 1 :]:
                 pb = plans[b]
@@ -125,6 +135,7 @@ class Monitor:
             st = self.robot[r]
             sv = np.array(st["solve_ms"]) if st["solve_ms"] else np.zeros(1)
             robots[r] = {
+                "goal": self.goals[r].tolist(),
                 "reached_goal": reached,
                 "time_to_goal_s": ttg,
                 "final_error_m": float(err[-1]),
@@ -133,6 +144,7 @@ class Monitor:
                 "fallbacks": st["failures"],
                 "tube_exits": st["tube_exits"],
                 "status_counts": st["status"],
+                "max_pose_error": {"position_m": self.pose_error[r][0], "heading_rad": self.pose_error[r][1]},
                 "solve_time_ms": {
                     "p50": float(np.percentile(sv, 50)),
                     "p99": float(np.percentile(sv, 99)),
@@ -160,11 +172,20 @@ class Monitor:
         }
 
 
+def _step_in(inbox: Inbox, ids: list[str], k: int) -> bool:
+    """Step k's ground truth and camera poses are all in (the final step has no camera pose)."""
+    if any(inbox.get(Truth, r, k) is None for r in ids):
+        return False
+    tick = inbox.get(Tick, "tracker")
+    final = tick is not None and tick.stop and k >= tick.step
+    return final or all(inbox.get(Pose, r, k) is not None for r in ids)
+
+
 def _progress(inbox: Inbox, ids: list[str], k_truth: int, k_plan: int, stopping: dict[str, bool]) -> bool:
     """Something to process: a full step of truth or plans, or SIGTERM."""
     return (
         stopping["signal"]
-        or all(inbox.get(Pose, r, k_truth) is not None for r in ids)
+        or all(inbox.get(Truth, r, k_truth) is not None for r in ids)
         or all(inbox.get(Plan, r, k_plan) is not None for r in ids)
     )
 
@@ -189,8 +210,8 @@ def main(argv: list[str] | None = None) -> int:
     session = open_session(args)
     inbox = Inbox(keys, role)
     subs = [
-        inbox.subscribe(session, keys.truth(), Pose, keep=True),
-        inbox.subscribe(session, keys.pose(), Pose),
+        inbox.subscribe(session, keys.truth(), Truth, keep=True),
+        inbox.subscribe(session, keys.pose(), Pose, keep=True),
         inbox.subscribe(session, keys.plan(), Plan, keep=True),
         inbox.subscribe(session, keys.clock, Tick),
         inbox.watch_liveliness(session),
@@ -220,15 +241,15 @@ def main(argv: list[str] | None = None) -> int:
             truths: list[tuple[dict[str, Any], dict[str, Any]]] = []
             plan_steps: list[dict[str, Any]] = []
             with inbox.cond:
-                while all(inbox.get(Pose, r, k_truth + len(truths)) is not None for r in ids):
+                while _step_in(inbox, ids, k_truth + len(truths)):
                     kk = k_truth + len(truths)
-                    measured = {r: inbox.latest.get(("pose", r)) for r in ids}
-                    truths.append(({r: inbox.get(Pose, r, kk) for r in ids}, measured))
+                    measured = {r: inbox.get(Pose, r, kk) for r in ids}
+                    truths.append(({r: inbox.get(Truth, r, kk) for r in ids}, measured))
                 while all(inbox.get(Plan, r, k_plan + len(plan_steps)) is not None for r in ids):
                     kk = k_plan + len(plan_steps)
                     plan_steps.append({r: inbox.get(Plan, r, kk) for r in ids})
             for truth, measured in truths:
-                mon.truth(truth)  # type: ignore[arg-type]
+                mon.truth(truth, measured)  # type: ignore[arg-type]
                 recorder.truth(k_truth, p.Ts, truth, measured)  # type: ignore[arg-type]
                 if k_truth == 0:
                     t0 = time.monotonic()  # wall time counts from the first step, not from start-up

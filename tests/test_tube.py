@@ -124,10 +124,25 @@ def test_stay_put_reference_is_admissible(design):
 def test_footprint_covers_body_tube_and_lag(design):
     p = design.params
     # ρ ≥ the ∞-norm bound on each axis, and ≤ the sum of per-axis bounds × √2.
+    # The pose noise adds √2·(η_p + ℓη_θ): the true point is that far from the measured one.
     per_axis = design.Z.Z.interval_hull()[0] + design.Psi.Z.interval_hull()[0] + p.delta
-    assert design.rho >= per_axis + p.epsilon - 1e-12
-    assert design.rho <= (np.sqrt(2) * per_axis + p.epsilon) * (1 + 1e-6)
+    noise = np.sqrt(2) * (p.pose_noise[0] + p.lookahead * p.pose_noise[1])
+    assert noise > 0 and design.noise_margin == pytest.approx(noise)
+    assert design.rho >= per_axis + p.epsilon + noise - 1e-12
+    assert design.rho <= (np.sqrt(2) * per_axis + p.epsilon + noise) * (1 + 1e-6)
     assert design.footprint == pytest.approx(p.robot_radius + p.lookahead + design.rho)
+
+
+def test_pose_noise_must_leave_room_in_W():
+    """n⁺ − n moves the measured point by up to 2η per step; W must cover it, with margin."""
+    p = preset("epuck")
+    ok = synthesize(p.replace(pose_noise=(0.9 * 0.45 * p.W[0], 0.0)), ARENA)
+    assert ok.admissible, ok.failures
+    bad = synthesize(p.replace(pose_noise=(0.5 * p.W[0], 0.0)), ARENA)
+    assert any("pose_noise" in f for f in bad.failures)
+    # The heading error counts through the look-ahead: ℓ·η_θ alone can exhaust W.
+    tilt = synthesize(p.replace(pose_noise=(0.0, 0.6 * p.W[0] / p.lookahead)), ARENA)
+    assert any("pose_noise" in f for f in tilt.failures)
 
 
 def test_paper_preset_is_honestly_inadmissible():

@@ -19,6 +19,7 @@ from fleet.wire import (
     Pose,
     RejectCounter,
     Tick,
+    Truth,
     WireError,
     decode,
     encode_array,
@@ -37,6 +38,7 @@ def _plan(robot="r1", n=20):
 
 SAMPLES = {
     "pose": Pose(robot="r1", seq=3, t=0.3, x=0.1, y=-0.2, theta=1.5),
+    "truth": Truth(robot="r1", seq=3, t=0.3, x=0.1, y=-0.2, theta=1.5),
     "plan": _plan(),
     "cmd": Command(robot="r1", step=4, ax=0.05, ay=-0.3),
     "odom": Odom(robot="r1", seq=4, t=0.4, vx=0.05, vy=-0.01),

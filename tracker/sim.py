@@ -6,8 +6,9 @@ It integrates each robot's unicycle with the inner loop at 20 substeps per
 Ts, driven by the accelerations the agents publish, and perturbs it with a
 disturbance inside W (the harness's :class:`fleet.harness.Disturbance`, same
 seed, same order, so a lockstep run reproduces ``fleet simulate``).  It
-publishes the measured pose, the inner loop's velocity (odometry) and the
-ground truth, then the tick.  In lockstep it waits until every live agent
+publishes the camera pose (the plant's, off by :class:`fleet.harness.PoseNoise`
+within the controller's ``pose_noise`` bound), the inner loop's velocity
+(odometry) and the ground truth on its own key, then the tick.  In lockstep it waits until every live agent
 has answered the step (bounded by ``--timeout``).  With ``--clock realtime``
 steps start every Ts of wall time; a command later than ``--deadline``·Ts
 after its tick is a deadline miss (the previous acceleration is held).
@@ -23,10 +24,10 @@ from functools import partial
 
 import numpy as np
 
-from fleet.harness import GOAL_TOLERANCE, Disturbance, make_plant
+from fleet.harness import GOAL_TOLERANCE, Disturbance, PoseNoise, make_plant
 from fleet.runtime import Inbox, add_common_args, announce, load_validated, log, open_session, publisher
 from fleet.scenario import ConfigError
-from fleet.wire import Command, Keys, Odom, Plan, Pose, Tick
+from fleet.wire import Command, Keys, Odom, Plan, Pose, Tick, Truth
 
 SUPERVISOR = "supervisor"
 PROGRESS_EVERY = 50
@@ -56,12 +57,13 @@ def main(argv: list[str] | None = None) -> int:
     p = design.params
     seed = scn.simulation.seed if args.seed is None else args.seed
     rng = np.random.default_rng(seed)
-    dist = Disturbance(scn.simulation.disturbance, p.W, scn.simulation.disturbance_fraction, rng)
+    sim = scn.simulation
+    dist = Disturbance(sim.disturbance, p.W, sim.disturbance_fraction, rng, p.point_noise)
+    noise = PoseNoise(p.pose_noise, seed)
     ids = [r.id for r in scn.robots]
     plants = {
         r.id: make_plant(scn.simulation.plant, np.array(r.start, dtype=float), design) for r in scn.robots
     }
-    goals = {r.id: np.array(r.goal, dtype=float) for r in scn.robots}
     steps = args.steps if args.steps is not None else round(scn.duration / p.Ts)
     keys = Keys(args.fleet)
     session = open_session(args)
@@ -100,11 +102,11 @@ def main(argv: list[str] | None = None) -> int:
             for rid in ids:
                 plant = plants[rid]
                 x, y, th = (float(v) for v in plant.pose)
+                mx, my, mth = (float(v) for v in plant.pose + noise.sample())
                 state = plant.state()
-                pose = Pose(robot=rid, seq=k, t=t, x=x, y=y, theta=th).encode()
                 pub_pose, pub_odom, pub_truth = pubs[rid]
-                pub_truth.put(pose)
-                pub_pose.put(pose)
+                pub_truth.put(Truth(robot=rid, seq=k, t=t, x=x, y=y, theta=th).encode())
+                pub_pose.put(Pose(robot=rid, seq=k, t=t, x=mx, y=my, theta=mth).encode())
                 pub_odom.put(Odom(robot=rid, seq=k, t=t, vx=float(state[1]), vy=float(state[3])).encode())
             clock.put(Tick(robot=role, step=k, t=t, stop=False, misses=misses).encode())
             if k % PROGRESS_EVERY == 0 and k:
@@ -137,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
                 plant.step(a, p.Ts)
                 plant.perturb(dist.sample(x_before * 0.0))
             inbox.prune(k)
-            if _all_home(inbox, ids, plants, goals):
+            if _all_home(inbox, ids, plants):
                 k += 1
                 break
         else:
@@ -145,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
         # Final poses, then stop.
         for rid in ids:
             x, y, th = (float(v) for v in plants[rid].pose)
-            pubs[rid][2].put(Pose(robot=rid, seq=k, t=k * p.Ts, x=x, y=y, theta=th).encode())
+            pubs[rid][2].put(Truth(robot=rid, seq=k, t=k * p.Ts, x=x, y=y, theta=th).encode())
         clock.put(Tick(robot=role, step=k, t=k * p.Ts, stop=True, misses=misses).encode())
         log(role, f"run ended at step {k}; {misses} deadline misses")
     finally:
@@ -167,13 +169,14 @@ def _answered(inbox: Inbox, ids: list[str], k: int) -> bool:
     return all(inbox.get(Command, r, k) is not None for r in ids if r in inbox.live)
 
 
-def _all_home(inbox: Inbox, ids: list[str], plants: dict, goals: dict) -> bool:
-    """Every controlled point within half the goal tolerance and every plan parked at its goal."""
+def _all_home(inbox: Inbox, ids: list[str], plants: dict) -> bool:
+    """Every plan parked at its agent's current goal (a goal changed at run time
+    counts) and every controlled point within half the goal tolerance of it."""
     for rid in ids:
-        pt = plants[rid].state()[[0, 2]]
-        if np.linalg.norm(pt - goals[rid]) > 0.5 * GOAL_TOLERANCE:
-            return False
         plan = inbox.get(Plan, rid)
-        if plan is None or np.linalg.norm(plan.committed[-1] - goals[rid]) >= 1e-3:
+        if plan is None or np.linalg.norm(plan.committed[-1] - plan.goal) >= 1e-3:
+            return False
+        pt = plants[rid].state()[[0, 2]]
+        if np.linalg.norm(pt - plan.goal) > 0.5 * GOAL_TOLERANCE:
             return False
     return True
