@@ -13,16 +13,17 @@ time is used with its last known plan, and the event is counted.
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from functools import partial
+from typing import Any
 
 import numpy as np
 
 from agent.controller import TubeMPC
 from agent.coordination import NeighbourInfo
+from fleet.harness import measured_state
 from fleet.runtime import Inbox, add_common_args, announce, load_validated, log, open_session, publisher
-from fleet.scenario import ConfigError, controlled_point
+from fleet.scenario import ConfigError, check_point, controlled_point
 from fleet.wire import Command, Goal, Keys, Odom, Plan, Pose, Tick
 
 
@@ -104,19 +105,22 @@ def main(argv: list[str] | None = None) -> int:
                 ok = inbox.wait(partial(_plans_in, inbox, others, k - 1), limit)
                 if not ok:
                     stale += 1
-            goal = inbox.get(Goal, me)
-            if goal is not None and goal is not goal_seen:
-                goal_seen = goal
-                ctrl.set_goal(goal.goal)
-                log(role, f"new goal {goal.goal.round(3).tolist()}")
             with inbox.cond:
                 pose = inbox.get(Pose, me, k)
                 odom = inbox.get(Odom, me, k)
                 plans = [inbox.get(Plan, j, k - 1) or inbox.get(Plan, j) for j in others]
+                goal = inbox.get(Goal, me)
+            if goal is not None and goal is not goal_seen:
+                goal_seen = goal
+                problem = goal_problem(scn, design.footprint, goal.goal, [pl for pl in plans if pl])
+                if problem is not None:
+                    log(role, f"goal {goal.goal.round(3).tolist()} rejected: {problem}")
+                elif not np.array_equal(goal.goal, ctrl.goal):
+                    ctrl.set_goal(goal.goal)
+                    log(role, f"new goal {goal.goal.round(3).tolist()} at step {k}")
             assert pose is not None and odom is not None
-            px = pose.x + p.lookahead * math.cos(pose.theta)
-            py = pose.y + p.lookahead * math.sin(pose.theta)
-            x = np.array([px, odom.vx, py, odom.vy])
+            cam = np.array([pose.x, pose.y, pose.theta])
+            x = measured_state(cam, np.array([odom.vx, odom.vy]), p.lookahead)
             nbs = [_neighbour(pl) for pl in plans if pl is not None]
             out = ctrl.step(x, nbs)
             info = ctrl.info()
@@ -144,6 +148,23 @@ def main(argv: list[str] | None = None) -> int:
             s.undeclare()
         session.close()
     return 0
+
+
+def goal_problem(scn: Any, footprint: float, goal: np.ndarray, plans: list[Plan]) -> str | None:
+    """Why a goal (2,) [m] given at run time cannot be accepted, or None.
+
+    It must clear the walls and obstacles by the footprint radius [m] and park
+    at least the two footprints away from every neighbour's current goal."""
+    try:
+        check_point(scn, goal, footprint, "goal")
+    except ConfigError as e:
+        return e.reason
+    for pl in plans:
+        d = float(np.linalg.norm(goal - pl.goal))
+        if d < footprint + pl.footprint:
+            need = footprint + pl.footprint
+            return f"{d:.3f} m from {pl.robot}'s goal, closer than the footprints allow ({need:.3f} m)"
+    return None
 
 
 def _measured(inbox: Inbox, me: str, k: int) -> bool:

@@ -5,6 +5,11 @@
 * ``fleet simulate SCENARIO.toml [--out DIR] [--seed N]`` runs the in-process
   harness, writes ``DIR/summary.json`` and exits 0 only if the run completed
   with zero collisions and every robot reached its goal.
+* ``fleet run SCENARIO.toml [--out DIR] [--clock C] [--seed N] [--viewer]
+  [--listen ENDPOINT]`` runs the fleet as processes over Zenoh.
+* ``fleet goal SCENARIO.toml --robot ID X Y --connect ENDPOINT`` gives a
+  running agent a new goal.
+* ``fleet report DIR`` writes the figures of a run.
 
 Bad input gets one line naming the field and the reason, and exit code 2.
 """
@@ -142,7 +147,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     code, verdict, summary = run_fleet(
         str(Path(args.scenario).resolve()), [r.id for r in scn.robots], out.resolve(), args.seed,
-        viewer=args.viewer, clock=args.clock,
+        viewer=args.viewer, clock=args.clock, hub=args.listen,
     )  # fmt: skip
     if summary is not None:
         print(
@@ -159,6 +164,15 @@ def cmd_run(args: argparse.Namespace) -> int:
     return code
 
 
+def cmd_goal(args: argparse.Namespace) -> int:
+    from fleet.operator import send_goal
+
+    goal = (args.x, args.y)
+    code, line = send_goal(args.scenario, args.robot, goal, args.connect, args.fleet, args.timeout)
+    print(line, file=sys.stdout if code == 0 else sys.stderr)
+    return code
+
+
 def cmd_report(args: argparse.Namespace) -> int:
     from fleet.report import write_report
 
@@ -168,6 +182,15 @@ def cmd_report(args: argparse.Namespace) -> int:
     for p in write_report(out):
         print(p)
     return 0
+
+
+def _endpoint(text: str) -> str:
+    """A Zenoh TCP endpoint ``tcp/HOST:PORT``."""
+    proto, _, rest = text.partition("/")
+    host, _, port = rest.rpartition(":")
+    if proto != "tcp" or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise argparse.ArgumentTypeError(f"expected tcp/HOST:PORT, got {text!r}")
+    return text
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -189,7 +212,21 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--seed", type=int, help="override the scenario's [simulation] seed")
     r.add_argument("--viewer", action="store_true", help="open the Rerun viewer live")
     r.add_argument("--clock", choices=["lockstep", "realtime"], default="lockstep", help="default lockstep")
+    r.add_argument(
+        "--listen", metavar="ENDPOINT", type=_endpoint,
+        help="Zenoh endpoint of the fleet's hub, e.g. tcp/127.0.0.1:7447, so an operator can connect "
+        "(default: a free loopback port)",
+    )  # fmt: skip
     r.set_defaults(func=cmd_run)
+    g = sub.add_parser("goal", help="give a running agent a new goal and wait until it takes it")
+    g.add_argument("scenario", help="scenario TOML file of the running fleet")
+    g.add_argument("--robot", required=True, help="robot id")
+    g.add_argument("x", type=float, help="goal x [m], world frame")
+    g.add_argument("y", type=float, help="goal y [m], world frame")
+    g.add_argument("--connect", action="append", type=_endpoint, required=True, help="the fleet's hub")
+    g.add_argument("--fleet", default="lab", help="fleet name in the Zenoh keys (default lab)")
+    g.add_argument("--timeout", type=float, default=30.0, help="wait limit [s]")
+    g.set_defaults(func=cmd_goal)
     rp = sub.add_parser("report", help="write PNG figures of a run (trajectories, pairwise distances)")
     rp.add_argument("dir", help="output directory of fleet simulate or fleet run")
     rp.set_defaults(func=cmd_report)

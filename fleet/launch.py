@@ -97,10 +97,13 @@ def run_fleet(
     timeout: float = 600.0,
     viewer: bool = False,
     clock: str = "lockstep",
+    hub: str | None = None,
 ) -> tuple[int, str, dict[str, Any] | None]:
-    """Run the fleet; returns (exit code, one-line verdict, summary or None)."""
-    port = free_port()
-    hub = loopback(port)
+    """Run the fleet; returns (exit code, one-line verdict, summary or None).
+
+    ``hub`` is the tracker's listening endpoint (default: a free loopback port)."""
+    hub = hub or loopback(free_port())
+    print(f"fleet: hub {hub} (fleet goal --connect {hub} ...)", file=sys.stderr, flush=True)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "RERUN_ANALYTICS": "0"}
     common = ["--scenario", scenario, "--fleet", fleet, "--clock", clock]
     seed_args = [] if seed is None else ["--seed", str(seed)]

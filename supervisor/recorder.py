@@ -2,7 +2,8 @@
 
 Entity paths (2-D, world frame, metres):
 
-* ``world/arena``, ``world/obstacles/<k>``, ``world/goals`` — static;
+* ``world/arena``, ``world/obstacles/<k>`` — static; ``world/goals`` from
+  step 0, logged again when an agent takes a new goal (with an event);
 * ``world/robots/<id>/true`` (centre, body radius), ``.../heading``,
   ``.../measured``, ``.../footprint`` (r_i around the current reference),
   ``.../tube`` (ρ around the current reference: where the robot must be),
@@ -55,9 +56,9 @@ class Recorder:
         for k, ol in enumerate(outlines(scn.obstacles)):
             log(f"world/obstacles/{k}", rr.LineStrips2D([np.vstack([ol, ol[:1]])], colors=[[120, 120, 120]]),
                 static=True)  # fmt: skip
-        log(
-            "world/goals", rr.Points2D([r.goal for r in scn.robots], labels=self.ids, radii=0.01), static=True
-        )
+        self.goals = {r.id: tuple(r.goal) for r in scn.robots}
+        self._time(0, 0.0)
+        self._log_goals()
         self.pairs = list(combinations(self.ids, 2))
 
     def _time(self, step: int, Ts: float) -> None:
@@ -95,10 +96,20 @@ class Recorder:
                 self.event(f"{rid}: fallback at step {step} ({pl.status})", "WARN")
             if not pl.tube_ok:
                 self.event(f"{rid}: tube exit at step {step}", "WARN")
+        changed = [r for r in self.ids if tuple(plans[r].goal.tolist()) != self.goals[r]]
+        for rid in changed:
+            self.goals[rid] = tuple(plans[rid].goal.tolist())
+            self.event(f"{rid}: new goal ({self.goals[rid][0]:.3f}, {self.goals[rid][1]:.3f}) at step {step}")
+        if changed:
+            self._log_goals()
         for a, b in self.pairs:
             d = float(np.linalg.norm(plans[a].committed[-1] - plans[b].committed[-1]))
             log(f"separation/reference/{a}-{b}", rr.Scalars(d))
         log("separation/reference/required", rr.Scalars(2.0 * self.footprint))
+
+    def _log_goals(self) -> None:
+        pts = [self.goals[r] for r in self.ids]
+        self.rec.log("world/goals", self.rr.Points2D(pts, labels=self.ids, radii=0.01))
 
     def event(self, text: str, level: str = "INFO") -> None:
         self.rec.log("events", self.rr.TextLog(text, level=level))

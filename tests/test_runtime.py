@@ -96,6 +96,21 @@ def test_three_robots_as_processes(three):
         assert r["final_error_m"] <= 0.02 and r["qp_failures"] == 0 and r["tube_exits"] == 0
 
 
+def test_camera_poses_are_noisy_within_the_designed_bound(three):
+    """The tracker's camera poses differ from the ground truth, never by more than pose_noise."""
+    from fleet.scenario import load_scenario
+
+    _, out = three
+    bound_p, bound_th = load_scenario(SCENARIOS / "paper_three_robots.toml").controller.pose_noise
+    assert bound_p > 0 and bound_th > 0
+    s = json.loads((out / "summary.json").read_text())
+    for rid, r in s["robots"].items():
+        err = r["max_pose_error"]
+        # σ = bound/2 over hundreds of draws: the largest error is well above a third of the bound.
+        assert bound_p / 3 < err["position_m"] <= bound_p + 1e-12, (rid, err)
+        assert bound_th / 3 < err["heading_rad"] <= bound_th + 1e-12, (rid, err)
+
+
 def _entities(rrd: Path) -> set[str]:
     from rerun.chunk import RrdReader
 
@@ -247,3 +262,65 @@ def test_realtime_run_of_three_robots_for_20_s(tmp_path):
     assert wall >= 20.0  # it really ran on the wall clock
     # 20 s is too short to get home, so the run fails for that reason only.
     assert res.returncode == 1 and "goal not reached" in res.stderr and "process failed" not in res.stderr
+
+
+def test_goal_changed_at_run_time(tmp_path):
+    """An operator moves r1's goal while the fleet runs: bad goals are refused, the good one is
+    taken, and the run is judged against it (realtime clock, so the run is still going)."""
+    from fleet.net import free_port, loopback
+
+    hub = loopback(free_port())
+    scn = str(SCENARIOS / "paper_three_robots.toml")
+    out = tmp_path / "out"
+    cmd = ["run", scn, "--out", str(out), "--clock", "realtime", "--listen", hub]
+    launcher = subprocess.Popen(
+        [sys.executable, "-m", "fleet.cli", *cmd],
+        cwd=ROOT, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        # Refused before anything is sent: the goal is closer to the wall than the footprint.
+        wall = _fleet("goal", scn, "--robot", "r1", "0.0", "0.95", "--connect", hub, timeout=120)
+        assert wall.returncode == 2 and wall.stderr.count("\n") == 1, wall.stderr
+        assert "goal" in wall.stderr and "arena wall y = 1" in wall.stderr
+        # Taken: the command waits for r1 to come up, then for a plan of r1 carrying the goal.
+        ok = _fleet("goal", scn, "--robot", "r1", "0.7", "-0.45", "--connect", hub, "--timeout", "120")
+        assert ok.returncode == 0, ok.stderr
+        assert ok.stdout.startswith("r1 took goal (0.700, -0.450) at step")
+        # Refused: it would park r1 on top of r2's goal (0.35, -0.61).
+        near = _fleet("goal", scn, "--robot", "r1", "0.40", "-0.55", "--connect", hub, "--timeout", "5")
+        assert near.returncode == 1 and "r2" in near.stderr, near.stderr
+        _, stderr = launcher.communicate(timeout=240)
+    finally:
+        if launcher.poll() is None:
+            launcher.kill()
+            launcher.wait(timeout=30)
+    assert launcher.returncode == 0, stderr[-2000:]
+    s = json.loads((out / "summary.json").read_text())
+    assert s["collisions"] == 0 and s["reference_separation_violations"] == 0 and s["all_goals_reached"]
+    r1 = s["robots"]["r1"]
+    assert r1["goal"] == [0.7, -0.45] and r1["final_error_m"] <= 0.02
+    assert s["robots"]["r2"]["goal"] == pytest.approx([0.35, -0.606217782649107])
+
+
+def test_agent_checks_run_time_goals_itself():
+    """The agent refuses a goal on its own (the operator's check is a courtesy, not the guard)."""
+    import numpy as np
+
+    from agent.node import goal_problem
+    from fleet.runtime import load_validated
+    from fleet.wire import Plan
+
+    scn, design = load_validated(str(SCENARIOS / "paper_three_robots.toml"))
+    fp = design.footprint
+    assert goal_problem(scn, fp, np.array([0.7, -0.45]), []) is None
+    assert "arena wall" in goal_problem(scn, fp, np.array([0.0, 1.0 - 0.5 * fp]), [])
+    assert "finite" in goal_problem(scn, fp, np.array([np.nan, 0.0]), [])
+    z = np.zeros((20, 2))
+    r2 = Plan(
+        robot="r2", step=3, t0=0.4, Ts=0.1, committed=z, nominal=np.zeros((21, 4)), footprint=fp, priority=0,
+        rank=1, phase="UNDER_WAY", target=z[-1], goal=np.array([0.35, -0.61]), status="PROXQP_SOLVED",
+        solve_time=1e-3, tube_ok=True,
+    )  # fmt: skip
+    why = goal_problem(scn, fp, np.array([0.40, -0.55]), [r2])
+    assert why is not None and "r2" in why
+    assert goal_problem(scn, fp, np.array([0.35 - 2.01 * fp, -0.61]), [r2]) is None

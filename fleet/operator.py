@@ -1,0 +1,78 @@
+"""``fleet goal``: give a running agent a new goal and wait until it takes it.
+
+The operator's session connects to the fleet's hub (``fleet run --listen``),
+waits for the robot's liveliness token (the readiness signal), checks the
+goal against the scenario's walls and obstacles and the neighbours' current
+goals (the agent checks it again), then publishes it on
+``fleet/<fleet>/goal/<id>`` until a plan of that robot carries it.
+"""
+
+from __future__ import annotations
+
+import time
+from functools import partial
+
+import numpy as np
+
+from agent.node import goal_problem
+from fleet.net import NetConfig
+from fleet.runtime import Inbox, load_validated
+from fleet.scenario import ConfigError
+from fleet.wire import Goal, Keys, Plan
+
+RESEND = 0.5
+"""Seconds between re-publications of the goal until the agent acknowledges it [s]."""
+
+
+def send_goal(
+    scenario: str, robot: str, goal: tuple[float, float], connect: list[str], fleet: str, timeout: float
+) -> tuple[int, str]:
+    """Send ``goal`` (x, y) [m, world frame] to ``robot``; (exit code, one line).
+
+    Exit 2: bad input (the line names the field); 1: the robot is not up, did
+    not take the goal within ``timeout`` [s], or a neighbour parks too close."""
+    import zenoh
+
+    scn, design = load_validated(scenario)
+    ids = [r.id for r in scn.robots]
+    if robot not in ids:
+        raise ConfigError("--robot", f"{robot!r} is not in the scenario (robots: {', '.join(ids)})")
+    target = np.array(goal, dtype=float)
+    problem = goal_problem(scn, design.footprint, target, [])
+    if problem is not None:
+        raise ConfigError("goal", problem)
+    keys = Keys(fleet)
+    session = zenoh.open(NetConfig(connect=connect).zenoh())
+    inbox = Inbox(keys, "operator")
+    subs = [inbox.subscribe(session, keys.plan(), Plan), inbox.watch_liveliness(session)]
+    try:
+        if not inbox.wait(lambda: robot in inbox.live, timeout):
+            return 1, f"{robot} is not alive on {', '.join(connect)} within {timeout:g} s"
+        # The neighbours' current goals travel in their plans: wait for one from every live robot.
+        inbox.wait(lambda: all(inbox.get(Plan, r) is not None for r in ids if r in inbox.live), timeout)
+        with inbox.cond:
+            plans = [p for r in ids if r != robot and (p := inbox.get(Plan, r)) is not None]
+        problem = goal_problem(scn, design.footprint, target, plans)
+        if problem is not None:
+            return 1, f"goal rejected: {problem}"
+        pub = session.declare_publisher(keys.goal(robot))
+        payload = Goal(robot=robot, goal=target).encode()
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            pub.put(payload)
+            if inbox.wait(partial(_carries, inbox, robot, target), min(RESEND, deadline - time.monotonic())):
+                plan = inbox.get(Plan, robot)
+                assert plan is not None
+                return 0, f"{robot} took goal ({target[0]:.3f}, {target[1]:.3f}) at step {plan.step}"
+            if robot not in inbox.live:
+                return 1, f"{robot} left the fleet before taking the goal"
+        return 1, f"{robot} did not take the goal within {timeout:g} s (see its log for the reason)"
+    finally:
+        for s in subs:
+            s.undeclare()
+        session.close()
+
+
+def _carries(inbox: Inbox, robot: str, goal: np.ndarray) -> bool:
+    plan = inbox.get(Plan, robot)
+    return plan is not None and bool(np.array_equal(plan.goal, goal))
