@@ -29,6 +29,17 @@ import numpy as np
 from fleet.trace import outlines
 from fleet.wire import Plan, Pose
 
+PALETTE = [
+    (31, 119, 180), (44, 160, 44), (214, 39, 40), (148, 103, 189), (140, 86, 75),
+    (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207),
+]  # fmt: skip
+"""Robot colours (RGB), in scenario order and cycled: one colour per robot on every entity of it."""
+
+
+def robot_colour(rank: int) -> tuple[int, int, int]:
+    """The colour of the robot at ``rank`` in the scenario."""
+    return PALETTE[rank % len(PALETTE)]
+
 
 class Recorder:
     """Writes ``DIR/recording.rrd``; :meth:`close` flushes it completely."""
@@ -56,6 +67,8 @@ class Recorder:
         for k, ol in enumerate(outlines(scn.obstacles)):
             log(f"world/obstacles/{k}", rr.LineStrips2D([np.vstack([ol, ol[:1]])], colors=[[120, 120, 120]]),
                 static=True)  # fmt: skip
+        self.colour = {rid: robot_colour(i) for i, rid in enumerate(self.ids)}
+        self.rec.send_blueprint(self._blueprint())
         self.goals = {r.id: tuple(r.goal) for r in scn.robots}
         self._time(0, 0.0)
         self._log_goals()
@@ -70,9 +83,13 @@ class Recorder:
         self._time(step, Ts)
         for rid in self.ids:
             p = truth[rid]
-            log(f"world/robots/{rid}/true", rr.Points2D([[p.x, p.y]], radii=self.radius, labels=[rid]))
+            c = self.colour[rid]
+            log(
+                f"world/robots/{rid}/true",
+                rr.Points2D([[p.x, p.y]], radii=self.radius, labels=[rid], colors=[c]),
+            )
             head = [[0.06 * math.cos(p.theta), 0.06 * math.sin(p.theta)]]
-            log(f"world/robots/{rid}/heading", rr.Arrows2D(origins=[[p.x, p.y]], vectors=head))
+            log(f"world/robots/{rid}/heading", rr.Arrows2D(origins=[[p.x, p.y]], vectors=head, colors=[c]))
             m = measured.get(rid)
             if m is not None:
                 log(f"world/robots/{rid}/measured", rr.Points2D([[m.x, m.y]], radii=0.005))
@@ -87,11 +104,16 @@ class Recorder:
         for rid in self.ids:
             pl = plans[rid]
             y = pl.committed[0]
-            log(f"world/robots/{rid}/footprint", rr.Ellipses2D(centers=[y], half_sizes=[[pl.footprint] * 2]))
-            log(f"world/robots/{rid}/tube", rr.Ellipses2D(centers=[y], half_sizes=[[self.rho] * 2]))
-            log(f"world/robots/{rid}/reference", rr.LineStrips2D([pl.committed]))
-            log(f"world/robots/{rid}/plan", rr.LineStrips2D([pl.nominal]))
-            log(f"solve_ms/{rid}", rr.Scalars(pl.solve_time * 1e3))
+            c = self.colour[rid]
+            fp = rr.Ellipses2D(centers=[y], half_sizes=[[pl.footprint] * 2], colors=[c])
+            log(f"world/robots/{rid}/footprint", fp)
+            log(
+                f"world/robots/{rid}/tube",
+                rr.Ellipses2D(centers=[y], half_sizes=[[self.rho] * 2], colors=[c]),
+            )
+            log(f"world/robots/{rid}/reference", rr.LineStrips2D([pl.committed], colors=[c]))
+            log(f"world/robots/{rid}/plan", rr.LineStrips2D([pl.nominal], colors=[c]))
+            log(f"solve_ms/{rid}", rr.Scalars(pl.solve_time * 1e3), rr.SeriesLines(colors=[c]))
             if pl.status != "PROXQP_SOLVED":
                 self.event(f"{rid}: fallback at step {step} ({pl.status})", "WARN")
             if not pl.tube_ok:
@@ -106,6 +128,26 @@ class Recorder:
             d = float(np.linalg.norm(plans[a].committed[-1] - plans[b].committed[-1]))
             log(f"separation/reference/{a}-{b}", rr.Scalars(d))
         log("separation/reference/required", rr.Scalars(2.0 * self.footprint))
+
+    def _blueprint(self) -> Any:
+        """The layout: the arena large on the left; separations, solve times and events on the right."""
+        import rerun.blueprint as rrb
+
+        return rrb.Blueprint(
+            rrb.Horizontal(
+                rrb.Spatial2DView(origin="world", name="arena"),
+                rrb.Vertical(
+                    rrb.TimeSeriesView(origin="separation/true", name="true distances vs collision"),
+                    rrb.TimeSeriesView(
+                        origin="separation/reference", name="reference separation vs required"
+                    ),
+                    rrb.TimeSeriesView(origin="solve_ms", name="solve time [ms]"),
+                    rrb.TextLogView(origin="events", name="events"),
+                ),
+                column_shares=[3, 2],
+            ),
+            collapse_panels=True,
+        )
 
     def _log_goals(self) -> None:
         pts = [self.goals[r] for r in self.ids]
