@@ -258,6 +258,7 @@ def main(argv: list[str] | None = None) -> int:
                 mon.plans(plans)  # type: ignore[arg-type]
                 recorder.plans(k_plan, p.Ts, plans)  # type: ignore[arg-type]
                 k_plan += 1
+            recorder.flush_if_due()
             if truths or plan_steps:
                 stop_deadline = 0.0  # still making progress: the grace period restarts
             with inbox.cond:

@@ -17,6 +17,7 @@ import os
 import queue
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import threading
@@ -134,13 +135,32 @@ def rendered(png: bytes, robots: int, min_pixels: int = 40) -> bool:
 
 
 def _stop(p: subprocess.Popen) -> None:
-    if p.poll() is None:
-        p.terminate()
-        try:
-            p.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait(timeout=10)
+    """End ``p`` and everything it started: each is the leader of its own process group
+    (the ``rerun`` entry point runs the viewer binary as a child; chromium has many)."""
+    try:
+        os.killpg(p.pid, signal.SIGTERM)
+        p.wait(timeout=10)
+    except (ProcessLookupError, subprocess.TimeoutExpired):
+        pass
+    try:  # whatever of the group is left, helpers included
+        os.killpg(p.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    p.wait(timeout=10)
+
+
+def _group_alive(pgid: int) -> list[int]:
+    """Pids in process group ``pgid`` that are not zombies (from /proc)."""
+    alive = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                fields = (d / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[2]) == pgid and fields[0] != "Z":
+                alive.append(int(d.name))
+    return alive
 
 
 @pytest.fixture(scope="module")
@@ -177,6 +197,7 @@ def test_recording_renders_in_headless_chromium(recording, tmp_path):
         [str(RERUN), "--serve-web", "--bind", "127.0.0.1", "--web-viewer-port", str(web), "--port", str(grpc),
          str(recording)],
         env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True,
+        start_new_session=True,
     )  # fmt: skip
     browser = None
     try:
@@ -185,6 +206,7 @@ def test_recording_renders_in_headless_chromium(recording, tmp_path):
         browser = subprocess.Popen(
             [CHROMIUM, *FLAGS, f"--user-data-dir={tmp_path / 'profile'}", "about:blank"],
             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True,
+            start_new_session=True,
         )  # fmt: skip
         assert browser.stderr is not None
         m = _wait_line(
@@ -222,3 +244,13 @@ def test_recording_renders_in_headless_chromium(recording, tmp_path):
         if browser is not None:
             _stop(browser)
         _stop(server)
+    # Nothing of the viewer or the browser outlives the test.
+    for leader in (server, browser):
+        if leader is not None:
+            left = _group_alive(leader.pid)
+            for _ in range(200):  # SIGKILL was sent; give the kernel a moment, bounded
+                if not left:
+                    break
+                threading.Event().wait(0.05)
+                left = _group_alive(leader.pid)
+            assert not left, f"still running after the test: {left}"
