@@ -1,10 +1,10 @@
 """``python -m agent``: one robot's agent process (see :mod:`agent.node`)."""
 
 import os
-import sys
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")  # ProxSuite links libgomp (DESIGN §8)
 
 from agent.node import main
+from fleet.runtime import exit_process
 
-sys.exit(main())
+exit_process(main())

@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import signal
 import sys
 from pathlib import Path
 from typing import Any
@@ -138,6 +139,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 def cmd_run(args: argparse.Namespace) -> int:
     from fleet.launch import run_fleet
 
+    # SIGTERM stops the fleet like Ctrl-C: the launcher's cleanup ends every process by pid.
+    signal.signal(signal.SIGTERM, _interrupt)
+
     scn = load_scenario(args.scenario)
     design = synthesize(scn.controller, scn.arena)
     if not design.admissible:
@@ -171,6 +175,10 @@ def cmd_goal(args: argparse.Namespace) -> int:
     code, line = send_goal(args.scenario, args.robot, goal, args.connect, args.fleet, args.timeout)
     print(line, file=sys.stdout if code == 0 else sys.stderr)
     return code
+
+
+def _interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt
 
 
 def cmd_report(args: argparse.Namespace) -> int:

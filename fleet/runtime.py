@@ -14,7 +14,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from typing import Any, TypeVar
+from typing import Any, NoReturn, TypeVar
 
 from fleet.net import NetConfig, loopback
 from fleet.wire import Keys, Message, RejectCounter, WireError, decode
@@ -51,7 +51,7 @@ def publisher(session: Any, key: str) -> Any:
     congestion control drops samples under load."""
     import zenoh
 
-    return session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+    return session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK, express=True)
 
 
 def load_validated(path: str) -> tuple[Any, Any]:
@@ -69,6 +69,17 @@ def load_validated(path: str) -> tuple[Any, Any]:
         raise ConfigError("controller", "inadmissible tube design: " + "; ".join(design.failures))
     check_geometry(scn, design.footprint)
     return scn, design
+
+
+def exit_process(code: int) -> NoReturn:
+    """End a fleet process with ``code`` once its ``main`` has cleaned up.
+
+    Zenoh's Python callback threads are not daemons and have been seen to
+    outlive a closed session; at interpreter shutdown they kept a finished
+    agent alive for good.  ``os._exit`` after flushing cannot hang."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 def announce(role: str, **info: Any) -> None:

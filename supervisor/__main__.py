@@ -1,7 +1,6 @@
 """``python -m supervisor``: see :mod:`supervisor.monitor`."""
 
-import sys
-
+from fleet.runtime import exit_process
 from supervisor.monitor import main
 
-sys.exit(main())
+exit_process(main())

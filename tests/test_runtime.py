@@ -291,9 +291,13 @@ def test_goal_changed_at_run_time(tmp_path):
         assert near.returncode == 1 and "r2" in near.stderr, near.stderr
         _, stderr = launcher.communicate(timeout=240)
     finally:
-        if launcher.poll() is None:
-            launcher.kill()
-            launcher.wait(timeout=30)
+        if launcher.poll() is None:  # a failed check: stop the fleet through the launcher
+            launcher.terminate()
+            try:
+                launcher.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                launcher.kill()
+                launcher.wait(timeout=30)
     assert launcher.returncode == 0, stderr[-2000:]
     s = json.loads((out / "summary.json").read_text())
     assert s["collisions"] == 0 and s["reference_separation_violations"] == 0 and s["all_goals_reached"]
@@ -324,3 +328,37 @@ def test_agent_checks_run_time_goals_itself():
     why = goal_problem(scn, fp, np.array([0.40, -0.55]), [r2])
     assert why is not None and "r2" in why
     assert goal_problem(scn, fp, np.array([0.35 - 2.01 * fp, -0.61]), [r2]) is None
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return (Path("/proc") / str(pid) / "stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def test_sigterm_to_fleet_run_stops_every_process(tmp_path):
+    """Stopping the launcher (SIGTERM, as a service manager would) ends every process it started."""
+    scn = str(SCENARIOS / "paper_three_robots.toml")
+    cmd = [sys.executable, "-m", "fleet.cli", "run", scn, "--out", str(tmp_path), "--clock", "realtime"]
+    launcher = subprocess.Popen(
+        cmd, cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
+    )
+    kids: list[int] = []
+    try:
+        deadline = time.monotonic() + 120
+        while len(kids) < 5 and launcher.poll() is None and time.monotonic() < deadline:
+            kids = _children(launcher.pid)
+            try:  # pace the sampling by waiting on the launcher itself
+                launcher.wait(timeout=0.05)
+            except subprocess.TimeoutExpired:
+                pass
+        assert len(kids) == 5, f"the fleet did not start: {kids}"
+        launcher.terminate()
+        _, stderr = launcher.communicate(timeout=60)
+    finally:
+        if launcher.poll() is None:
+            launcher.kill()
+            launcher.wait(timeout=30)
+    assert launcher.returncode == 130 and "interrupted" in stderr, stderr[-2000:]
+    assert not [k for k in kids if _alive(k)], "processes outlived the launcher"

@@ -1,7 +1,6 @@
 """``python -m tracker``: the pose source and lockstep clock (see :mod:`tracker.sim`)."""
 
-import sys
-
+from fleet.runtime import exit_process
 from tracker.sim import main
 
-sys.exit(main())
+exit_process(main())
