@@ -113,9 +113,9 @@ class Recorder:
         (a log call costs 60–160 µs; at 40 values per step it was the runtime's bottleneck)."""
         rr = self.rr
         for entity, (archetype, rows) in self.pending.items():
-            steps = np.array([r[0] for r in rows])
-            times = np.array([r[1] for r in rows])
-            cols = {k: self._column(k, [r[2][k] for r in rows]) for k in rows[0][2]}
+            steps = [r[0] for r in rows]
+            times = [r[1] for r in rows]
+            cols = {k: [v for r in rows for v in r[2][k]] for k in rows[0][2]}
             rr.send_columns(
                 entity,
                 indexes=[rr.TimeColumn("step", sequence=steps), rr.TimeColumn("sim_time", duration=times)],
@@ -124,15 +124,6 @@ class Recorder:
             )
         self.pending.clear()
         self.pending_rows = 0
-
-    @staticmethod
-    def _column(name: str, values: list[Any]) -> Any:
-        """One column from per-row single-instance values: a numpy array without the instance
-        axis (Rerun converts it without a Python loop); line strips stay a list of (n, 2) arrays."""
-        if name == "strips":
-            return [v[0] for v in values]
-        a = np.asarray(values, dtype=float)
-        return a.reshape(len(values), *a.shape[2:])
 
     def flush_if_due(self, period: float = 0.25) -> None:
         """Flush when the oldest queued row is ``period`` [s] of wall time old (live viewing)."""
