@@ -79,6 +79,16 @@ def integrate_unicycle(pose: Array, v: float, omega: float, dt: float) -> Array:
     return np.array([x + chord * math.cos(mid), y + chord * math.sin(mid), th + omega * dt])
 
 
+def measured_state(pose: Array, velocity: Array, lookahead: float) -> Array:
+    """The controller's state [px, vx, py, vy] (4,) [m, m/s] from a camera pose
+    (x, y, θ) [m, m, rad, world frame] and the odometry's controlled-point
+    velocity (2,) [m/s]: the point sits ``lookahead`` [m] ahead of the axle."""
+    x, y, th = float(pose[0]), float(pose[1]), float(pose[2])
+    px = x + lookahead * math.cos(th)
+    py = y + lookahead * math.sin(th)
+    return np.array([px, float(velocity[0]), py, float(velocity[1])])
+
+
 def wrap_angle(a: float) -> float:
     """Angle wrapped to [−π, π)."""
     return (a + math.pi) % (2.0 * math.pi) - math.pi

@@ -21,7 +21,7 @@ import numpy as np
 
 from agent.controller import TubeMPC
 from agent.coordination import NeighbourInfo
-from fleet.harness import measured_state
+from agent.models import measured_state
 from fleet.runtime import Inbox, add_common_args, announce, load_validated, log, open_session, publisher
 from fleet.scenario import ConfigError, check_point, controlled_point
 from fleet.wire import Command, Goal, Keys, Odom, Plan, Pose, Tick

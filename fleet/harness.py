@@ -30,10 +30,9 @@ from typing import Any
 import numpy as np
 
 from agent.controller import TubeMPC
-from agent.models import DoubleIntegratorPlant, UnicyclePlant, make_inner_loop
+from agent.models import DoubleIntegratorPlant, UnicyclePlant, make_inner_loop, measured_state
 from agent.sets import Array
 from agent.tube import TubeDesign, require_admissible, synthesize
-from fleet.scenario import controlled_point
 
 GOAL_TOLERANCE = 0.02
 """A goal is reached when the controlled point ends within this distance [m]."""
@@ -194,13 +193,6 @@ class PoseNoise:
         """One pose error (3,): [m, m, rad]."""
         n = self.rng.normal(0.0, 0.5, 3) * self.bound
         return np.clip(n, -self.bound, self.bound)
-
-
-def measured_state(pose: Array, velocity: Array, lookahead: float) -> Array:
-    """The controller's state [px, vx, py, vy] (4,) [m, m/s] from a camera pose
-    (x, y, θ) [m, m, rad] and the odometry's controlled-point velocity (2,) [m/s]."""
-    cp = controlled_point(pose, lookahead)
-    return np.array([cp[0], float(velocity[0]), cp[1], float(velocity[1])])
 
 
 def measure(plant: UnicyclePlant | DoubleIntegratorPlant, noise: PoseNoise, lookahead: float) -> Array:

@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import pytest
+from procfs import alive, children
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENARIOS = ROOT / "scenarios"
@@ -24,20 +25,6 @@ def _fleet(*args, timeout=300):
         [sys.executable, "-m", "fleet.cli", *args], cwd=ROOT, env=ENV, capture_output=True, text=True,
         timeout=timeout,
     )  # fmt: skip
-
-
-def _children(pid: int) -> list[int]:
-    """Direct children of ``pid`` (from /proc)."""
-    out = []
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                stat = (d / "stat").read_text()
-            except OSError:
-                continue
-            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
-                out.append(int(d.name))
-    return out
 
 
 def _cmdline(pid: int) -> list[str]:
@@ -197,7 +184,7 @@ def test_killed_agent_fails_the_run_and_names_the_robot(tmp_path):
                 break
         else:
             raise AssertionError("no progress line within 120 s")
-        victim = next(c for c in _children(launcher.pid) if {"agent", "r2"} <= set(_cmdline(c)))
+        victim = next(c for c in children(launcher.pid) if {"agent", "r2"} <= set(_cmdline(c)))
         os.kill(victim, signal.SIGKILL)
         launcher.wait(timeout=180)
         reader.join(timeout=30)  # the pipe closes when the launcher exits
@@ -228,7 +215,7 @@ def test_nothing_listens_beyond_loopback(tmp_path):
     try:
         deadline = time.monotonic() + 120
         while launcher.poll() is None and time.monotonic() < deadline:
-            for child in _children(launcher.pid):
+            for child in children(launcher.pid):
                 addrs = _listening(child)
                 if addrs:
                     seen[child] = addrs
@@ -330,13 +317,6 @@ def test_agent_checks_run_time_goals_itself():
     assert goal_problem(scn, fp, np.array([0.35 - 2.01 * fp, -0.61]), [r2]) is None
 
 
-def _alive(pid: int) -> bool:
-    try:
-        return (Path("/proc") / str(pid) / "stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
-    except OSError:
-        return False
-
-
 def test_sigterm_to_fleet_run_stops_every_process(tmp_path):
     """Stopping the launcher (SIGTERM, as a service manager would) ends every process it started."""
     scn = str(SCENARIOS / "paper_three_robots.toml")
@@ -348,7 +328,7 @@ def test_sigterm_to_fleet_run_stops_every_process(tmp_path):
     try:
         deadline = time.monotonic() + 120
         while len(kids) < 5 and launcher.poll() is None and time.monotonic() < deadline:
-            kids = _children(launcher.pid)
+            kids = children(launcher.pid)
             try:  # pace the sampling by waiting on the launcher itself
                 launcher.wait(timeout=0.05)
             except subprocess.TimeoutExpired:
@@ -361,4 +341,4 @@ def test_sigterm_to_fleet_run_stops_every_process(tmp_path):
             launcher.kill()
             launcher.wait(timeout=30)
     assert launcher.returncode == 130 and "interrupted" in stderr, stderr[-2000:]
-    assert not [k for k in kids if _alive(k)], "processes outlived the launcher"
+    assert not [k for k in kids if alive(k)], "processes outlived the launcher"

@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import IO
 
 import pytest
+from procfs import group_alive
 
 from fleet.net import free_port
 from supervisor.recorder import robot_colour
@@ -149,20 +150,6 @@ def _stop(p: subprocess.Popen) -> None:
     p.wait(timeout=10)
 
 
-def _group_alive(pgid: int) -> list[int]:
-    """Pids in process group ``pgid`` that are not zombies (from /proc)."""
-    alive = []
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                fields = (d / "stat").read_text().rsplit(")", 1)[1].split()
-            except OSError:
-                continue
-            if int(fields[2]) == pgid and fields[0] != "Z":
-                alive.append(int(d.name))
-    return alive
-
-
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory):
     out = tmp_path_factory.mktemp("viewer")
@@ -247,10 +234,10 @@ def test_recording_renders_in_headless_chromium(recording, tmp_path):
     # Nothing of the viewer or the browser outlives the test.
     for leader in (server, browser):
         if leader is not None:
-            left = _group_alive(leader.pid)
+            left = group_alive(leader.pid)
             for _ in range(200):  # SIGKILL was sent; give the kernel a moment, bounded
                 if not left:
                     break
                 threading.Event().wait(0.05)
-                left = _group_alive(leader.pid)
+                left = group_alive(leader.pid)
             assert not left, f"still running after the test: {left}"
