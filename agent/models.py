@@ -219,6 +219,50 @@ class UnicyclePlant:
 
     def step(self, a: Array, Ts: float) -> tuple[float, float]:
         """Apply ``a`` (2,) [m/s²] for ``Ts`` [s]; return the last wheel command [steps/s]."""
+        if type(self.loop) is LookaheadInnerLoop:
+            return self._step_lookahead(float(a[0]), float(a[1]), Ts)
+        return self._step_generic(a, Ts)
+
+    def _step_lookahead(self, ax: float, ay: float, Ts: float) -> tuple[float, float]:
+        """:meth:`_step_generic` for the look-ahead loop in scalar arithmetic, the same
+        operations in the same order; about 4× faster (the simulated tracker steps every
+        robot on the lockstep's critical path)."""
+        loop = self.loop
+        assert isinstance(loop, LookaheadInnerLoop) and loop.q is not None
+        geom = self.geom
+        ell, m, axle, top = loop.lookahead, geom.metres_per_step, geom.axle, geom.max_steps
+        dt = Ts / self.substeps
+        hdt = 0.5 * dt
+        qx, qy = float(loop.q[0]), float(loop.q[1])
+        x, y, th = float(self.pose[0]), float(self.pose[1]), float(self.pose[2])
+        left = right = 0.0
+        for _ in range(self.substeps):
+            mx, my = qx + hdt * ax, qy + hdt * ay
+            qx, qy = qx + dt * ax, qy + dt * ay
+            c, s = math.cos(th), math.sin(th)
+            v, omega = c * mx + s * my, (-s * mx + c * my) / ell
+            left = (v - 0.5 * omega * axle) / m
+            right = (v + 0.5 * omega * axle) / m
+            peak = max(abs(left), abs(right))
+            sat = peak > top
+            if sat:
+                k = top / peak
+                left, right = left * k, right * k
+                v, omega = 0.5 * (left + right) * m, (right - left) * m / axle
+                self.saturated_substeps += 1
+            h = 0.5 * omega * dt
+            sinc = 1.0 - h * h / 6.0 if abs(h) < 1e-4 else math.sin(h) / h
+            chord = v * dt * sinc
+            mid = th + h
+            x, y, th = x + chord * math.cos(mid), y + chord * math.sin(mid), th + omega * dt
+            if sat:
+                c, s = math.cos(th), math.sin(th)
+                qx, qy = c * v - s * ell * omega, s * v + c * ell * omega
+        self.pose = np.array([x, y, wrap_angle(th)])
+        loop.q = np.array([qx, qy])
+        return left, right
+
+    def _step_generic(self, a: Array, Ts: float) -> tuple[float, float]:
         dt = Ts / self.substeps
         left = right = 0.0
         for _ in range(self.substeps):

@@ -74,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     subs = [
         inbox.subscribe(session, keys.pose(me), Pose, keep=True),
         inbox.subscribe(session, keys.odom(me), Odom, keep=True),
-        inbox.subscribe(session, keys.plan(), Plan, keep=True),
+        inbox.subscribe(session, keys.plan(), Plan, keep=True, remote=True),
         inbox.subscribe(session, keys.goal(me), Goal),
         inbox.subscribe(session, keys.clock, Tick),
         inbox.watch_liveliness(session),
@@ -124,6 +124,9 @@ def main(argv: list[str] | None = None) -> int:
             nbs = [_neighbour(pl) for pl in plans if pl is not None]
             out = ctrl.step(x, nbs)
             info = ctrl.info()
+            # The command first: the robot side waits on it; the neighbours need the
+            # plan only at the next step, which cannot start before the robots move.
+            pub_cmd.put(Command(robot=me, step=k, ax=float(out.a[0]), ay=float(out.a[1])).encode())
             pub_plan.put(
                 Plan(
                     robot=me, step=k, t0=(k + 1) * p.Ts, Ts=p.Ts, committed=out.committed, nominal=out.plan,
@@ -132,7 +135,6 @@ def main(argv: list[str] | None = None) -> int:
                     tube_ok=out.tube_ok,
                 ).encode()
             )  # fmt: skip
-            pub_cmd.put(Command(robot=me, step=k, ax=float(out.a[0]), ay=float(out.a[1])).encode())
             inbox.prune(k - 2)
             k += 1
     finally:

@@ -44,14 +44,16 @@ def open_session(args: argparse.Namespace) -> Any:
     return zenoh.open(net_config(args).zenoh())
 
 
-def publisher(session: Any, key: str) -> Any:
+def publisher(session: Any, key: str, express: bool = True) -> Any:
     """A publisher that blocks rather than drops when a receiver lags.
 
     Lockstep correctness needs every plan, pose and tick delivered; the default
-    congestion control drops samples under load."""
+    congestion control drops samples under load.  ``express`` sends at once
+    (a write per put, 30–100 µs of the caller's time); without it Zenoh batches,
+    which suits messages nobody waits on (ground truth for the supervisor)."""
     import zenoh
 
-    return session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK, express=True)
+    return session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK, express=express)
 
 
 def load_validated(path: str) -> tuple[Any, Any]:
@@ -104,10 +106,22 @@ class Inbox:
         self.latest: dict[tuple[str, str], Any] = {}
         self.history: dict[tuple[str, str], dict[int, Any]] = {}
         self.live: set[str] = set()
+        self.arrived: dict[tuple[str, str], float] = {}
+        """Arrival time [s, time.monotonic] of the latest message per (type, robot)."""
+        self.first: dict[str, float] = {}
+        """Arrival time [s, time.monotonic] of the first message of each type."""
         self.rejects = RejectCounter(report=lambda m: log(role, m))
+        self._awaited: Callable[[], bool] | None = None
+        """The predicate the main loop waits on; callbacks wake it only when it holds."""
 
-    def subscribe(self, session: Any, key: str, typ: type[M], keep: bool = False) -> Any:
-        """Declare a subscriber on ``key`` that decodes ``typ`` and checks the robot id against the key."""
+    def subscribe(
+        self, session: Any, key: str, typ: type[M], keep: bool = False, remote: bool = False
+    ) -> Any:
+        """Declare a subscriber on ``key`` that decodes ``typ`` and checks the robot id against the key.
+
+        ``remote``: ignore this process's own publications on ``key`` (an agent
+        does not need its own plan back)."""
+        import zenoh
 
         def on_sample(sample: Any) -> None:
             k = str(sample.key_expr)
@@ -118,14 +132,19 @@ class Inbox:
                 with self.cond:
                     self.rejects.reject(k, e)
                 return
+            now = time.monotonic()
             with self.cond:
                 self.latest[(typ.TYPE, msg.robot)] = msg
+                self.arrived[(typ.TYPE, msg.robot)] = now
+                self.first.setdefault(typ.TYPE, now)
                 if keep:
                     step = getattr(msg, "step", getattr(msg, "seq", None))
                     if step is not None:
                         self.history.setdefault((typ.TYPE, msg.robot), {})[step] = msg
-                self.cond.notify_all()
+                self._wake()
 
+        if remote:
+            return session.declare_subscriber(key, on_sample, allowed_origin=zenoh.Locality.REMOTE)
         return session.declare_subscriber(key, on_sample)
 
     def watch_liveliness(self, session: Any) -> Any:
@@ -142,16 +161,30 @@ class Inbox:
 
         return session.liveliness().declare_subscriber(self.keys.alive(), on_token, history=True)
 
+    def _wake(self) -> None:
+        """Wake the main loop if what it waits for now holds (call with the lock held).
+
+        Every needless wake-up costs two context switches and a GIL hand-over;
+        in lockstep they were a good part of each step's latency."""
+        if self._awaited is None or self._awaited():
+            self.cond.notify_all()
+
     def wait(self, predicate: Callable[[], bool], timeout: float) -> bool:
-        """Wait until ``predicate()`` holds (checked under the lock) or ``timeout`` [s] passes."""
+        """Wait until ``predicate()`` holds (checked under the lock) or ``timeout`` [s] passes.
+
+        Liveliness changes always wake the waiter; messages only when ``predicate`` holds."""
         deadline = time.monotonic() + timeout
         with self.cond:
-            while not predicate():
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    return False
-                self.cond.wait(left)
-            return True
+            self._awaited = predicate
+            try:
+                while not predicate():
+                    left = deadline - time.monotonic()
+                    if left <= 0:
+                        return False
+                    self.cond.wait(left)
+                return True
+            finally:
+                self._awaited = None
 
     def prune(self, before: int) -> None:
         """Forget kept messages of steps < ``before``."""

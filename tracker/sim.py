@@ -70,14 +70,14 @@ def main(argv: list[str] | None = None) -> int:
     inbox = Inbox(keys, role)
     subs = [
         inbox.subscribe(session, keys.cmd(), Command, keep=True),
-        inbox.subscribe(session, keys.plan(), Plan),
+        inbox.subscribe(session, keys.plan(), Plan, keep=True),
         inbox.watch_liveliness(session),
     ]
     pubs = {
         rid: (
             publisher(session, keys.pose(rid)),
             publisher(session, keys.odom(rid)),
-            publisher(session, keys.truth(rid)),
+            publisher(session, keys.truth(rid), express=False),
         )
         for rid in ids
     }
@@ -99,16 +99,19 @@ def main(argv: list[str] | None = None) -> int:
             t = k * p.Ts
             if realtime:
                 _until(t_start + t)
+            # The tick first, then each robot's pose and odometry (an agent starts as
+            # soon as its own are in), then the truth, which only the supervisor reads.
+            clock.put(Tick(robot=role, step=k, t=t, stop=False, misses=misses).encode())
             for rid in ids:
                 plant = plants[rid]
-                x, y, th = (float(v) for v in plant.pose)
                 mx, my, mth = (float(v) for v in plant.pose + noise.sample())
                 state = plant.state()
-                pub_pose, pub_odom, pub_truth = pubs[rid]
-                pub_truth.put(Truth(robot=rid, seq=k, t=t, x=x, y=y, theta=th).encode())
+                pub_pose, pub_odom, _ = pubs[rid]
                 pub_pose.put(Pose(robot=rid, seq=k, t=t, x=mx, y=my, theta=mth).encode())
                 pub_odom.put(Odom(robot=rid, seq=k, t=t, vx=float(state[1]), vy=float(state[3])).encode())
-            clock.put(Tick(robot=role, step=k, t=t, stop=False, misses=misses).encode())
+            for rid in ids:
+                x, y, th = (float(v) for v in plants[rid].pose)
+                pubs[rid][2].put(Truth(robot=rid, seq=k, t=t, x=x, y=y, theta=th).encode())
             if k % PROGRESS_EVERY == 0 and k:
                 log(role, f"step {k}")
             if realtime:
@@ -138,8 +141,11 @@ def main(argv: list[str] | None = None) -> int:
                 x_before = plant.state()
                 plant.step(a, p.Ts)
                 plant.perturb(dist.sample(x_before * 0.0))
+            # Agents send the command before the plan of a step; the early stop below
+            # judges the plans of this very step, as `fleet simulate` does.
+            inbox.wait(partial(_planned, inbox, ids, k), args.timeout if not realtime else 0.0)
             inbox.prune(k)
-            if _all_home(inbox, ids, plants):
+            if _all_home(inbox, ids, plants, k):
                 k += 1
                 break
         else:
@@ -169,11 +175,17 @@ def _answered(inbox: Inbox, ids: list[str], k: int) -> bool:
     return all(inbox.get(Command, r, k) is not None for r in ids if r in inbox.live)
 
 
-def _all_home(inbox: Inbox, ids: list[str], plants: dict) -> bool:
-    """Every plan parked at its agent's current goal (a goal changed at run time
-    counts) and every controlled point within half the goal tolerance of it."""
+def _planned(inbox: Inbox, ids: list[str], k: int) -> bool:
+    """Every live agent's plan of step k has arrived."""
+    return all(inbox.get(Plan, r, k) is not None for r in ids if r in inbox.live)
+
+
+def _all_home(inbox: Inbox, ids: list[str], plants: dict, k: int) -> bool:
+    """Every plan of step k (the latest, if it is missing) parked at its agent's
+    current goal (a goal changed at run time counts) and every controlled point
+    within half the goal tolerance of it."""
     for rid in ids:
-        plan = inbox.get(Plan, rid)
+        plan = inbox.get(Plan, rid, k) or inbox.get(Plan, rid)
         if plan is None or np.linalg.norm(plan.committed[-1] - plan.goal) >= 1e-3:
             return False
         pt = plants[rid].state()[[0, 2]]
