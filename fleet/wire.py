@@ -19,6 +19,8 @@ Keys, for a fleet named ``F`` and a robot id ``R``:
 ``fleet/F/goal/R``         operator → agent: new goal (:class:`Goal`)
 ``fleet/F/clock``          lockstep tick (:class:`Tick`)
 ``fleet/F/alive/R``        liveliness token of agent R
+``fleet/F/wheels/R``       ``epuck_link`` → all: wheel odometry (:class:`Wheels`)
+``fleet/F/emu/R``          e-puck emulator → tests: its true pose (:class:`Truth`)
 =========================  ==============================================
 
 Units are SI; positions and headings are in the world frame.
@@ -80,6 +82,12 @@ class Keys:
 
     def alive(self, robot: str = "*") -> str:
         return f"{self.root}/alive/{robot}"
+
+    def wheels(self, robot: str = "*") -> str:
+        return f"{self.root}/wheels/{robot}"
+
+    def emu(self, robot: str = "*") -> str:
+        return f"{self.root}/emu/{robot}"
 
     @property
     def clock(self) -> str:
@@ -345,7 +353,42 @@ class Tick(Message):
         }
 
 
-MESSAGES: dict[str, type[Message]] = {m.TYPE: m for m in (Pose, Truth, Odom, Plan, Command, Goal, Tick)}
+@dataclass(frozen=True)
+class Wheels(Message):
+    """``epuck_link`` → all: wheel odometry from the robot's encoders.
+
+    The link reads the int16 encoders, which wrap, and unwraps them into
+    cumulative counts; the speeds come from the count deltas over the reads
+    of the last ≈ 0.1 s."""
+
+    TYPE: ClassVar[str] = "wheels"
+    seq: int
+    """Number of the encoder read since the link started."""
+    t: float
+    """Time of the read [s] since the link process started (monotonic clock)."""
+    left_steps: int
+    right_steps: int
+    """Unwrapped cumulative encoder counts [steps] (1000 per wheel revolution)."""
+    v: float
+    """Forward speed of the axle centre [m/s] from the count deltas."""
+    omega: float
+    """Turn rate [rad/s], counter-clockwise, from the count deltas."""
+
+    @classmethod
+    def _check(cls, d: dict[str, Any]) -> dict[str, Any]:
+        return {
+            "seq": _int(d["seq"], "seq"),
+            "t": _num(d["t"], "t"),
+            "left_steps": _int(d["left_steps"], "left_steps", -(2**62), 2**62),
+            "right_steps": _int(d["right_steps"], "right_steps", -(2**62), 2**62),
+            "v": _num(d["v"], "v"),
+            "omega": _num(d["omega"], "omega"),
+        }
+
+
+MESSAGES: dict[str, type[Message]] = {
+    m.TYPE: m for m in (Pose, Truth, Odom, Plan, Command, Goal, Tick, Wheels)
+}
 
 
 def decode(payload: bytes, expected: type[M], robot: str | None = None) -> M:

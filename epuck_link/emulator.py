@@ -1,0 +1,458 @@
+"""An e-puck firmware emulator speaking the real protocols byte for byte.
+
+``python -m epuck_link.emulator [--pty] [--tcp PORT] [--start X Y THETA] [--encoders L R]
+[--speed-limit N] [--robot ID [--fleet F] [--connect E] [--listen E] [--rate HZ]]``
+
+* ``--pty``: advanced sercom on a pseudo-terminal pair (``os.openpty``, raw
+  mode); the slave's path is announced, ``epuck_link --link serial:PATH`` opens
+  it.  Binary chains (``0xBC`` set speed, ``0xAF`` get encoders, ``0x00``) and
+  the ASCII lines ``D,l,r`` and ``Q`` are answered as the firmware does.
+* ``--tcp PORT``: the e-puck2 Wi-Fi protocol on ``127.0.0.1:PORT`` (0: a free
+  port), one client at a time.  The image stream is answered with a black
+  image.
+
+The robot is a differential drive with the E-puck geometry
+(:class:`agent.params.WheelGeometry`: wheel radius 20.5 mm, axle 53 mm, 1000
+steps per revolution).  Speeds are clamped to ±``--speed-limit`` steps/s;
+between two requests the wheels turn at constant speed and the pose is
+integrated exactly (:func:`agent.models.integrate_unicycle`) in wall time, or
+on an injected clock in tests.  The encoder counts are kept exactly and
+reported as int16s that wrap, as the firmware does.
+
+With ``--robot`` the ground-truth pose of the axle centre (world frame, m and
+rad) is published as :class:`fleet.wire.Truth` on ``fleet/F/emu/R`` at
+``--rate`` Hz (default 100).  Its ``t`` is seconds since the emulator started,
+on ``time.monotonic``; the readiness line gives that origin as
+``clock_origin`` [s, time.monotonic].  Without ``--robot`` no Zenoh session is
+opened.
+
+Readiness line: ``{"event": "ready", "role": "emulator", "pid", "robot",
+"pty", "tcp", "clock_origin", "truth_key", "speed_limit"}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import select
+import signal
+import socket
+import sys
+import threading
+import time
+import tty
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from agent.models import integrate_unicycle, unicycle_from_wheels, wrap_angle
+from agent.params import WheelGeometry
+from epuck_link import protocol as P
+from fleet.wire import Truth
+
+LOOPBACK = "127.0.0.1"
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """The emulated robot at time ``t`` [s, on the emulator's clock]."""
+
+    t: float
+    x: float
+    y: float
+    theta: float
+    """Pose of the axle centre: position [m], heading [rad] in [−π, π), world frame."""
+    left: int
+    right: int
+    """Wheel speeds [steps/s] (after the firmware clamp)."""
+    left_count: int
+    right_count: int
+    """Encoder counts [steps], not wrapped."""
+
+
+class EpuckEmulator:
+    """The robot: wheel speeds, pose and encoders, advanced on ``clock`` [s].
+
+    Thread-safe: the serial and TCP servers and the truth publisher share it."""
+
+    def __init__(
+        self,
+        pose: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        encoders: tuple[int, int] = (0, 0),
+        geom: WheelGeometry | None = None,
+        speed_limit: int = P.MAX_STEPS_V1,
+        clock: Callable[[], float] = time.monotonic,
+    ):
+        self.geom = geom or WheelGeometry()
+        self.speed_limit = speed_limit
+        self.clock = clock
+        self._lock = threading.Lock()
+        self._pose = np.array(pose, dtype=float)
+        self._counts = [float(encoders[0]), float(encoders[1])]
+        self._speeds = (0, 0)
+        self.origin = clock()
+        """Clock reading at creation: ``t = 0`` of the published truth [s]."""
+        self._t = self.origin
+        self.chains = 0
+        """Binary request chains answered."""
+        self.wifi_packets = 0
+        self.ignored = 0
+        """Bytes ignored: unknown binary requests, Wi-Fi bytes before a 0x80."""
+
+    def _advance(self) -> float:
+        now = self.clock()
+        dt = now - self._t
+        if dt > 0:
+            left, right = self._speeds
+            if left or right:
+                v, omega = unicycle_from_wheels(left, right, self.geom)
+                self._pose = integrate_unicycle(self._pose, v, omega, dt)
+                self._counts[0] += left * dt
+                self._counts[1] += right * dt
+            self._t = now
+        return self._t
+
+    def set_speeds(self, left: int, right: int) -> None:
+        """Command the wheels [steps/s]; the firmware clamps them to ±speed_limit."""
+        lim = self.speed_limit
+        with self._lock:
+            self._advance()
+            self._speeds = (max(-lim, min(lim, left)), max(-lim, min(lim, right)))
+
+    def set_counts(self, left: int, right: int) -> None:
+        """Overwrite the encoder counts [steps] (the Wi-Fi "motor steps" setting)."""
+        with self._lock:
+            self._advance()
+            self._counts = [float(left), float(right)]
+
+    def encoders(self) -> tuple[int, int]:
+        """The counts [steps] as the firmware reports them: int16, wrapping."""
+        with self._lock:
+            self._advance()
+            return P.wrap_int16(round(self._counts[0])), P.wrap_int16(round(self._counts[1]))
+
+    def snapshot(self) -> Snapshot:
+        """The robot now (pose, wheel speeds, unwrapped counts)."""
+        with self._lock:
+            t = self._advance()
+            x, y, th = (float(v) for v in self._pose)
+            return Snapshot(
+                t, x, y, wrap_angle(th), self._speeds[0], self._speeds[1],
+                round(self._counts[0]), round(self._counts[1]),
+            )  # fmt: skip
+
+    # ---------------------------------------------------------- protocols
+    def serial_handler(self) -> Callable[[bytes], bytes]:
+        """A handler for one serial connection: bytes received → bytes to send back."""
+        parser = P.AsercomParser()
+        pending = bytearray()
+
+        def handle(data: bytes) -> bytes:
+            out = bytearray()
+            for req in parser.feed(data):
+                if isinstance(req, P.SetSpeed):
+                    self.set_speeds(req.left, req.right)
+                elif isinstance(req, P.GetEncoders):
+                    pending.extend(P.encoders_reply(*self.encoders()))
+                elif isinstance(req, P.EndOfChain):
+                    out += pending
+                    pending.clear()
+                    self.chains += 1
+                elif isinstance(req, P.AsciiLine):
+                    reply, speeds = P.ascii_reply(req.text, self.encoders())
+                    if speeds is not None:
+                        self.set_speeds(*speeds)
+                    out += reply
+                else:
+                    self.ignored += 1
+            return bytes(out)
+
+        return handle
+
+    def wifi_handler(self) -> Callable[[bytes], bytes]:
+        """A handler for one Wi-Fi (TCP) connection: bytes received → bytes to send back.
+
+        Bytes before a ``0x80`` are skipped (resynchronisation)."""
+        buf = bytearray()
+
+        def handle(data: bytes) -> bytes:
+            buf.extend(data)
+            out = bytearray()
+            while buf:
+                if buf[0] != P.WIFI_COMMAND:
+                    del buf[0]
+                    self.ignored += 1
+                    continue
+                if len(buf) < P.WIFI_COMMAND_SIZE:
+                    break
+                cmd = P.parse_wifi_command(bytes(buf[: P.WIFI_COMMAND_SIZE]))
+                del buf[: P.WIFI_COMMAND_SIZE]
+                if cmd.settings & P.SETTING_MOTOR_STEPS:
+                    self.set_counts(cmd.left, cmd.right)
+                else:
+                    self.set_speeds(cmd.left, cmd.right)
+                self.wifi_packets += 1
+                out += P.wifi_reply(cmd.request, *self.encoders())
+            return bytes(out)
+
+        return handle
+
+
+# ------------------------------------------------------------------ servers
+class PtyServer:
+    """Serves the serial protocol on a pseudo-terminal; clients open :attr:`path`.
+
+    The emulator keeps the slave side open too, so a client may close and
+    re-open the device."""
+
+    def __init__(self, emulator: EpuckEmulator, report: Callable[[str], None] = lambda m: None):
+        self.emulator = emulator
+        self.report = report
+        self._master, self._slave = os.openpty()
+        tty.setraw(self._slave)  # no echo, no CR/LF translation: bytes pass unchanged
+        self.path = os.ttyname(self._slave)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="pty-server", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        handle = self.emulator.serial_handler()
+        while not self._stop.is_set():
+            ready, _, _ = select.select([self._master], [], [], 0.1)
+            if not ready:
+                continue
+            try:
+                data = os.read(self._master, 4096)
+            except OSError as e:
+                self.report(f"pty read failed: {e}")
+                return
+            reply = handle(data)
+            if reply:
+                os.write(self._master, reply)
+
+    def close(self) -> None:
+        """Stop serving and close both ends of the pty."""
+        self._stop.set()
+        self._thread.join(1.0)
+        for fd in (self._master, self._slave):
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+
+
+class TcpServer:
+    """Serves the Wi-Fi protocol on ``host:port`` (0: a free port), one client at a time."""
+
+    def __init__(
+        self,
+        emulator: EpuckEmulator,
+        port: int = 0,
+        host: str = LOOPBACK,
+        report: Callable[[str], None] = lambda m: None,
+    ):
+        self.emulator = emulator
+        self.report = report
+        self._sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # restart on the same port
+        self._sock.bind((host, port))
+        self._sock.listen(1)
+        self._sock.settimeout(0.1)
+        self.host = host
+        self.port = int(self._sock.getsockname()[1])
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="tcp-server", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                conn, addr = self._sock.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            self.report(f"wifi client {addr[0]}:{addr[1]} connected")
+            with conn:
+                self._serve(conn)
+            self.report(f"wifi client {addr[0]}:{addr[1]} left")
+
+    def _serve(self, conn: socket.socket) -> None:
+        conn.settimeout(0.1)
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        handle = self.emulator.wifi_handler()
+        while not self._stop.is_set():
+            try:
+                data = conn.recv(4096)
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            if not data:
+                return
+            reply = handle(data)
+            try:
+                if reply:
+                    conn.sendall(reply)
+            except OSError:
+                return
+
+    def close(self) -> None:
+        """Stop serving and close the listening socket."""
+        self._stop.set()
+        self._thread.join(1.0)
+        self._sock.close()
+
+
+class TruthPublisher:
+    """Publishes the emulator's pose as :class:`fleet.wire.Truth` at ``rate`` [Hz].
+
+    ``put`` sends one encoded message (a Zenoh publisher's ``put``).  ``t`` is
+    seconds since the emulator's origin; ``seq`` counts from 0."""
+
+    def __init__(self, emulator: EpuckEmulator, robot: str, put: Callable[[bytes], Any], rate: float = 100.0):
+        if not 0 < rate <= 1000:
+            raise ValueError(f"truth rate {rate} Hz outside (0, 1000]")
+        self.emulator = emulator
+        self.robot = robot
+        self.put = put
+        self.period = 1.0 / rate
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="truth", daemon=True)
+
+    def start(self) -> None:
+        """Start publishing (a thread of its own)."""
+        self._thread.start()
+
+    def _run(self) -> None:
+        seq = 0
+        due = time.monotonic()
+        while not self._stop.wait(max(0.0, due - time.monotonic())):
+            s = self.emulator.snapshot()
+            t = s.t - self.emulator.origin
+            self.put(Truth(robot=self.robot, seq=seq, t=t, x=s.x, y=s.y, theta=s.theta).encode())
+            seq += 1
+            due += self.period
+            now = time.monotonic()
+            if due < now:  # late (a loaded machine): skip the missed samples rather than burst
+                due = now
+
+    def close(self) -> None:
+        """Stop publishing."""
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(1.0)
+
+
+# --------------------------------------------------------------------- CLI
+def main(argv: list[str] | None = None) -> int:
+    from fleet.runtime import add_common_args, announce, log, open_session, publisher
+    from fleet.scenario import ConfigError, load_scenario
+    from fleet.wire import ROBOT_ID, Keys
+
+    ap = argparse.ArgumentParser(prog="python -m epuck_link.emulator", description=__doc__.splitlines()[0])
+    add_common_args(ap)
+    for action in ap._actions:  # the emulator needs no scenario; with one, --robot's start is the default
+        if action.dest == "scenario":
+            action.required = False
+            action.help = "scenario TOML file (optional: the start pose of --robot)"
+    ap.add_argument("--pty", action="store_true", help="serve advanced sercom on a pseudo-terminal")
+    ap.add_argument(
+        "--tcp", type=int, default=None, metavar="PORT", help="serve Wi-Fi on 127.0.0.1:PORT (0: free)"
+    )
+    ap.add_argument("--start", type=float, nargs=3, default=None, metavar=("X", "Y", "THETA"),
+                    help="start pose [m, m, rad] (default: the scenario's, else 0 0 0)")  # fmt: skip
+    ap.add_argument("--encoders", type=int, nargs=2, default=(0, 0), metavar=("L", "R"),
+                    help="initial encoder counts [steps]")  # fmt: skip
+    limits = f"e-puck {P.MAX_STEPS_V1}, e-puck2 {P.MAX_STEPS_V2}"
+    ap.add_argument(
+        "--speed-limit", type=int, default=P.MAX_STEPS_V1, help=f"firmware clamp [steps/s] ({limits})"
+    )
+    ap.add_argument("--robot", default=None, help="publish the true pose on fleet/F/emu/ROBOT")
+    ap.add_argument("--rate", type=float, default=100.0, help="truth publishing rate [Hz] (default 100)")
+    args = ap.parse_args(argv)
+    role = "emulator"
+
+    def fail(field: str, reason: str) -> int:
+        print(f"emulator: error: {field}: {reason}", file=sys.stderr)
+        return 2
+
+    if not args.pty and args.tcp is None:
+        args.pty = True
+    if args.tcp is not None and not 0 <= args.tcp <= 65535:
+        return fail("--tcp", f"port {args.tcp} outside 0..65535")
+    if not 0 < args.speed_limit <= 32767:
+        return fail("--speed-limit", f"{args.speed_limit} outside 1..32767")
+    if not 0 < args.rate <= 1000:
+        return fail("--rate", f"{args.rate} Hz outside (0, 1000]")
+    if args.robot is not None and not ROBOT_ID.match(args.robot):
+        return fail("--robot", f"{args.robot!r} must match {ROBOT_ID.pattern}")
+    start = tuple(args.start) if args.start is not None else (0.0, 0.0, 0.0)
+    if args.start is None and args.scenario is not None and args.robot is not None:
+        try:
+            scn = load_scenario(args.scenario)
+        except ConfigError as e:
+            print(f"emulator: error: {e}", file=sys.stderr)
+            return 2
+        spec = next((r for r in scn.robots if r.id == args.robot), None)
+        if spec is None:
+            return fail("--robot", f"{args.robot!r} is not in the scenario")
+        start = spec.start
+    if not all(np.isfinite(start)):
+        return fail("--start", "expected finite numbers")
+
+    emu = EpuckEmulator((start[0], start[1], start[2]), tuple(args.encoders), speed_limit=args.speed_limit)
+
+    def report(msg: str) -> None:
+        log(role, msg)
+
+    stopping = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stopping.set())
+    signal.signal(signal.SIGINT, lambda *_: stopping.set())
+    servers: list[PtyServer | TcpServer] = []
+    session: Any = None
+    truth: TruthPublisher | None = None
+    try:
+        try:
+            pty_srv = PtyServer(emu, report) if args.pty else None
+            tcp_srv = TcpServer(emu, args.tcp, report=report) if args.tcp is not None else None
+        except OSError as e:
+            return fail("--tcp" if args.tcp is not None else "--pty", str(e))
+        servers = [s for s in (pty_srv, tcp_srv) if s is not None]
+        truth_key = None
+        if args.robot is not None:
+            keys = Keys(args.fleet)
+            truth_key = keys.emu(args.robot)
+            session = open_session(args)
+            pub = publisher(session, truth_key)
+            truth = TruthPublisher(emu, args.robot, pub.put, args.rate)
+            truth.start()
+        announce(
+            role, robot=args.robot, pty=pty_srv.path if pty_srv else None,
+            tcp=f"{LOOPBACK}:{tcp_srv.port}" if tcp_srv else None, clock_origin=emu.origin,
+            truth_key=truth_key, speed_limit=args.speed_limit,
+        )  # fmt: skip
+        while not stopping.wait(0.5):
+            pass
+        s = emu.snapshot()
+        report(
+            f"stopped: {emu.chains} sercom chains, {emu.wifi_packets} wifi packets, "
+            f"{emu.ignored} ignored bytes; "
+            f"pose ({s.x:.4f}, {s.y:.4f}, {s.theta:.4f}), counts ({s.left_count}, {s.right_count})"
+        )
+    finally:
+        if truth is not None:
+            truth.close()
+        for srv in servers:
+            srv.close()
+        if session is not None:
+            session.close()
+    return 0
+
+
+if __name__ == "__main__":
+    from fleet.runtime import exit_process
+
+    exit_process(main())

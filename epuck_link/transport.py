@@ -1,0 +1,530 @@
+"""Links to a robot: link strings, serial and TCP transports, and a port that keeps them up.
+
+A link string names how to reach one robot (``RobotSpec.link`` in the scenario,
+or ``python -m epuck_link --link``):
+
+* ``serial:DEVICE`` (``serial:/dev/rfcomm0``): advanced sercom over a serial
+  device (Bluetooth RFCOMM, USB, a pseudo-terminal), 115200 Bd;
+* ``tcp:HOST`` or ``tcp:HOST:PORT``: e-puck2 Wi-Fi packets over TCP, port 1000
+  unless given (an IPv6 address goes in brackets, ``tcp:[::1]:1000``);
+* ``emulator``: an in-process :class:`~epuck_link.emulator.EpuckEmulator`;
+* ``sim``: the robot is simulated by the tracker; there is no link.
+
+Every read and write is bounded by a timeout.  A failure raises
+:class:`LinkError` with a one-line reason; :class:`RobotPort` turns it into a
+log line and re-opens the link with exponential backoff, so a lost robot never
+ends the process.
+"""
+
+from __future__ import annotations
+
+import socket
+import threading
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from epuck_link import protocol as P
+
+KINDS = ("serial", "tcp", "sim", "emulator")
+
+
+class LinkError(Exception):
+    """The link to the robot failed; ``reason`` is one line."""
+
+    def __init__(self, reason: str):
+        self.reason = reason
+        super().__init__(reason)
+
+
+# ------------------------------------------------------------ link strings
+@dataclass(frozen=True)
+class LinkSpec:
+    """A parsed link string."""
+
+    kind: str
+    """One of :data:`KINDS`."""
+    device: str = ""
+    """Serial device path (kind ``serial``)."""
+    host: str = ""
+    port: int = P.WIFI_PORT
+    """TCP host and port (kind ``tcp``)."""
+
+    def __str__(self) -> str:
+        if self.kind == "serial":
+            return f"serial:{self.device}"
+        if self.kind == "tcp":
+            host = f"[{self.host}]" if ":" in self.host else self.host
+            return f"tcp:{host}:{self.port}"
+        return self.kind
+
+
+def parse_link(text: str) -> LinkSpec:
+    """Parse a link string (see the module docstring).
+
+    Raises ValueError with a one-line reason naming the problem."""
+    if not isinstance(text, str) or not text.strip():
+        raise ValueError("link: empty; expected serial:DEVICE, tcp:HOST[:PORT], sim or emulator")
+    if any(c.isspace() or c == "\0" for c in text):
+        raise ValueError(f"link {text!r}: contains whitespace")
+    kind, sep, rest = text.partition(":")
+    if kind in ("sim", "emulator"):
+        if sep:
+            raise ValueError(f"link {text!r}: {kind!r} takes no argument")
+        return LinkSpec(kind)
+    if kind == "serial":
+        if not rest:
+            raise ValueError(f"link {text!r}: missing the device path after 'serial:'")
+        return LinkSpec("serial", device=rest)
+    if kind == "tcp":
+        return _parse_tcp(text, rest)
+    raise ValueError(
+        f"link {text!r}: unknown kind {kind!r}; expected serial:DEVICE, tcp:HOST[:PORT], sim or emulator"
+    )
+
+
+def _parse_tcp(text: str, rest: str) -> LinkSpec:
+    port_text = ""
+    if rest.startswith("["):
+        end = rest.find("]")
+        if end < 0:
+            raise ValueError(f"link {text!r}: unclosed '[' in the host")
+        host, after = rest[1:end], rest[end + 1 :]
+        if after:
+            if not after.startswith(":"):
+                raise ValueError(f"link {text!r}: expected ':PORT' after ']'")
+            port_text = after[1:]
+    elif rest.count(":") > 1:
+        raise ValueError(f"link {text!r}: write an IPv6 host in brackets, tcp:[ADDR]:PORT")
+    else:
+        host, _, port_text = rest.partition(":")
+        if ":" in rest and not port_text:
+            raise ValueError(f"link {text!r}: missing the port after ':'")
+    if not host:
+        raise ValueError(f"link {text!r}: missing the host after 'tcp:'")
+    port = P.WIFI_PORT
+    if port_text:
+        if not port_text.isdigit() or not 1 <= int(port_text) <= 65535:
+            raise ValueError(f"link {text!r}: port {port_text!r} is not an integer in 1..65535")
+        port = int(port_text)
+    return LinkSpec("tcp", host=host, port=port)
+
+
+# -------------------------------------------------------------- transports
+class Transport(ABC):
+    """A byte pipe to one robot.  Methods raise :class:`LinkError` and nothing else."""
+
+    @property
+    @abstractmethod
+    def name(self) -> str:
+        """A short description for log lines."""
+
+    @property
+    @abstractmethod
+    def is_open(self) -> bool:
+        """Opened and not closed since (a failed read or write does not close it)."""
+
+    @abstractmethod
+    def open(self) -> None:
+        """Open (closing first if open); LinkError with the reason if the robot is unreachable."""
+
+    @abstractmethod
+    def close(self) -> None:
+        """Close; never raises, may be called when closed."""
+
+    @abstractmethod
+    def write(self, data: bytes) -> None:
+        """Send all of ``data`` (bounded by the transport's timeout)."""
+
+    @abstractmethod
+    def read_exact(self, n: int, timeout: float) -> bytes:
+        """Exactly ``n`` bytes, or LinkError once ``timeout`` [s] has passed."""
+
+    def reopen(self) -> None:
+        """Close, then open."""
+        self.close()
+        self.open()
+
+
+class SerialTransport(Transport):
+    """Advanced sercom over a serial device with pyserial (``serial.Serial(device, 115200)``)."""
+
+    def __init__(self, device: str, baudrate: int = P.SERIAL_BAUD, timeout: float = 0.25):
+        self.device = device
+        self.baudrate = baudrate
+        self.timeout = timeout
+        """Bound of every write and of each read call [s]."""
+        self._port: Any = None
+
+    @property
+    def name(self) -> str:
+        return f"serial:{self.device}"
+
+    @property
+    def is_open(self) -> bool:
+        return self._port is not None
+
+    def open(self) -> None:
+        import serial
+
+        self.close()
+        try:
+            self._port = serial.Serial(
+                self.device, self.baudrate, timeout=self.timeout, write_timeout=self.timeout
+            )
+            self._port.reset_input_buffer()
+        except (serial.SerialException, OSError, ValueError) as e:
+            self.close()
+            raise LinkError(f"{self.name}: cannot open: {_one_line(e)}") from None
+
+    def close(self) -> None:
+        port, self._port = self._port, None
+        if port is not None:
+            try:
+                port.close()
+            except Exception:  # closing a dead device: nothing left to do
+                pass
+
+    def write(self, data: bytes) -> None:
+        import serial
+
+        if self._port is None:
+            raise LinkError(f"{self.name}: not open")
+        try:
+            n = self._port.write(data)
+        except (serial.SerialException, OSError) as e:
+            raise LinkError(f"{self.name}: write failed: {_one_line(e)}") from None
+        if n != len(data):
+            raise LinkError(f"{self.name}: wrote {n} of {len(data)} bytes")
+
+    def read_exact(self, n: int, timeout: float) -> bytes:
+        import serial
+
+        if self._port is None:
+            raise LinkError(f"{self.name}: not open")
+        deadline = time.monotonic() + timeout
+        buf = bytearray()
+        try:
+            while len(buf) < n:
+                if time.monotonic() >= deadline:
+                    raise LinkError(f"{self.name}: no reply: {len(buf)} of {n} bytes within {timeout:.2f} s")
+                buf += self._port.read(n - len(buf))
+        except (serial.SerialException, OSError) as e:
+            raise LinkError(f"{self.name}: read failed: {_one_line(e)}") from None
+        return bytes(buf)
+
+
+class TcpTransport(Transport):
+    """A TCP client (the e-puck2's Wi-Fi server), with connect and I/O timeouts."""
+
+    def __init__(
+        self, host: str, port: int = P.WIFI_PORT, timeout: float = 0.25, connect_timeout: float = 1.0
+    ):
+        self.host = host
+        self.port = port
+        self.timeout = timeout
+        self.connect_timeout = connect_timeout
+        self._sock: socket.socket | None = None
+
+    @property
+    def name(self) -> str:
+        return f"tcp:{self.host}:{self.port}"
+
+    @property
+    def is_open(self) -> bool:
+        return self._sock is not None
+
+    def open(self) -> None:
+        self.close()
+        try:
+            s = socket.create_connection((self.host, self.port), timeout=self.connect_timeout)
+        except OSError as e:
+            raise LinkError(f"{self.name}: cannot connect: {_one_line(e)}") from None
+        s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        s.settimeout(self.timeout)
+        self._sock = s
+
+    def close(self) -> None:
+        s, self._sock = self._sock, None
+        if s is not None:
+            try:
+                s.close()
+            except OSError:
+                pass
+
+    def write(self, data: bytes) -> None:
+        if self._sock is None:
+            raise LinkError(f"{self.name}: not open")
+        try:
+            self._sock.settimeout(self.timeout)
+            self._sock.sendall(data)
+        except OSError as e:  # socket.timeout is an OSError
+            raise LinkError(f"{self.name}: send failed: {_one_line(e)}") from None
+
+    def read_exact(self, n: int, timeout: float) -> bytes:
+        if self._sock is None:
+            raise LinkError(f"{self.name}: not open")
+        deadline = time.monotonic() + timeout
+        buf = bytearray()
+        while len(buf) < n:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise LinkError(f"{self.name}: no reply: {len(buf)} of {n} bytes within {timeout:.2f} s")
+            try:
+                self._sock.settimeout(left)
+                chunk = self._sock.recv(n - len(buf))
+            except TimeoutError:
+                continue
+            except OSError as e:
+                raise LinkError(f"{self.name}: receive failed: {_one_line(e)}") from None
+            if not chunk:
+                raise LinkError(f"{self.name}: connection closed by the robot")
+            buf += chunk
+        return bytes(buf)
+
+
+class LoopTransport(Transport):
+    """An in-process pipe to a byte handler (the emulator's serial side): what is
+    written is handled at once and its reply queued for reading."""
+
+    def __init__(self, handler_factory: Callable[[], Callable[[bytes], bytes]], name: str = "emulator"):
+        self._factory = handler_factory
+        self._name = name
+        self._handler: Callable[[bytes], bytes] | None = None
+        self._pending = bytearray()
+
+    @property
+    def name(self) -> str:
+        return self._name
+
+    @property
+    def is_open(self) -> bool:
+        return self._handler is not None
+
+    def open(self) -> None:
+        self._handler = self._factory()
+        self._pending.clear()
+
+    def close(self) -> None:
+        self._handler = None
+
+    def write(self, data: bytes) -> None:
+        if self._handler is None:
+            raise LinkError(f"{self.name}: not open")
+        self._pending += self._handler(data)
+
+    def read_exact(self, n: int, timeout: float) -> bytes:
+        if self._handler is None:
+            raise LinkError(f"{self.name}: not open")
+        if len(self._pending) < n:
+            raise LinkError(f"{self.name}: no reply: {len(self._pending)} of {n} bytes")
+        out = bytes(self._pending[:n])
+        del self._pending[:n]
+        return out
+
+
+def _one_line(e: BaseException) -> str:
+    return " ".join(str(e).split()) or type(e).__name__
+
+
+# ------------------------------------------------------------------ codecs
+class Codec(ABC):
+    """How wheel speeds and encoder reads travel over one kind of link."""
+
+    def __init__(self, reply_timeout: float = 0.25, limit: int = P.MAX_STEPS_V1):
+        self.reply_timeout = reply_timeout
+        """Longest wait for a reply [s]."""
+        self.limit = limit
+        """Speed clamp [steps/s]."""
+
+    @abstractmethod
+    def exchange(self, t: Transport, left: int, right: int) -> tuple[int, int]:
+        """Set the wheel speeds [steps/s] and return the int16 encoder counts [steps]."""
+
+    @abstractmethod
+    def stop_request(self) -> bytes:
+        """Bytes that set zero speed and expect no reply."""
+
+
+class AsercomCodec(Codec):
+    """Advanced sercom: ``0xBC l l r r 0xAF 0x00`` → 4 bytes."""
+
+    def exchange(self, t: Transport, left: int, right: int) -> tuple[int, int]:
+        t.write(P.speed_and_encoders(left, right, self.limit))
+        try:
+            return P.parse_encoders(t.read_exact(P.ENCODERS_REPLY_SIZE, self.reply_timeout))
+        except P.ProtocolError as e:
+            raise LinkError(str(e)) from None
+
+    def stop_request(self) -> bytes:
+        return P.terminate(P.set_speed(0, 0, self.limit))
+
+
+class WifiCodec(Codec):
+    """e-puck2 Wi-Fi: a 21-byte command packet asking for the sensors → ``0x02`` + 104 bytes."""
+
+    def __init__(self, reply_timeout: float = 0.25, limit: int = P.MAX_STEPS_V2):
+        super().__init__(reply_timeout, limit)
+
+    def exchange(self, t: Transport, left: int, right: int) -> tuple[int, int]:
+        t.write(P.wifi_command(left, right, request=P.REQUEST_SENSORS, limit=self.limit))
+        try:
+            for _ in range(3):  # at most an image, the sensors, one stray empty packet
+                header = t.read_exact(1, self.reply_timeout)[0]
+                payload = t.read_exact(P.wifi_payload_size(header), self.reply_timeout)
+                if header == P.HEADER_SENSORS:
+                    return P.encoders_from_sensors(payload)
+        except P.ProtocolError as e:
+            raise LinkError(str(e)) from None
+        raise LinkError(f"{t.name}: no sensor packet in the reply")
+
+    def stop_request(self) -> bytes:
+        return P.wifi_command(0, 0, request=0, limit=self.limit)
+
+
+def make_transport(spec: LinkSpec, timeout: float = 0.25) -> tuple[Transport, Codec]:
+    """Transport and codec of a ``serial`` or ``tcp`` link (``emulator`` and ``sim`` are the caller's)."""
+    if spec.kind == "serial":
+        return SerialTransport(spec.device, timeout=timeout), AsercomCodec(timeout)
+    if spec.kind == "tcp":
+        return TcpTransport(spec.host, spec.port, timeout=timeout), WifiCodec(timeout)
+    raise ValueError(f"link {spec}: no transport for kind {spec.kind!r}")
+
+
+# -------------------------------------------------------------------- port
+@dataclass(frozen=True)
+class Reading:
+    """One encoder read: when [s, time.monotonic], and the int16 counts [steps]."""
+
+    t: float
+    left: int
+    right: int
+    fresh_link: bool
+    """First read after the link was (re-)opened."""
+
+
+class RobotPort:
+    """Keeps one robot link up in a thread of its own.
+
+    :meth:`command` hands it the latest wheel speeds [steps/s]; the thread sends
+    them at once (or again every ``period`` [s] when nothing new came), reads the
+    encoders and passes each :class:`Reading` to ``on_reading``.  A failure is
+    logged through ``report`` once per outage; the link is then re-opened with
+    backoff from ``backoff[0]`` doubling up to ``backoff[1]`` [s], and the
+    re-opening is logged too.  :meth:`close` sends zero speed and closes."""
+
+    def __init__(
+        self,
+        transport: Transport,
+        codec: Codec,
+        report: Callable[[str], None],
+        on_reading: Callable[[Reading], None],
+        period: float = 0.02,
+        backoff: tuple[float, float] = (0.1, 2.0),
+    ):
+        self.transport = transport
+        self.codec = codec
+        self.report = report
+        self.on_reading = on_reading
+        self.period = period
+        self.backoff = backoff
+        self.lost = 0
+        """Outages so far."""
+        self.reads = 0
+        self._cond = threading.Condition()
+        self._speeds = (0, 0)
+        self._new = False
+        self._stop = False
+        self._thread = threading.Thread(target=self._run, name="robot-port", daemon=True)
+
+    def start(self) -> None:
+        """Start the link thread (it opens the transport)."""
+        self._thread.start()
+
+    def command(self, left: int, right: int) -> None:
+        """Send these wheel speeds [steps/s] next (the latest call wins)."""
+        with self._cond:
+            self._speeds = (left, right)
+            self._new = True
+            self._cond.notify_all()
+
+    def _sleep(self, seconds: float) -> bool:
+        """Wait ``seconds`` unless closing; True if closing."""
+        with self._cond:
+            self._cond.wait_for(lambda: self._stop, seconds)
+            return self._stop
+
+    def _run(self) -> None:
+        down_since: float | None = None
+        attempts = 0
+        fresh = True
+        while True:
+            with self._cond:
+                if self._stop:
+                    return
+            if not self.transport.is_open:
+                try:
+                    self.transport.open()
+                except LinkError as e:
+                    attempts += 1
+                    if down_since is None:
+                        down_since = time.monotonic()
+                        self.report(f"link unavailable: {e.reason}; retrying with backoff")
+                    delay = min(self.backoff[1], self.backoff[0] * 2 ** min(attempts - 1, 16))
+                    if self._sleep(delay):
+                        return
+                    continue
+                if down_since is not None:
+                    self.report(
+                        f"link {self.transport.name} re-opened after {attempts} attempt(s), "
+                        f"{time.monotonic() - down_since:.2f} s down"
+                    )
+                else:
+                    self.report(f"link {self.transport.name} open")
+                down_since, attempts, fresh = None, 0, True
+            with self._cond:
+                self._cond.wait_for(lambda: self._new or self._stop, self.period)
+                if self._stop:
+                    return
+                left, right = self._speeds
+                self._new = False
+            try:
+                raw = self.codec.exchange(self.transport, left, right)
+            except LinkError as e:
+                self.lost += 1
+                down_since = time.monotonic()
+                self.report(f"link lost: {e.reason}; re-opening with backoff")
+                self.transport.close()
+                attempts = 1
+                if self._sleep(self.backoff[0]):
+                    return
+                continue
+            self.reads += 1
+            try:
+                self.on_reading(Reading(time.monotonic(), raw[0], raw[1], fresh))
+            except Exception as e:  # a publishing failure must not end the link thread
+                self.report(f"encoder reading not handled: {type(e).__name__}: {_one_line(e)}")
+            fresh = False
+
+    def close(self, timeout: float = 2.0) -> bool:
+        """Stop the thread, send zero speed (best effort, bounded) and close.
+
+        Returns True if the zero-speed request was written."""
+        with self._cond:
+            self._stop = True
+            self._cond.notify_all()
+        if self._thread.is_alive():
+            self._thread.join(timeout)
+        sent = False
+        if not self._thread.is_alive():
+            try:
+                if not self.transport.is_open:
+                    self.transport.open()
+                self.transport.write(self.codec.stop_request())
+                sent = True
+            except LinkError as e:
+                self.report(f"could not send zero speed on close: {e.reason}")
+        self.transport.close()
+        return sent
