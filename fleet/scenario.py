@@ -24,6 +24,11 @@ obstacles.  Example::
     goal = [0.6, 0.0]                    # controlled point x [m], y [m]
     priority = 0                         # optional, higher goes first
     link = "sim"                         # optional
+    marker = 1                           # optional: ArUco id of its marker (camera source)
+    [camera]                             # optional: the ArUco camera tracker
+    marker_size = 0.05                   # robot markers' printed side [m]
+    fiducials = [{ id = 40, position = [-1.1, -1.1] }, { id = 41, position = [1.1, -1.1] },
+                 { id = 42, position = [1.1, 1.1] }, { id = 43, position = [-1.1, 1.1] }]
     [[obstacles]]                        # optional; exactly one of circle / polygon
     circle = { center = [0.0, 0.0], radius = 0.15 }
     [[obstacles]]
@@ -40,6 +45,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import itertools
 import math
 import numbers
 import re
@@ -101,6 +107,11 @@ class RobotSpec:
     """Coordination priority; the higher goes first."""
     link: str = "sim"
     """Communication link of the robot ("sim" in simulation; used by hardware runs)."""
+    marker: int | None = None
+    """ArUco id of the marker on the robot's top (camera source), in
+    ``0 .. size-1`` of the camera's dictionary, unique across robots and
+    fiducials.  The marker's x axis (its corner 0 → corner 1 edge) points along
+    the robot's heading; see :class:`CameraSpec`."""
 
 
 @dataclass(frozen=True)
@@ -189,6 +200,67 @@ class SimulationSpec:
     position axis) leaves of it."""
 
 
+ARUCO_DICTIONARIES: dict[str, int] = {
+    **{f"DICT_{n}X{n}_{m}": m for n in (4, 5, 6, 7) for m in (50, 100, 250, 1000)},
+    "DICT_ARUCO_ORIGINAL": 1024,
+    "DICT_APRILTAG_16h5": 30,
+    "DICT_APRILTAG_25h9": 35,
+    "DICT_APRILTAG_36h10": 2320,
+    "DICT_APRILTAG_36h11": 587,
+}
+"""Accepted values of ``camera.dictionary`` (OpenCV's predefined ArUco
+dictionaries) → number of marker ids (ids are ``0 .. n-1``)."""
+
+
+@dataclass(frozen=True)
+class Fiducial:
+    """A fixed ArUco marker at a known place, for the floor homography."""
+
+    id: int
+    """ArUco id, in the camera's dictionary, unique across fiducials and robots."""
+    position: tuple[float, float]
+    """Centre of the marker, world frame: x [m], y [m].  It must lie in the
+    plane of the robots' markers (the homography maps that plane)."""
+
+
+@dataclass(frozen=True)
+class CameraSpec:
+    """The ``[camera]`` table: the overhead ArUco camera tracker.
+
+    The tracker maps image pixels to the world plane z = h of the robots'
+    markers with a homography fitted to the fiducials' centres (DESIGN §7), so
+    the fiducials must sit at the markers' height h above the floor: a
+    marker at height Δh off that plane appears displaced by Δh/H_cam times its
+    distance from the camera's nadir.  Robot marker frame = robot frame: x
+    forward (the marker's corner 0 → corner 1 edge), y to the left, viewed
+    from above."""
+
+    dictionary: str = "DICT_4X4_50"
+    """OpenCV ArUco dictionary, a key of :data:`ARUCO_DICTIONARIES`."""
+    marker_size: float = 0.05
+    """Printed side length of the robots' markers [m] (outer edge of the black
+    border), > 0; detections whose side on the floor is off by more than 25 %
+    are rejected as implausible."""
+    marker_offset: tuple[float, float] = (0.0, 0.0)
+    """Centre of a robot's marker relative to its axle centre, robot frame
+    (x forward, y left) [m]."""
+    fiducials: tuple[Fiducial, ...] = ()
+    """The fixed markers, at least 4, of which 4 are in general position
+    (no three on a line)."""
+    homography: Path | None = None
+    """Calibration file written by ``fleet calibrate`` (JSON, image px → world
+    m), resolved against the scenario file's directory; None: the tracker
+    calibrates from the fiducials of the first frames."""
+    device: int | None = None
+    """Video device index (``/dev/videoN``) used when ``--device`` is not given."""
+    position_noise: float | None = None
+    """Claimed bound on the camera's position error [m], >= 0; the tracker and
+    ``fleet calibrate`` check the calibration's reprojection error against it."""
+    heading_noise: float | None = None
+    """Claimed bound on the camera's heading error [rad], >= 0 (reported
+    against the controller's ``pose_noise``)."""
+
+
 @dataclass(frozen=True)
 class Scenario:
     """A validated scenario."""
@@ -209,6 +281,8 @@ class Scenario:
     """Static obstacles, in file order."""
     source: str
     """Where the scenario came from: a file path or "<dict>"."""
+    camera: CameraSpec | None = None
+    """The ``[camera]`` table, None when absent."""
 
 
 # --------------------------------------------------------------------------- primitive validators
@@ -493,7 +567,7 @@ def _parse_arena(raw: object, path: str) -> tuple[float, float, float, float]:
     return (xmin, xmax, ymin, ymax)
 
 
-_ROBOT_KEYS = ("id", "start", "goal", "priority", "link")
+_ROBOT_KEYS = ("id", "start", "goal", "priority", "link", "marker")
 
 
 def _parse_robots(raw: object, path: str) -> tuple[RobotSpec, ...]:
@@ -502,6 +576,7 @@ def _parse_robots(raw: object, path: str) -> tuple[RobotSpec, ...]:
         raise ConfigError(path, "expected at least one robot")
     robots: list[RobotSpec] = []
     seen: dict[str, int] = {}
+    markers: dict[int, int] = {}
     for i, item in enumerate(items):
         rpath = f"{path}[{i}]"
         table = _table(item, rpath)
@@ -521,7 +596,18 @@ def _parse_robots(raw: object, path: str) -> tuple[RobotSpec, ...]:
             link = _string(table["link"], _join(rpath, "link"))
             if not link:
                 raise ConfigError(_join(rpath, "link"), "expected a non-empty string")
-        robots.append(RobotSpec(id=rid, start=(sx, sy, sth), goal=(gx, gy), priority=priority, link=link))
+        marker = None
+        if "marker" in table:
+            mpath = _join(rpath, "marker")
+            marker = _integer(table["marker"], mpath, ge=0)
+            if marker in markers:
+                raise ConfigError(
+                    mpath, f"duplicate marker id {marker} (also {path}[{markers[marker]}].marker)"
+                )
+            markers[marker] = i
+        robots.append(
+            RobotSpec(id=rid, start=(sx, sy, sth), goal=(gx, gy), priority=priority, link=link, marker=marker)
+        )
     return tuple(robots)
 
 
@@ -604,7 +690,120 @@ def _parse_obstacles(raw: object, path: str) -> tuple[Obstacle, ...]:
     return tuple(obstacles)
 
 
-_TOP_KEYS = ("name", "duration", "arena", "controller", "simulation", "robots", "obstacles")
+_CAMERA_KEYS = (
+    "dictionary", "marker_size", "marker_offset", "fiducials", "homography", "device",
+    "position_noise", "heading_noise",
+)  # fmt: skip
+
+
+def _general_position(points: Sequence[tuple[float, float]]) -> bool:
+    """Some 4 of ``points`` [m] have no three on a line (a homography is determined)."""
+    v = np.asarray(points, dtype=float)
+    scale = max(1e-9, float(np.ptp(v, axis=0).max()))
+
+    def collinear(a: int, b: int, c: int) -> bool:
+        e1, e2 = v[b] - v[a], v[c] - v[a]
+        return abs(float(e1[0] * e2[1] - e1[1] * e2[0])) <= 1e-6 * scale * scale
+
+    for quad in itertools.combinations(range(len(v)), 4):
+        if not any(collinear(*tri) for tri in itertools.combinations(quad, 3)):
+            return True
+    return False
+
+
+def _parse_camera(raw: object, path: str, base_dir: Path | None) -> CameraSpec:
+    """The ``[camera]`` table; ``homography`` is resolved against ``base_dir``."""
+    table = _table(raw, path)
+    _check_keys(table, path, _CAMERA_KEYS, required=("fiducials",))
+    spec = CameraSpec()
+    if "dictionary" in table:
+        d = _string(table["dictionary"], _join(path, "dictionary"))
+        if d not in ARUCO_DICTIONARIES:
+            close = difflib.get_close_matches(d, list(ARUCO_DICTIONARIES), n=1)
+            hint = f"did you mean {close[0]!r}? " if close else ""
+            raise ConfigError(
+                _join(path, "dictionary"),
+                f"unknown ArUco dictionary {d!r} ({hint}expected one of {', '.join(ARUCO_DICTIONARIES)})",
+            )
+        spec = dataclasses.replace(spec, dictionary=d)
+    n_ids = ARUCO_DICTIONARIES[spec.dictionary]
+    if "marker_size" in table:
+        size = _number(table["marker_size"], _join(path, "marker_size"), gt=0.0, le=1.0)
+        spec = dataclasses.replace(spec, marker_size=size)
+    if "marker_offset" in table:
+        ox, oy = _vector(table["marker_offset"], _join(path, "marker_offset"), 2)
+        spec = dataclasses.replace(spec, marker_offset=(ox, oy))
+    fpath = _join(path, "fiducials")
+    items = _array(table["fiducials"], fpath, "fiducial tables { id = ..., position = [x, y] }")
+    fiducials: list[Fiducial] = []
+    ids: dict[int, int] = {}
+    for i, item in enumerate(items):
+        ipath = f"{fpath}[{i}]"
+        ft = _table(item, ipath)
+        _check_keys(ft, ipath, ("id", "position"), required=("id", "position"))
+        fid = _integer(ft["id"], _join(ipath, "id"), ge=0)
+        if fid >= n_ids:
+            raise ConfigError(
+                _join(ipath, "id"), f"marker id {fid} is not in {spec.dictionary} (ids 0..{n_ids - 1})"
+            )
+        if fid in ids:
+            raise ConfigError(_join(ipath, "id"), f"duplicate marker id {fid} (also {fpath}[{ids[fid]}].id)")
+        ids[fid] = i
+        x, y = _vector(ft["position"], _join(ipath, "position"), 2)
+        for j, other in enumerate(fiducials):
+            if math.hypot(x - other.position[0], y - other.position[1]) < spec.marker_size:
+                raise ConfigError(
+                    _join(ipath, "position"),
+                    f"({_fmt(x)}, {_fmt(y)}) m is closer than marker_size {_fmt(spec.marker_size)} m "
+                    f"to {fpath}[{j}]",
+                )
+        fiducials.append(Fiducial(id=fid, position=(x, y)))
+    if len(fiducials) < 4:
+        raise ConfigError(
+            fpath, f"expected at least 4 fiducials for the floor homography, got {len(fiducials)}"
+        )
+    if not _general_position([f.position for f in fiducials]):
+        raise ConfigError(
+            fpath,
+            "no 4 fiducials in general position (three or more on a line): the homography is undetermined",
+        )
+    spec = dataclasses.replace(spec, fiducials=tuple(fiducials))
+    if "homography" in table:
+        hpath = _join(path, "homography")
+        h = _string(table["homography"], hpath)
+        if not h.strip():
+            raise ConfigError(hpath, "expected a non-empty file path")
+        hp = Path(h).expanduser()
+        if not hp.is_absolute() and base_dir is not None:
+            hp = base_dir / hp
+        spec = dataclasses.replace(spec, homography=hp)
+    if "device" in table:
+        spec = dataclasses.replace(spec, device=_integer(table["device"], _join(path, "device"), ge=0))
+    if "position_noise" in table:
+        pn = _number(table["position_noise"], _join(path, "position_noise"), ge=0.0)
+        spec = dataclasses.replace(spec, position_noise=pn)
+    if "heading_noise" in table:
+        hn = _number(table["heading_noise"], _join(path, "heading_noise"), ge=0.0)
+        spec = dataclasses.replace(spec, heading_noise=hn)
+    return spec
+
+
+def _check_markers(robots: Sequence[RobotSpec], camera: CameraSpec | None) -> None:
+    """Robot marker ids exist in the camera's dictionary and are not fiducials."""
+    spec = camera if camera is not None else CameraSpec()
+    n_ids = ARUCO_DICTIONARIES[spec.dictionary]
+    fids = {f.id: k for k, f in enumerate(spec.fiducials)}
+    for i, r in enumerate(robots):
+        if r.marker is None:
+            continue
+        mpath = f"robots[{i}].marker"
+        if r.marker >= n_ids:
+            raise ConfigError(mpath, f"marker id {r.marker} is not in {spec.dictionary} (ids 0..{n_ids - 1})")
+        if r.marker in fids:
+            raise ConfigError(mpath, f"marker id {r.marker} is also camera.fiducials[{fids[r.marker]}].id")
+
+
+_TOP_KEYS = ("name", "duration", "arena", "controller", "simulation", "robots", "obstacles", "camera")
 
 
 def parse_scenario(
@@ -625,6 +824,11 @@ def parse_scenario(
     simulation = _parse_simulation(table.get("simulation"), "simulation")
     robots = _parse_robots(table["robots"], "robots")
     obstacles = _parse_obstacles(table.get("obstacles"), "obstacles")
+    camera = None
+    if "camera" in table:
+        base_dir = Path(source).parent if source != "<dict>" else None
+        camera = _parse_camera(table["camera"], "camera", base_dir)
+    _check_markers(robots, camera)
     return Scenario(
         name=name,
         duration=duration,
@@ -634,6 +838,7 @@ def parse_scenario(
         robots=robots,
         obstacles=obstacles,
         source=source,
+        camera=camera,
     )
 
 

@@ -1,0 +1,473 @@
+"""Synthetic overhead-camera images and videos of ArUco-marked robots.
+
+For users without a camera and for the tests: a tilted pinhole camera looks
+at the floor plane z = 0 (world frame, m); fiducials and robot markers are
+ArUco markers with a white quiet zone, drawn in world coordinates and warped
+into the image through the camera's floor homography, so their corners sit
+exactly where the perspective model puts them.  The image is rendered at
+``SUPERSAMPLE``× resolution and area-averaged down (anti-aliasing), then
+blurred (Gaussian, σ in px) and given additive Gaussian noise, seeded.
+
+``python -m tracker.synth --scenario S (--video OUT.avi | --image OUT.png)
+[--duration T] [--fps F] [--seed N]`` renders a scenario with a ``[camera]``
+table and robot ``marker`` ids: each robot drives in a straight line from its
+start to its goal; the video plays through ``python -m tracker --source
+camera --video OUT.avi``.
+
+Pixel convention (OpenCV's): pixel (u, v) has its centre at integer
+coordinates, u to the right, v down; the image is (height, width) uint8.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+OPENCV_MISSING = "camera source needs OpenCV: pip install 'epuck-fleet[camera]'"
+SUPERSAMPLE = 2
+"""Rendering resolution factor before the area-averaging downscale."""
+BODY_RADIUS = 0.037
+"""Radius of the drawn E-puck body [m] (DESIGN §7: diameter 70–75 mm)."""
+
+PoseFn = Callable[[float], tuple[float, float, float]]
+"""A trajectory: time t [s] → axle-centre pose (x [m], y [m], θ [rad]), world frame."""
+
+
+def _cv2() -> Any:
+    import cv2
+
+    return cv2
+
+
+@dataclass(frozen=True)
+class PinholeCamera:
+    """An undistorted pinhole camera looking at the floor plane z = 0.
+
+    The camera sits at ``position`` and its optical axis passes through
+    ``target`` on the floor; image "right" is the world direction
+    forward × z (so a camera behind the arena on −y sees +x to the right and
+    +y up the image, a non-mirrored view from above)."""
+
+    width: int = 1600
+    """Image width [px]."""
+    height: int = 1200
+    """Image height [px]."""
+    focal: float = 1000.0
+    """Focal length [px] (square pixels); the principal point is the image centre."""
+    position: tuple[float, float, float] = (0.0, -1.4, 2.6)
+    """Camera centre, world frame (x, y, z) [m], z > 0."""
+    target: tuple[float, float] = (0.0, 0.0)
+    """Floor point (x, y) [m] on the optical axis."""
+
+    def rotation(self) -> np.ndarray:
+        """World → camera rotation (3, 3); rows are the camera's x (right), y (down), z (forward) axes."""
+        c = np.asarray(self.position, dtype=float)
+        f = np.array([self.target[0], self.target[1], 0.0]) - c
+        f /= np.linalg.norm(f)
+        r = np.cross(f, [0.0, 0.0, 1.0])
+        if np.linalg.norm(r) < 1e-9:  # looking straight down: world +x to the right
+            r = np.array([1.0, 0.0, 0.0])
+        r /= np.linalg.norm(r)
+        d = np.cross(f, r)
+        return np.stack([r, d, f])
+
+    def intrinsics(self) -> np.ndarray:
+        """Camera matrix K (3, 3) [px]."""
+        return np.array(
+            [
+                [self.focal, 0.0, (self.width - 1) / 2.0],
+                [0.0, self.focal, (self.height - 1) / 2.0],
+                [0, 0, 1.0],
+            ]
+        )
+
+    def homography(self) -> np.ndarray:
+        """Floor → image homography K [r₁ r₂ t] (3, 3): (x, y, 1) [m, world] ↦ z_c·(u, v, 1)
+        [px], where z_c [m] is the point's depth in front of the camera."""
+        R = self.rotation()
+        t = -R @ np.asarray(self.position, dtype=float)
+        return np.asarray(self.intrinsics() @ np.column_stack([R[:, 0], R[:, 1], t]))
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """Image points (N, 2) [px] of floor points (N, 2) [m, world frame]."""
+        return _apply(self.homography(), points)
+
+    @staticmethod
+    def viewing(
+        points: np.ndarray,
+        *,
+        tilt: float = math.radians(30.0),
+        height: float = 2.5,
+        width_px: int = 1600,
+        height_px: int = 1200,
+        margin: float = 0.04,
+    ) -> PinholeCamera:
+        """A camera ``height`` [m] above the floor, behind (−y of) the centre of
+        ``points`` (N, 2) [m, world frame] and looking at them ``tilt`` [rad] off
+        vertical, aimed so their image is centred and with the focal length
+        [px] that fits them in the image with ``margin`` (fraction of the
+        image size) to spare."""
+        pts = np.asarray(points, dtype=float).reshape(-1, 2)
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        cx, cy = (lo + hi) / 2.0
+        position = (float(cx), float(cy - height * math.tan(tilt)), float(height))
+
+        def normalised(target_y: float) -> np.ndarray:
+            cam = PinholeCamera(width=width_px, height=height_px, focal=1.0, position=position,
+                                target=(float(cx), target_y))  # fmt: skip
+            R = cam.rotation()
+            pc = (R @ (np.column_stack([pts, np.zeros(len(pts))]) - np.asarray(position)).T).T
+            return np.asarray(pc[:, :2] / pc[:, 2:3])
+
+        # Aim so the points' image is vertically centred (secant iterations on the target's y).
+        ty0, ty1 = float(cy), float(cy) + 0.1
+        v0 = float(np.mean([normalised(ty0)[:, 1].min(), normalised(ty0)[:, 1].max()]))
+        for _ in range(20):
+            n1 = normalised(ty1)[:, 1]
+            v1 = float((n1.min() + n1.max()) / 2.0)
+            if abs(v1) < 1e-9 or abs(v1 - v0) < 1e-15:
+                break
+            ty0, ty1, v0 = ty1, ty1 - v1 * (ty1 - ty0) / (v1 - v0), v1
+        n = normalised(ty1)
+        xn, yn = np.abs(n[:, 0]).max(), np.abs(n[:, 1]).max()
+        f = min((0.5 - margin) * width_px / max(xn, 1e-9), (0.5 - margin) * height_px / max(yn, 1e-9))
+        return PinholeCamera(
+            width=width_px, height=height_px, focal=float(f), position=position, target=(float(cx), ty1)
+        )
+
+
+def _apply(H: np.ndarray, points: np.ndarray) -> np.ndarray:
+    p = np.asarray(points, dtype=float).reshape(-1, 2)
+    q = np.column_stack([p, np.ones(len(p))]) @ np.asarray(H, dtype=float).T
+    return np.asarray(q[:, :2] / q[:, 2:3])
+
+
+def marker_image(marker_id: int, dictionary: str = "DICT_4X4_50", bit_px: int = 16) -> np.ndarray:
+    """An ArUco marker with a one-bit white quiet zone, (S, S) uint8, S = (bits + 4)·``bit_px``.
+
+    ``bits`` is the dictionary's marker size (4 for 4×4) plus its black
+    border; the black square spans pixels [bit_px, S − bit_px)."""
+    cv2 = _cv2()
+    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
+    inner = (d.markerSize + 2) * bit_px
+    m = cv2.aruco.generateImageMarker(d, int(marker_id), inner, borderBits=1)
+    return np.asarray(cv2.copyMakeBorder(m, bit_px, bit_px, bit_px, bit_px, cv2.BORDER_CONSTANT, value=255))
+
+
+def marker_corners(centre: Sequence[float], angle: float, size: float) -> np.ndarray:
+    """World corners (4, 2) [m] of a marker of side ``size`` [m] centred at ``centre``
+    (x, y) [m] with its x axis at ``angle`` [rad]: ArUco's order, corner 0 at the
+    marker's (−s/2, +s/2), then clockwise seen from above (0 → 1 is the +x edge)."""
+    h = size / 2.0
+    local = np.array([[-h, h], [h, h], [h, -h], [-h, -h]])
+    c, s = math.cos(angle), math.sin(angle)
+    return np.asarray(local @ np.array([[c, s], [-s, c]]) + np.asarray(centre, dtype=float)[:2])
+
+
+def marker_centre(pose: Sequence[float], offset: Sequence[float] = (0.0, 0.0)) -> np.ndarray:
+    """World centre (2,) [m] of the marker of a robot at ``pose`` (x, y, θ) whose marker
+    sits at ``offset`` (robot frame: x forward, y left) [m] from the axle centre."""
+    x, y, th = (float(v) for v in pose[:3])
+    c, s = math.cos(th), math.sin(th)
+    return np.array([x + c * offset[0] - s * offset[1], y + s * offset[0] + c * offset[1]])
+
+
+class Renderer:
+    """Renders frames of one camera: floor texture, fiducials and robots.
+
+    ``fiducials`` maps ArUco id → world centre (x, y) [m] (axis-aligned, side
+    ``fiducial_size`` [m]); robot markers have side ``marker_size`` [m] and
+    sit at ``marker_offset`` (robot frame) [m] from the axle centre."""
+
+    def __init__(
+        self,
+        camera: PinholeCamera,
+        fiducials: Mapping[int, Sequence[float]],
+        *,
+        marker_size: float = 0.05,
+        marker_offset: Sequence[float] = (0.0, 0.0),
+        fiducial_size: float = 0.08,
+        dictionary: str = "DICT_4X4_50",
+        floor_seed: int = 0,
+    ) -> None:
+        self.camera = camera
+        self.fiducials = {int(k): (float(v[0]), float(v[1])) for k, v in fiducials.items()}
+        self.marker_size = float(marker_size)
+        self.marker_offset = (float(marker_offset[0]), float(marker_offset[1]))
+        self.fiducial_size = float(fiducial_size)
+        self.dictionary = dictionary
+        ss = SUPERSAMPLE
+        # final px p ↔ supersampled px ss·p + (ss − 1)/2 (pixel centres at integers)
+        S = np.array([[ss, 0.0, (ss - 1) / 2.0], [0.0, ss, (ss - 1) / 2.0], [0.0, 0.0, 1.0]])
+        self.H = S @ camera.homography()
+        """Floor → supersampled image homography (3, 3)."""
+        self.size = (camera.width * ss, camera.height * ss)
+        self._markers: dict[int, np.ndarray] = {}
+        self._static = self._render_floor(floor_seed)
+        for fid, pos in self.fiducials.items():
+            self._paste_marker(self._static, fid, pos, 0.0, self.fiducial_size)
+        self._work = self._static.copy()
+        """Supersampled scratch image: robots are pasted into it, their regions are
+        downsampled into the frame, then restored from ``_static``."""
+        self._small = _cv2().resize(
+            self._static, (camera.width, camera.height), interpolation=_cv2().INTER_AREA
+        )
+        """The static scene at the camera's resolution, float32."""
+
+    def _render_floor(self, seed: int) -> np.ndarray:
+        """Grey floor with low-frequency shading and tile seams every 0.5 m, float32 (H·ss, W·ss)."""
+        cv2 = _cv2()
+        rng = np.random.default_rng(seed)
+        w, h = self.size
+        coarse = rng.normal(0.0, 1.0, (h // 96 + 2, w // 96 + 2)).astype(np.float32)
+        shade = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_CUBIC)
+        yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+        r2 = ((xx - w / 2) / w) ** 2 + ((yy - h / 2) / h) ** 2
+        floor = (150.0 + 10.0 * shade) * (1.0 - 0.35 * r2)
+        img = np.clip(floor, 0, 255).astype(np.float32)
+        # tile seams: projected world lines, anti-aliased
+        for k in np.arange(-5.0, 5.01, 0.5):
+            for a, b in (((k, -5.0), (k, 5.0)), ((-5.0, k), (5.0, k))):
+                pts = np.linspace(a, b, 200)
+                depth = np.column_stack([pts, np.ones(len(pts))]) @ self.H[2]
+                front = depth > 0.05  # in front of the camera
+                if front.sum() < 2:
+                    continue
+                uv = _apply(self.H, pts[front])
+                poly = np.round(uv * 16).astype(np.int32).reshape(-1, 1, 2)
+                cv2.polylines(img, [poly], False, 120.0, 2, cv2.LINE_AA, shift=4)
+        return img
+
+    def _marker_src(self, marker_id: int) -> np.ndarray:
+        if marker_id not in self._markers:
+            self._markers[marker_id] = marker_image(marker_id, self.dictionary, 24).astype(np.float32)
+        return self._markers[marker_id]
+
+    def _paste_marker(
+        self, img: np.ndarray, marker_id: int, centre: Sequence[float] | np.ndarray, angle: float, size: float
+    ) -> None:
+        """Warp marker ``marker_id`` (side ``size`` [m], x axis at ``angle`` [rad], centre
+        (x, y) [m]) into ``img`` (float32, supersampled) with an anti-aliased alpha."""
+        cv2 = _cv2()
+        src = self._marker_src(marker_id)
+        n = src.shape[0]
+        bits = n / 24 - 2  # marker bits including the black border
+        s = size / (bits * 24)  # [m] per source pixel
+        c, sn = math.cos(angle), math.sin(angle)
+        mid = (n - 1) / 2.0
+        # source px (u, v) → marker-local (s(u − mid), −s(v − mid)) → world
+        A = np.array([[s, 0.0, -s * mid], [0.0, -s, s * mid], [0.0, 0.0, 1.0]])
+        Rw = np.array([[c, -sn, centre[0]], [sn, c, centre[1]], [0.0, 0.0, 1.0]])
+        M = self.H @ Rw @ A
+        quad = _apply(M, np.array([[-0.5, -0.5], [n - 0.5, -0.5], [n - 0.5, n - 0.5], [-0.5, n - 0.5]]))
+        x0, y0 = np.floor(quad.min(axis=0)).astype(int) - 2
+        x1, y1 = np.ceil(quad.max(axis=0)).astype(int) + 2
+        x0, y0 = max(x0, 0), max(y0, 0)
+        x1, y1 = min(x1, self.size[0]), min(y1, self.size[1])
+        if x1 <= x0 or y1 <= y0:
+            return
+        T = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]]) @ M
+        dsize = (int(x1 - x0), int(y1 - y0))
+        warped = cv2.warpPerspective(src, T, dsize, flags=cv2.INTER_LINEAR, borderValue=0.0)
+        alpha = cv2.warpPerspective(
+            np.ones_like(src),
+            T,
+            dsize,
+            flags=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0.0,
+        )
+        roi = img[y0:y1, x0:x1]
+        roi[:] = roi * (1.0 - alpha) + warped * alpha
+
+    def _paste_body(self, img: np.ndarray, pose: Sequence[float]) -> None:
+        """The robot's dark body disc (radius BODY_RADIUS [m]) under its marker."""
+        cv2 = _cv2()
+        a = np.linspace(0.0, 2.0 * math.pi, 96, endpoint=False)
+        ring = np.column_stack([pose[0] + BODY_RADIUS * np.cos(a), pose[1] + BODY_RADIUS * np.sin(a)])
+        poly = np.round(_apply(self.H, ring) * 16).astype(np.int32).reshape(-1, 1, 2)
+        cv2.fillPoly(img, [poly], 60.0, cv2.LINE_AA, shift=4)
+
+    def _roi(self, pose: Sequence[float]) -> tuple[int, int, int, int]:
+        """Supersampled pixel box (x0, y0, x1, y1), aligned to SUPERSAMPLE, that holds a
+        robot's body and marker (quiet zone included)."""
+        ss = SUPERSAMPLE
+        reach = max(
+            BODY_RADIUS, math.hypot(*self.marker_offset) + self.marker_size * 0.5 * math.sqrt(2) * 8 / 6
+        )
+        reach += 0.01
+        box = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * reach + np.asarray(pose[:2], dtype=float)
+        uv = _apply(self.H, box)
+        x0, y0 = (math.floor(v / ss) * ss - ss for v in uv.min(axis=0))
+        x1, y1 = (math.ceil(v / ss) * ss + ss for v in uv.max(axis=0))
+        return max(x0, 0), max(y0, 0), min(x1, self.size[0]), min(y1, self.size[1])
+
+    def render(
+        self,
+        robots: Mapping[int, Sequence[float]],
+        *,
+        blur: float = 0.8,
+        noise: float = 2.0,
+        seed: int = 0,
+    ) -> np.ndarray:
+        """One frame (height, width) uint8 with the robots at ``robots``: marker id →
+        axle-centre pose (x [m], y [m], θ [rad], world frame).  ``blur`` is the
+        Gaussian σ [px] (0: none), ``noise`` the additive noise σ [grey levels]."""
+        cv2 = _cv2()
+        ss = SUPERSAMPLE
+        out = self._small.copy()
+        rois = []
+        for mid, pose in robots.items():
+            rois.append(self._roi(pose))
+            self._paste_body(self._work, pose)
+            c = marker_centre(pose, self.marker_offset)
+            self._paste_marker(self._work, int(mid), c, float(pose[2]), self.marker_size)
+        for x0, y0, x1, y1 in rois:
+            if x1 > x0 and y1 > y0:
+                size = ((x1 - x0) // ss, (y1 - y0) // ss)
+                patch = cv2.resize(self._work[y0:y1, x0:x1], size, interpolation=cv2.INTER_AREA)
+                out[y0 // ss : y1 // ss, x0 // ss : x1 // ss] = patch
+        for x0, y0, x1, y1 in rois:
+            self._work[y0:y1, x0:x1] = self._static[y0:y1, x0:x1]
+        if blur > 0:
+            out = cv2.GaussianBlur(out, (0, 0), blur)
+        if noise > 0:
+            out += noise * np.random.default_rng(seed).standard_normal(out.shape, dtype=np.float32)
+        return np.asarray(np.clip(np.rint(out), 0, 255).astype(np.uint8))
+
+
+def write_video(
+    path: str | Path,
+    renderer: Renderer,
+    trajectories: Mapping[int, PoseFn],
+    duration: float,
+    fps: float = 20.0,
+    *,
+    blur: float = 0.8,
+    noise: float = 2.0,
+    seed: int = 0,
+    quality: int = 95,
+) -> int:
+    """Write an MJPG ``.avi`` of the robots moving along ``trajectories`` (marker id →
+    pose function of t [s]); frame i shows time t = i / ``fps`` [s], for
+    t < ``duration`` [s].  Returns the number of frames, after checking that
+    the file reads back with that many frames of the camera's size.
+    Raises OSError if the file cannot be written or read back."""
+    cv2 = _cv2()
+    n = max(1, math.ceil(duration * fps - 1e-9))
+    size = (renderer.camera.width, renderer.camera.height)
+    out = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), float(fps), size, True)
+    if not out.isOpened():
+        raise OSError(f"{path}: cannot open an MJPG video writer")
+    out.set(cv2.VIDEOWRITER_PROP_QUALITY, float(quality))
+    try:
+        for i in range(n):
+            t = i / fps
+            poses = {mid: fn(t) for mid, fn in trajectories.items()}
+            gray = renderer.render(poses, blur=blur, noise=noise, seed=seed * 1_000_003 + i)
+            out.write(cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR))
+    finally:
+        out.release()
+    cap = cv2.VideoCapture(str(path))
+    try:
+        count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        ok, frame = cap.read()
+    finally:
+        cap.release()
+    if not ok or frame is None or frame.shape[:2] != (size[1], size[0]) or count != n:
+        raise OSError(f"{path}: the written video does not read back ({count} of {n} frames)")
+    return n
+
+
+def straight_lines(scn: Any, speed: float = 0.05) -> dict[int, PoseFn]:
+    """Each marked robot of scenario ``scn`` drives from its start to its goal at ``speed``
+    [m/s], facing the goal, then stops: marker id → pose function of t [s]."""
+    out: dict[int, PoseFn] = {}
+    for r in scn.robots:
+        if r.marker is None:
+            continue
+        sx, sy, sth = r.start
+        gx, gy = r.goal
+        dist = math.hypot(gx - sx, gy - sy)
+        th = math.atan2(gy - sy, gx - sx) if dist > 1e-9 else sth
+
+        def pose(t: float, sx: float = sx, sy: float = sy, gx: float = gx, gy: float = gy, th: float = th,
+                 dist: float = dist) -> tuple[float, float, float]:  # fmt: skip
+            f = min(1.0, speed * t / dist) if dist > 1e-9 else 1.0
+            return (sx + f * (gx - sx), sy + f * (gy - sy), th)
+
+        out[r.marker] = pose
+    return out
+
+
+def scene_renderer(scn: Any, **camera: Any) -> Renderer:
+    """A renderer for scenario ``scn`` (needs a ``[camera]`` table) with a camera from
+    :meth:`PinholeCamera.viewing` over the arena and fiducials (``camera``: its keywords)."""
+    cam = scn.camera
+    xmin, xmax, ymin, ymax = scn.arena
+    pts = [(xmin, ymin), (xmax, ymin), (xmax, ymax), (xmin, ymax)] + [f.position for f in cam.fiducials]
+    return Renderer(
+        PinholeCamera.viewing(np.array(pts), **camera),
+        {f.id: f.position for f in cam.fiducials},
+        marker_size=cam.marker_size,
+        marker_offset=cam.marker_offset,
+        dictionary=cam.dictionary,
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m tracker.synth", description=__doc__.splitlines()[0])
+    ap.add_argument("--scenario", required=True, help="scenario TOML with a [camera] table and robot markers")
+    out = ap.add_mutually_exclusive_group(required=True)
+    out.add_argument("--video", help="write an MJPG .avi of the robots driving start → goal")
+    out.add_argument("--image", help="write one frame (PNG) of the robots at their starts")
+    ap.add_argument("--duration", type=float, default=10.0, help="video length [s] (default 10)")
+    ap.add_argument("--fps", type=float, default=20.0, help="video frame rate [1/s] (default 20)")
+    ap.add_argument("--seed", type=int, default=0, help="noise seed")
+    args = ap.parse_args(argv)
+    try:
+        import cv2  # noqa: F401
+    except ImportError:
+        print(f"tracker: error: {OPENCV_MISSING}", file=sys.stderr)
+        return 2
+    from fleet.scenario import ConfigError, load_scenario
+
+    try:
+        scn = load_scenario(args.scenario)
+        if scn.camera is None:
+            raise ConfigError("camera", "missing [camera] table (fiducials and marker size)")
+        for i, r in enumerate(scn.robots):
+            if r.marker is None:
+                raise ConfigError(f"robots[{i}].marker", "missing: every robot needs an ArUco id")
+        if not (args.duration > 0 and args.fps > 0):
+            raise ConfigError("--duration/--fps", "must be > 0")
+    except ConfigError as e:
+        print(f"tracker: error: {e}", file=sys.stderr)
+        return 2
+    renderer = scene_renderer(scn)
+    traj = straight_lines(scn)
+    if args.image:
+        frame = renderer.render({m: fn(0.0) for m, fn in traj.items()}, seed=args.seed)
+        if not _cv2().imwrite(args.image, frame):
+            print(f"tracker: error: --image: {args.image}: cannot write", file=sys.stderr)
+            return 2
+        print(f"wrote {args.image}")
+        return 0
+    try:
+        n = write_video(args.video, renderer, traj, args.duration, args.fps, seed=args.seed)
+    except OSError as e:
+        print(f"tracker: error: --video: {e}", file=sys.stderr)
+        return 2
+    print(f"wrote {args.video}: {n} frames at {args.fps:g} fps")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
