@@ -147,16 +147,21 @@ def cmd_run(args: argparse.Namespace) -> int:
     if not design.admissible:
         return _bad(f"controller: inadmissible tube design: {'; '.join(design.failures)}")
     check_geometry(scn, design.footprint)
+    links = _run_links(scn)
+    emulated = "emulator" in links.values()
+    clock = args.clock or ("realtime" if emulated else "lockstep")
+    if emulated and clock != "realtime":
+        return _bad("--clock: emulated robots move in wall time; use --clock realtime")
     out = Path(args.out) if args.out else Path("out") / scn.name
     out.mkdir(parents=True, exist_ok=True)
     code, verdict, summary = run_fleet(
         str(Path(args.scenario).resolve()), [r.id for r in scn.robots], out.resolve(), args.seed,
-        viewer=args.viewer, clock=args.clock, hub=args.listen,
+        viewer=args.viewer, clock=clock, hub=args.listen, links=links,
     )  # fmt: skip
     if summary is not None:
         print(
             f"{scn.name}: {summary['steps']} steps in {summary['wall_time_s']:.1f} s over "
-            f"{len(summary.get('processes', {}))} processes ({args.clock}); "
+            f"{len(summary.get('processes', {}))} processes ({clock}); "
             f"collisions {summary['collisions']}, "
             f"deadline misses {summary.get('deadline_misses', 0)}, "
             f"goals reached {sum(r['reached_goal'] for r in summary['robots'].values())}"
@@ -166,6 +171,31 @@ def cmd_run(args: argparse.Namespace) -> int:
     if code:
         print(f"fleet: run failed: {verdict}", file=sys.stderr)
     return code
+
+
+def _run_links(scn: Any) -> dict[str, str]:
+    """robot id → link kind for ``fleet run``; raises ConfigError for links it cannot drive.
+
+    ``fleet run`` simulates every robot (``sim``) or emulates every robot
+    (``emulator``); robots on ``serial:`` or ``tcp:`` links are real, and their
+    processes are started by hand (README, "Run on real E-pucks")."""
+    from epuck_link.transport import parse_link
+
+    kinds: dict[str, str] = {}
+    for i, r in enumerate(scn.robots):
+        try:
+            kinds[r.id] = parse_link(r.link).kind
+        except ValueError as e:
+            raise ConfigError(f"robots[{i}].link", str(e)) from None
+        if kinds[r.id] not in ("sim", "emulator"):
+            raise ConfigError(
+                f"robots[{i}].link",
+                f"{r.link!r} is a real robot; fleet run drives sim and emulator links "
+                "(start real robots' processes as in the README, 'Run on real E-pucks')",
+            )
+    if len(set(kinds.values())) > 1:
+        raise ConfigError("robots", "fleet run needs every link sim or every link emulator, not a mix")
+    return kinds
 
 
 def cmd_goal(args: argparse.Namespace) -> int:
@@ -179,6 +209,18 @@ def cmd_goal(args: argparse.Namespace) -> int:
 
 def _interrupt(signum: int, frame: Any) -> None:
     raise KeyboardInterrupt
+
+
+def _calibrate_arguments(ap: argparse.ArgumentParser) -> None:
+    from fleet.calibrate import add_arguments
+
+    add_arguments(ap)
+
+
+def cmd_calibrate(args: argparse.Namespace) -> int:
+    from fleet.calibrate import run
+
+    return int(run(args))
 
 
 def cmd_report(args: argparse.Namespace) -> int:
@@ -219,7 +261,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", help="output directory (default out/<scenario name>)")
     r.add_argument("--seed", type=int, help="override the scenario's [simulation] seed")
     r.add_argument("--viewer", action="store_true", help="open the Rerun viewer live")
-    r.add_argument("--clock", choices=["lockstep", "realtime"], default="lockstep", help="default lockstep")
+    r.add_argument(
+        "--clock", choices=["lockstep", "realtime"], default=None,
+        help="default lockstep; realtime when the robots are emulated (link = \"emulator\")",
+    )  # fmt: skip
     r.add_argument(
         "--listen", metavar="ENDPOINT", type=_endpoint,
         help="Zenoh endpoint of the fleet's hub, e.g. tcp/127.0.0.1:7447, so an operator can connect "
@@ -235,6 +280,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--fleet", default="lab", help="fleet name in the Zenoh keys (default lab)")
     g.add_argument("--timeout", type=float, default=30.0, help="wait limit [s]")
     g.set_defaults(func=cmd_goal)
+    c = sub.add_parser("calibrate", help="fit the camera's floor homography from the scenario's fiducials")
+    _calibrate_arguments(c)
+    c.set_defaults(func=cmd_calibrate)
     rp = sub.add_parser("report", help="write PNG figures of a run (trajectories, pairwise distances)")
     rp.add_argument("dir", help="output directory of fleet simulate or fleet run")
     rp.set_defaults(func=cmd_report)

@@ -30,6 +30,8 @@ class Proc:
     role: str
     popen: subprocess.Popen[str]
     lines: queue.Queue[str] = field(default_factory=queue.Queue)
+    ready: dict[str, Any] = field(default_factory=dict)
+    """The process's readiness line, once seen."""
 
     @property
     def pid(self) -> int:
@@ -68,7 +70,9 @@ def _wait_ready(procs: list[Proc], timeout: float) -> list[str]:
                     return [role]
                 continue
             try:
-                if json.loads(line).get("event") == "ready":
+                msg = json.loads(line)
+                if msg.get("event") == "ready":
+                    p.ready = msg
                     del pending[role]
             except (json.JSONDecodeError, AttributeError):
                 continue
@@ -76,7 +80,9 @@ def _wait_ready(procs: list[Proc], timeout: float) -> list[str]:
 
 
 def _stop(procs: list[Proc], grace: float = 5.0) -> None:
-    for p in procs:
+    """SIGTERM every running process, the last started first (the link processes
+    zero their wheels before their emulators go), then SIGKILL after ``grace`` [s]."""
+    for p in reversed(procs):
         if p.popen.poll() is None:
             p.popen.send_signal(signal.SIGTERM)
     deadline = time.monotonic() + grace
@@ -98,10 +104,17 @@ def run_fleet(
     viewer: bool = False,
     clock: str = "lockstep",
     hub: str | None = None,
+    links: dict[str, str] | None = None,
 ) -> tuple[int, str, dict[str, Any] | None]:
     """Run the fleet; returns (exit code, one-line verdict, summary or None).
 
-    ``hub`` is the tracker's listening endpoint (default: a free loopback port)."""
+    ``hub`` is the tracker's listening endpoint (default: a free loopback port).
+    ``links`` maps robot id → link; robots on ``"emulator"`` get an e-puck
+    firmware emulator process (advanced sercom on a pseudo-terminal) and an
+    ``epuck_link`` process driving it, and the tracker observes the emulators
+    (``--source emulator``, realtime clock).  Every robot is simulated or every
+    robot is emulated."""
+    emulated = [r for r in robots if (links or {}).get(r, "sim") == "emulator"]
     hub = hub or loopback(free_port())
     print(f"fleet: hub {hub} (fleet goal --connect {hub} ...)", file=sys.stderr, flush=True)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "RERUN_ANALYTICS": "0"}
@@ -109,14 +122,36 @@ def run_fleet(
     seed_args = [] if seed is None else ["--seed", str(seed)]
     procs: list[Proc] = []
     try:
-        procs.append(_start("tracker", "tracker", [*common, "--listen", hub, *seed_args], env))
+        source = ["--source", "emulator"] if emulated else []
+        procs.append(_start("tracker", "tracker", [*common, "--listen", hub, *seed_args, *source], env))
         if _wait_ready(procs, 60.0):
             return 1, "tracker did not start", None
+        # The robot side: one emulator and one epuck_link per emulated robot.
+        emulators = []
+        for rid in emulated:
+            emu_args = [*common, "--connect", hub, "--robot", rid, "--pty"]
+            emulators.append(_start(f"emulator {rid}", "epuck_link.emulator", emu_args, env))
+        procs += emulators
+        late = _wait_ready(emulators, 60.0)
+        if late:
+            return 1, f"not ready: {', '.join(late)}", None
+        bridges = []
+        for e in emulators:
+            rid, pty = e.ready["robot"], e.ready["pty"]
+            link_args = [*common, "--connect", hub, "--robot", rid, "--link", f"serial:{pty}"]
+            bridges.append(_start(f"epuck_link {rid}", "epuck_link", link_args, env))
+        procs += bridges
+        late = _wait_ready(bridges, 60.0)
+        if late:
+            return 1, f"not ready: {', '.join(late)}", None
         sup_args = [*common, "--connect", hub, "--out", str(out), *(["--viewer"] if viewer else [])]
-        procs.append(_start("supervisor", "supervisor", sup_args, env))
-        for rid in robots:
-            procs.append(_start(f"agent {rid}", "agent", [*common, "--connect", hub, "--robot", rid], env))
-        late = _wait_ready(procs[1:], 120.0)
+        sup = _start("supervisor", "supervisor", sup_args, env)
+        agents = [
+            _start(f"agent {rid}", "agent", [*common, "--connect", hub, "--robot", rid], env)
+            for rid in robots
+        ]
+        procs += [sup, *agents]
+        late = _wait_ready([sup, *agents], 120.0)
         if late:
             return 1, f"not ready: {', '.join(late)}", None
         tracker = procs[0]
@@ -124,13 +159,11 @@ def run_fleet(
             tracker.popen.wait(timeout=timeout)
         except subprocess.TimeoutExpired:
             return 1, f"run did not finish within {timeout:.0f} s", None
-        sup = procs[1]
         try:
             sup.popen.wait(timeout=60)
         except subprocess.TimeoutExpired:
             sup.popen.send_signal(signal.SIGTERM)
             sup.popen.wait(timeout=30)
-        agents = procs[2:]
         for a in agents:
             try:
                 a.popen.wait(timeout=30)

@@ -1,17 +1,26 @@
 """The simulated tracker: robot plants, camera poses and the lockstep clock.
 
-``python -m tracker --scenario S --source sim [--seed N] [--fleet F] [--listen E]``
+``python -m tracker --scenario S --source sim|emulator [--seed N] [--fleet F] [--listen E]``
 
-It integrates each robot's unicycle with the inner loop at 20 substeps per
-Ts, driven by the accelerations the agents publish, and perturbs it with a
-disturbance inside W (the harness's :class:`fleet.harness.Disturbance`, same
-seed, same order, so a lockstep run reproduces ``fleet simulate``).  It
-publishes the camera pose (the plant's, off by :class:`fleet.harness.PoseNoise`
-within the controller's ``pose_noise`` bound), the inner loop's velocity
-(odometry) and the ground truth on its own key, then the tick.  In lockstep it waits until every live agent
-has answered the step (bounded by ``--timeout``).  With ``--clock realtime``
-steps start every Ts of wall time; a command later than ``--deadline``·Ts
-after its tick is a deadline miss (the previous acceleration is held).
+``--source sim`` integrates each robot's unicycle with the inner loop at 20
+substeps per Ts, driven by the accelerations the agents publish, and perturbs
+it with a disturbance inside W (the harness's :class:`fleet.harness.Disturbance`,
+same seed, same order, so a lockstep run reproduces ``fleet simulate``).  It
+publishes the tick, then the camera pose (the plant's, off by
+:class:`fleet.harness.PoseNoise` within the controller's ``pose_noise`` bound)
+and the inner loop's velocity (odometry) of every robot, then the ground truth
+on its own key.  In lockstep it waits until every live agent has answered the
+step (bounded by ``--timeout``).  With ``--clock realtime`` steps start every
+Ts of wall time; a command later than ``--deadline``·Ts after its tick is a
+deadline miss (the previous acceleration is held).
+
+``--source emulator`` (realtime only) is the camera of a lab whose robots are
+e-puck firmware emulators (:mod:`epuck_link.emulator`) driven by
+``epuck_link`` processes: it observes each emulator's true pose on
+``fleet/F/emu/R`` and publishes it, with the same bounded camera noise, as the
+robot's pose and truth.  The motion comes from the agents' commands through
+``epuck_link``, the wire protocol and the emulated wheels; this process moves
+nothing, and the odometry comes from ``epuck_link`` as on real robots.
 """
 
 from __future__ import annotations
@@ -21,6 +30,7 @@ import sys
 import threading
 import time
 from functools import partial
+from typing import Any
 
 import numpy as np
 
@@ -34,10 +44,63 @@ PROGRESS_EVERY = 50
 """Steps between progress lines on stderr."""
 
 
+class SimulatedWorld:
+    """The robots as simulated plants, moved here from the agents' commands."""
+
+    odometry = True
+
+    def __init__(self, scn: Any, design: Any, dist: Disturbance):
+        self.plants = {
+            r.id: make_plant(scn.simulation.plant, np.array(r.start, float), design) for r in scn.robots
+        }
+        self.dist = dist
+
+    def pose(self, rid: str) -> np.ndarray:
+        """True axle-centre pose (3,) [m, m, rad], world frame."""
+        return self.plants[rid].pose
+
+    def state(self, rid: str) -> np.ndarray:
+        """Controlled-point state [px, vx, py, vy] (4,) [m, m/s]."""
+        return self.plants[rid].state()
+
+    def advance(self, rid: str, a: np.ndarray, Ts: float) -> None:
+        """Hold acceleration ``a`` (2,) [m/s²] for ``Ts`` [s], then add the disturbance."""
+        plant = self.plants[rid]
+        x_before = plant.state()
+        plant.step(a, Ts)
+        plant.perturb(self.dist.sample(x_before * 0.0))
+
+
+class EmulatedWorld:
+    """The robots as e-puck emulators (their own processes), seen on ``fleet/F/emu/R``."""
+
+    odometry = False
+
+    def __init__(self, inbox: Inbox, lookahead: float):
+        self.inbox = inbox
+        self.lookahead = lookahead
+
+    def pose(self, rid: str) -> np.ndarray:
+        t = self.inbox.get(Truth, rid)
+        assert t is not None, "pose() before every emulator reported"
+        return np.array([t.x, t.y, t.theta])
+
+    def state(self, rid: str) -> np.ndarray:
+        x, y, th = self.pose(rid)
+        ell = self.lookahead
+        return np.array([x + ell * np.cos(th), 0.0, y + ell * np.sin(th), 0.0])
+
+    def advance(self, rid: str, a: np.ndarray, Ts: float) -> None:
+        """Nothing to do: the emulated wheels move in wall time."""
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m tracker", description=__doc__.splitlines()[0])
     add_common_args(ap)
-    ap.add_argument("--source", choices=["sim"], default="sim", help="pose source (camera: a later issue)")
+    ap.add_argument(
+        "--source", choices=["sim", "emulator"], default="sim",
+        help="sim: simulated plants; emulator: observe epuck_link emulators (camera: tracker.camera)",
+    )  # fmt: skip
     ap.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
     ap.add_argument("--steps", type=int, default=None, help="override the scenario's duration [steps]")
     ap.add_argument("--start-timeout", type=float, default=60.0, help="wait for agents to come up [s]")
@@ -54,6 +117,9 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as e:
         print(f"tracker: error: {e}", file=sys.stderr)
         return 2
+    if args.source == "emulator" and args.clock != "realtime":
+        print("tracker: error: --clock: the emulated robots move in wall time; use realtime", file=sys.stderr)
+        return 2
     p = design.params
     seed = scn.simulation.seed if args.seed is None else args.seed
     rng = np.random.default_rng(seed)
@@ -61,9 +127,6 @@ def main(argv: list[str] | None = None) -> int:
     dist = Disturbance(sim.disturbance, p.W, sim.disturbance_fraction, rng, p.point_noise)
     noise = PoseNoise(p.pose_noise, seed)
     ids = [r.id for r in scn.robots]
-    plants = {
-        r.id: make_plant(scn.simulation.plant, np.array(r.start, dtype=float), design) for r in scn.robots
-    }
     steps = args.steps if args.steps is not None else round(scn.duration / p.Ts)
     keys = Keys(args.fleet)
     session = open_session(args)
@@ -73,6 +136,12 @@ def main(argv: list[str] | None = None) -> int:
         inbox.subscribe(session, keys.plan(), Plan, keep=True),
         inbox.watch_liveliness(session),
     ]
+    world: SimulatedWorld | EmulatedWorld
+    if args.source == "emulator":
+        subs.append(inbox.subscribe(session, keys.emu(), Truth))
+        world = EmulatedWorld(inbox, p.lookahead)
+    else:
+        world = SimulatedWorld(scn, design, dist)
     pubs = {
         rid: (
             publisher(session, keys.pose(rid)),
@@ -90,6 +159,12 @@ def main(argv: list[str] | None = None) -> int:
             missing = sorted(expected - inbox.live)
             log(role, f"not up within {args.start_timeout} s: {', '.join(missing)}")
             return 1
+        if args.source == "emulator" and not inbox.wait(
+            lambda: all(inbox.get(Truth, r) is not None for r in ids), args.start_timeout
+        ):
+            silent = [r for r in ids if inbox.get(Truth, r) is None]
+            log(role, f"no emulator pose on {keys.emu()} within {args.start_timeout} s: {', '.join(silent)}")
+            return 1
         k = 0
         misses = 0
         last_a = {rid: np.zeros(2) for rid in ids}
@@ -102,15 +177,17 @@ def main(argv: list[str] | None = None) -> int:
             # The tick first, then each robot's pose and odometry (an agent starts as
             # soon as its own are in), then the truth, which only the supervisor reads.
             clock.put(Tick(robot=role, step=k, t=t, stop=False, misses=misses).encode())
+            with inbox.cond:
+                truths = {rid: world.pose(rid).copy() for rid in ids}
             for rid in ids:
-                plant = plants[rid]
-                mx, my, mth = (float(v) for v in plant.pose + noise.sample())
-                state = plant.state()
+                mx, my, mth = (float(v) for v in truths[rid] + noise.sample())
                 pub_pose, pub_odom, _ = pubs[rid]
                 pub_pose.put(Pose(robot=rid, seq=k, t=t, x=mx, y=my, theta=mth).encode())
-                pub_odom.put(Odom(robot=rid, seq=k, t=t, vx=float(state[1]), vy=float(state[3])).encode())
+                if world.odometry:
+                    state = world.state(rid)
+                    pub_odom.put(Odom(robot=rid, seq=k, t=t, vx=float(state[1]), vy=float(state[3])).encode())
             for rid in ids:
-                x, y, th = (float(v) for v in plants[rid].pose)
+                x, y, th = (float(v) for v in truths[rid])
                 pubs[rid][2].put(Truth(robot=rid, seq=k, t=t, x=x, y=y, theta=th).encode())
             if k % PROGRESS_EVERY == 0 and k:
                 log(role, f"step {k}")
@@ -137,22 +214,22 @@ def main(argv: list[str] | None = None) -> int:
                 cmd = inbox.get(Command, rid, k)
                 a = last_a[rid] if cmd is None else np.array([cmd.ax, cmd.ay])
                 last_a[rid] = a
-                plant = plants[rid]
-                x_before = plant.state()
-                plant.step(a, p.Ts)
-                plant.perturb(dist.sample(x_before * 0.0))
+                world.advance(rid, a, p.Ts)
             # Agents send the command before the plan of a step; the early stop below
             # judges the plans of this very step, as `fleet simulate` does.
             inbox.wait(partial(_planned, inbox, ids, k), args.timeout if not realtime else 0.0)
             inbox.prune(k)
-            if _all_home(inbox, ids, plants, k):
+            if _all_home(inbox, ids, world, k):
                 k += 1
                 break
         else:
             k = steps
         # Final poses, then stop.
+        if realtime:
+            _until(t_start + k * p.Ts)
         for rid in ids:
-            x, y, th = (float(v) for v in plants[rid].pose)
+            with inbox.cond:
+                x, y, th = (float(v) for v in world.pose(rid))
             pubs[rid][2].put(Truth(robot=rid, seq=k, t=k * p.Ts, x=x, y=y, theta=th).encode())
         clock.put(Tick(robot=role, step=k, t=k * p.Ts, stop=True, misses=misses).encode())
         log(role, f"run ended at step {k}; {misses} deadline misses")
@@ -180,7 +257,7 @@ def _planned(inbox: Inbox, ids: list[str], k: int) -> bool:
     return all(inbox.get(Plan, r, k) is not None for r in ids if r in inbox.live)
 
 
-def _all_home(inbox: Inbox, ids: list[str], plants: dict, k: int) -> bool:
+def _all_home(inbox: Inbox, ids: list[str], world: SimulatedWorld | EmulatedWorld, k: int) -> bool:
     """Every plan of step k (the latest, if it is missing) parked at its agent's
     current goal (a goal changed at run time counts) and every controlled point
     within half the goal tolerance of it."""
@@ -188,7 +265,8 @@ def _all_home(inbox: Inbox, ids: list[str], plants: dict, k: int) -> bool:
         plan = inbox.get(Plan, rid, k) or inbox.get(Plan, rid)
         if plan is None or np.linalg.norm(plan.committed[-1] - plan.goal) >= 1e-3:
             return False
-        pt = plants[rid].state()[[0, 2]]
+        with inbox.cond:
+            pt = world.state(rid)[[0, 2]]
         if np.linalg.norm(pt - plan.goal) > 0.5 * GOAL_TOLERANCE:
             return False
     return True
