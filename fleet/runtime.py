@@ -27,6 +27,10 @@ def add_common_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--fleet", default="lab", help="fleet name in the Zenoh keys (default lab)")
     ap.add_argument("--listen", action="append", default=None, help="Zenoh endpoint to listen on")
     ap.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
+    ap.add_argument(
+        "--zenoh-config", default=None, metavar="FILE",
+        help="Zenoh JSON5 configuration (secure deployment, deploy/README.md); replaces --listen/--connect",
+    )  # fmt: skip
     ap.add_argument("--timeout", type=float, default=30.0, help="lockstep wait limit [s]")
     ap.add_argument(
         "--clock", choices=["lockstep", "realtime"], default="lockstep",
@@ -39,8 +43,18 @@ def net_config(args: argparse.Namespace) -> NetConfig:
 
 
 def open_session(args: argparse.Namespace) -> Any:
+    """A Zenoh session: the secure deployment's config file if given, else peer-to-peer on loopback."""
     import zenoh
 
+    if getattr(args, "zenoh_config", None):
+        from fleet.secure import load_config
+
+        try:
+            conf = load_config(args.zenoh_config)
+        except ValueError as e:  # SecureConfigError: names the file and the problem
+            print(f"error: --zenoh-config: {e}", file=sys.stderr)
+            raise SystemExit(2) from None
+        return zenoh.open(conf)
     return zenoh.open(net_config(args).zenoh())
 
 

@@ -1,0 +1,546 @@
+"""Secure deployment: mutual TLS and access control on the fleet's Zenoh network (issue 5).
+
+Topology.  One Zenoh router, on the lab computer, listens on a ``tls/``
+endpoint.  Every fleet process (agents, ``epuck_link``, tracker, supervisor,
+``fleet goal``) is a Zenoh *client* of that router, so every message passes
+through it and nothing travels peer to peer.  The link is TLS 1.3 with
+certificates on both sides (mTLS), all issued by the fleet's own CA
+(``deploy/make_certs.py``): a client without a certificate, or with one from
+another CA, fails the handshake and never gets a session.
+
+Identity.  A client's identity is the common name (CN) of its certificate:
+the robot id for the agent and the ``epuck_link`` of that robot, and
+``tracker``, ``supervisor``, ``operator`` for the services (``router`` is the
+router's own).  :func:`identity` maps a process role to it.
+
+Rights.  The router's access control (Zenoh ``access_control``) is
+default-deny and grants, for fleet ``F`` (keys of :mod:`fleet.wire`):
+
+==============  ======================================================  =====================
+identity        may publish (put)                                       liveliness token
+==============  ======================================================  =====================
+robot ``R``     ``F/plan/R`` ``F/cmd/R`` ``F/odom/R`` ``F/wheels/R``     ``F/alive/R``
+                ``F/emu/R``
+``tracker``     ``F/pose/*`` ``F/truth/*`` ``F/clock``                  —
+                (and ``F/odom/*`` with ``sim_tracker``: the simulated
+                tracker plays every robot's side)
+``supervisor``  —                                                       ``F/alive/supervisor``
+``operator``    ``F/goal/*``                                            —
+==============  ======================================================  =====================
+
+and to every identity of the fleet: declaring subscribers, liveliness
+subscribers and liveliness queries on ``F/**``, and receiving what is
+published there.  Everything else is dropped at the router: a put outside
+the table (robot r1 on ``F/plan/r2``, anyone but the tracker on ``F/pose/*``),
+deletes, queries, queryables, any key outside ``F/**``, anything from a
+client whose CN is not in the fleet.  Drops are silent to the sender (Zenoh
+does not report them); the router logs each decision at ``RUST_LOG=trace``.
+
+Configuration.  :func:`client_config` builds the ``zenoh.Config`` of a role
+from a certificate directory and the router's endpoint, :func:`router_config`
+the router's; :func:`client_json`, :func:`router_json` and :func:`acl_json`
+are the same as plain JSON-able dicts.  ``deploy/*.json5`` are the same
+configurations as commented templates (``${NAME}`` placeholders, filled by
+:func:`render`); a test keeps them equal to these functions.
+
+Command line (``python -m fleet.secure``):
+
+- ``router --config deploy/router.json5 --set CERTS=DIR --set LISTEN=tls/IP:7447``
+  (or ``router --certs DIR --listen EP --robots r1 r2 ...``) runs the router
+  until SIGTERM/SIGINT, after printing ``{"event": "ready", "role": "router", ...}``;
+- ``config ROLE [--robot R] --certs DIR --router EP`` prints a client's
+  configuration (``config router ...`` the router's) as JSON;
+- ``probe`` opens a client session, reports what it receives as JSON lines
+  and publishes what it is told on stdin: a diagnostic for a deployment, and
+  the client the tests start.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import signal
+import string
+import sys
+import threading
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from fleet.wire import ROBOT_ID, Keys
+
+SERVICES = ("tracker", "supervisor", "operator")
+"""Identities of the fleet's services (certificate common names)."""
+ROUTER = "router"
+"""Common name of the router's certificate."""
+ROLES = ("agent", "link", "tracker", "supervisor", "operator")
+"""Process roles: ``agent`` and ``link`` (``epuck_link``) act for a robot and use its identity."""
+WILDCARD_HOSTS = ("0.0.0.0", "[::]", "::", "*")
+_ENDPOINT = re.compile(r"^tls/(?P<host>\[[0-9A-Fa-f:.]+\]|[^/:\[\]]+):(?P<port>\d{1,5})$")
+
+
+class SecureConfigError(ValueError):
+    """A secure configuration cannot be built; the message names the field or file."""
+
+
+def identity(role: str, robot: str | None = None) -> str:
+    """The certificate common name a process of ``role`` uses (the robot id for agent and link)."""
+    if role not in ROLES:
+        raise SecureConfigError(f"role: {role!r} is not one of {', '.join(ROLES)}")
+    if role in ("agent", "link"):
+        if robot is None or not ROBOT_ID.match(robot):
+            raise SecureConfigError(f"robot: role {role!r} needs a robot id matching {ROBOT_ID.pattern}")
+        if robot in (*SERVICES, ROUTER):
+            raise SecureConfigError(f"robot: {robot!r} is the name of a service")
+        return robot
+    if robot is not None:
+        raise SecureConfigError(f"robot: role {role!r} does not act for a robot")
+    return role
+
+
+def check_endpoint(endpoint: str, listen: bool = False, allow_wildcard: bool = False) -> str:
+    """``endpoint`` if it is ``tls/<host>:<port>``; a listening one must name an interface.
+
+    A wildcard listen address (``0.0.0.0``, ``[::]``) exposes the router on
+    every interface; pass ``allow_wildcard`` to accept that deliberately."""
+    m = _ENDPOINT.match(endpoint)
+    if m is None:
+        raise SecureConfigError(f"endpoint: {endpoint!r} is not tls/<host>:<port> (only TLS is secure)")
+    if not 0 <= int(m["port"]) <= 65535 or (not listen and int(m["port"]) == 0):
+        raise SecureConfigError(f"endpoint: {endpoint!r} has a bad port")
+    if listen and not allow_wildcard and m["host"] in WILDCARD_HOSTS:
+        raise SecureConfigError(
+            f"endpoint: {endpoint!r} listens on every interface; name the lab network's address"
+        )
+    return endpoint
+
+
+@dataclass(frozen=True)
+class Credentials:
+    """The three PEM files of one identity, as ``deploy/make_certs.py`` lays them out."""
+
+    ca: Path
+    """The fleet CA's certificate: ``<certs>/<name>/ca.pem``."""
+    cert: Path
+    """The identity's certificate, CN = name: ``<certs>/<name>/cert.pem``."""
+    key: Path
+    """Its private key (PKCS#8, mode 0600): ``<certs>/<name>/key.pem``."""
+
+    @classmethod
+    def of(cls, certs: str | Path, name: str, check: bool = True) -> Credentials:
+        """The files of ``name`` under ``certs`` (absolute paths); ``check``: they must exist."""
+        d = Path(certs).expanduser().resolve() / name
+        creds = cls(ca=d / "ca.pem", cert=d / "cert.pem", key=d / "key.pem")
+        if check:
+            for f in (creds.ca, creds.cert, creds.key):
+                if not f.is_file():
+                    raise SecureConfigError(
+                        f"certs: {f} is missing (python deploy/make_certs.py {Path(certs)} ...)"
+                    )
+        return creds
+
+
+def client_json(
+    role: str,
+    certs: str | Path,
+    router: str,
+    robot: str | None = None,
+    connect_timeout_s: float = 0.0,
+    check: bool = True,
+) -> dict[str, Any]:
+    """The Zenoh configuration of a fleet process, as a JSON-able dict.
+
+    ``role``: one of :data:`ROLES`; ``robot``: the robot id for ``agent`` and
+    ``link``.  ``certs``: the directory ``deploy/make_certs.py`` wrote (only
+    ``<certs>/<identity>/`` is read).  ``router``: the router's
+    ``tls/<host>:<port>``, where ``<host>`` must be a name or address of the
+    router's certificate.  ``connect_timeout_s`` [s]: how long to retry
+    connecting before ``zenoh.open`` fails; 0 tries once, a negative value
+    retries for ever.  Client mode, no listener, multicast scouting off."""
+    creds = Credentials.of(certs, identity(role, robot), check=check)
+    timeout_ms = -1 if connect_timeout_s < 0 else round(connect_timeout_s * 1000)
+    return {
+        "mode": "client",
+        "connect": {"endpoints": [check_endpoint(router)], "timeout_ms": timeout_ms},
+        "listen": {"endpoints": []},
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {
+            "link": {
+                "tls": {
+                    "root_ca_certificate": str(creds.ca),
+                    "connect_certificate": str(creds.cert),
+                    "connect_private_key": str(creds.key),
+                    "enable_mtls": True,
+                    "verify_name_on_connect": True,
+                    "close_link_on_expiration": True,
+                }
+            }
+        },
+    }
+
+
+def acl_json(robots: Sequence[str], fleet: str = "lab", sim_tracker: bool = False) -> dict[str, Any]:
+    """The router's ``access_control`` section for ``robots`` of fleet ``fleet`` (see the module table).
+
+    ``sim_tracker``: the tracker may also publish every robot's ``odom`` (the
+    simulated tracker plays the robots' side; a camera tracker does not)."""
+    robots = list(robots)
+    for r in robots:
+        identity("agent", r)
+    if len(set(robots)) != len(robots) or not robots:
+        raise SecureConfigError(f"robots: need distinct robot ids, got {robots}")
+    k = Keys(fleet)
+
+    def rule(rid: str, messages: list[str], flow: str, key_exprs: list[str]) -> dict[str, Any]:
+        return {"id": rid, "messages": messages, "flows": [flow], "permission": "allow",
+                "key_exprs": key_exprs}  # fmt: skip
+
+    everything = f"{k.root}/**"
+    tracker_puts = [k.pose(), k.truth(), k.clock] + ([k.odom()] if sim_tracker else [])
+    rules = [
+        rule("subscribe", ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
+             "ingress", [everything]),
+        rule("deliver", ["put", "declare_subscriber", "liveliness_token", "declare_liveliness_subscriber",
+                         "liveliness_query"], "egress", [everything]),
+        rule("publish-tracker", ["put"], "ingress", tracker_puts),
+        rule("token-supervisor", ["liveliness_token"], "ingress", [k.alive("supervisor")]),
+        rule("publish-operator", ["put"], "ingress", [k.goal()]),
+    ]  # fmt: skip
+    subjects = [{"id": "members", "cert_common_names": [*robots, *SERVICES]}]
+    subjects += [{"id": s, "cert_common_names": [s]} for s in SERVICES]
+    policies = [
+        {"id": "members", "rules": ["subscribe", "deliver"], "subjects": ["members"]},
+        {"id": "tracker", "rules": ["publish-tracker"], "subjects": ["tracker"]},
+        {"id": "supervisor", "rules": ["token-supervisor"], "subjects": ["supervisor"]},
+        {"id": "operator", "rules": ["publish-operator"], "subjects": ["operator"]},
+    ]
+    for r in robots:
+        rules += [
+            rule(f"publish-{r}", ["put"], "ingress", [k.plan(r), k.cmd(r), k.odom(r), k.wheels(r), k.emu(r)]),
+            rule(f"token-{r}", ["liveliness_token"], "ingress", [k.alive(r)]),
+        ]
+        subjects.append({"id": f"robot-{r}", "cert_common_names": [r]})
+        policies.append({"id": f"robot-{r}", "rules": [f"publish-{r}", f"token-{r}"],
+                         "subjects": [f"robot-{r}"]})  # fmt: skip
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": rules,
+        "subjects": subjects,
+        "policies": policies,
+    }
+
+
+def router_json(
+    listen: str,
+    certs: str | Path,
+    robots: Sequence[str],
+    fleet: str = "lab",
+    sim_tracker: bool = False,
+    allow_wildcard: bool = False,
+    check: bool = True,
+) -> dict[str, Any]:
+    """The router's Zenoh configuration, as a JSON-able dict.
+
+    ``listen``: its only endpoint, ``tls/<address>:<port>`` on the lab
+    network's interface (the address must be in the router certificate's
+    subject alternative names, see ``make_certs.py --router-host``).  mTLS
+    against the fleet CA, access control of :func:`acl_json`, no outgoing
+    connections, multicast scouting off."""
+    creds = Credentials.of(certs, ROUTER, check=check)
+    return {
+        "mode": "router",
+        "listen": {"endpoints": [check_endpoint(listen, listen=True, allow_wildcard=allow_wildcard)]},
+        "connect": {"endpoints": []},
+        "scouting": {"multicast": {"enabled": False}},
+        "transport": {
+            "link": {
+                "tls": {
+                    "root_ca_certificate": str(creds.ca),
+                    "listen_certificate": str(creds.cert),
+                    "listen_private_key": str(creds.key),
+                    "enable_mtls": True,
+                    "close_link_on_expiration": True,
+                }
+            }
+        },
+        "access_control": acl_json(robots, fleet, sim_tracker),
+    }
+
+
+def to_zenoh(conf: dict[str, Any]) -> Any:
+    """A ``zenoh.Config`` from a configuration dict (zenoh checks every key)."""
+    import zenoh
+
+    return zenoh.Config.from_json5(json.dumps(conf))
+
+
+def client_config(
+    role: str, certs: str | Path, router: str, robot: str | None = None, connect_timeout_s: float = 0.0
+) -> Any:
+    """The ``zenoh.Config`` of a fleet process (see :func:`client_json`)."""
+    return to_zenoh(client_json(role, certs, router, robot, connect_timeout_s))
+
+
+def router_config(
+    listen: str, certs: str | Path, robots: Sequence[str], fleet: str = "lab", sim_tracker: bool = False
+) -> Any:
+    """The router's ``zenoh.Config`` (see :func:`router_json`)."""
+    return to_zenoh(router_json(listen, certs, robots, fleet, sim_tracker))
+
+
+def render(template: str, values: dict[str, str]) -> str:
+    """Fill the ``${NAME}`` placeholders of a JSON5 template; every one must be given.
+
+    Values are escaped for a JSON string (the placeholders sit inside quotes)."""
+    try:
+        return string.Template(template).substitute({k: json.dumps(v)[1:-1] for k, v in values.items()})
+    except KeyError as e:
+        raise SecureConfigError(f"template: no value for ${{{e.args[0]}}} (--set {e.args[0]}=...)") from None
+    except ValueError as e:
+        raise SecureConfigError(f"template: {e}") from None
+
+
+def load_config(path: str | Path, values: dict[str, str] | None = None) -> Any:
+    """A ``zenoh.Config`` from a JSON5 file, its placeholders filled with ``values``."""
+    import zenoh
+
+    try:
+        text = Path(path).read_text()
+    except OSError as e:
+        raise SecureConfigError(f"config: {e}") from None
+    try:
+        return zenoh.Config.from_json5(render(text, values or {}))
+    except zenoh.ZError as e:
+        raise SecureConfigError(f"config: {path}: {e}") from None
+
+
+def _get(conf: Any, key: str) -> Any:
+    return json.loads(conf.get_json(key))
+
+
+def check_router(conf: Any, allow_wildcard: bool = False) -> list[str]:
+    """The router's listen endpoints, after checking ``conf`` is a secure router configuration.
+
+    Refuses (SecureConfigError) anything but router mode, TLS-only listeners
+    (a plain ``tcp/`` one would admit anonymous clients), mTLS off, or access
+    control off or default-allow."""
+    if _get(conf, "mode") != "router":
+        raise SecureConfigError("mode: a router configuration needs mode 'router'")
+    eps = _get(conf, "listen/endpoints")
+    if isinstance(eps, dict):
+        eps = eps.get("router", [])
+    if not eps:
+        raise SecureConfigError("listen/endpoints: the router listens nowhere")
+    for ep in eps:
+        check_endpoint(ep, listen=True, allow_wildcard=allow_wildcard)
+    if _get(conf, "transport/link/tls/enable_mtls") is not True:
+        raise SecureConfigError("transport/link/tls/enable_mtls: must be true")
+    if _get(conf, "access_control/enabled") is not True:
+        raise SecureConfigError("access_control/enabled: must be true")
+    if _get(conf, "access_control/default_permission") != "deny":
+        raise SecureConfigError("access_control/default_permission: must be 'deny'")
+    return list(eps)
+
+
+# ------------------------------------------------------------------ processes
+def serve_router(conf: Any, allow_wildcard: bool = False) -> int:
+    """Run a router from ``conf`` until SIGTERM or SIGINT; 0 on a clean stop, 1 if it cannot start.
+
+    Prints ``{"event": "ready", "role": "router", "pid", "zid", "listen"}`` once
+    the listener is bound (``zenoh.open`` returns only then)."""
+    import zenoh
+
+    from fleet.runtime import announce, log
+
+    listen = check_router(conf, allow_wildcard)
+    zenoh.init_log_from_env_or("warn")  # to stderr; RUST_LOG=trace also shows each ACL decision
+    stop = {signal.SIGTERM, signal.SIGINT}
+    # Blocked before zenoh starts its threads, which inherit the mask: only sigwait sees them.
+    signal.pthread_sigmask(signal.SIG_BLOCK, stop)
+    try:
+        session = zenoh.open(conf)
+    except zenoh.ZError as e:
+        log("router", f"cannot start: {e}")
+        return 1
+    try:
+        announce("router", zid=str(session.info.zid()), listen=listen)
+        sig = signal.sigwait(stop)
+        log("router", f"stopping on {signal.Signals(sig).name}")
+    finally:
+        session.close()
+    return 0
+
+
+class _Out:
+    """JSON lines on stdout from several threads."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+
+    def __call__(self, **event: Any) -> None:
+        line = json.dumps(event)
+        with self.lock:
+            print(line, flush=True)
+
+
+def probe(conf: Any, subs: Iterable[str], lives: Iterable[str], label: str) -> int:
+    """A client that reports what it receives and publishes what stdin asks; 3 if it cannot connect.
+
+    stdout, one JSON object per line: ``{"event": "ready", "role": "probe", ...}``
+    or ``{"event": "open_failed", "error"}``, then ``{"event": "sample", "key",
+    "payload"}`` per sample on ``subs``, ``{"event": "token", "key", "kind"}``
+    per liveliness change on ``lives`` (``kind`` put or delete), ``{"event":
+    "done", "op", "key"}`` after each request and ``{"event": "error", ...}``
+    for a bad one.  stdin, one JSON object per line: ``{"put": KEY, "payload":
+    TEXT}`` (blocking congestion control, express, as the fleet's
+    publishers) or ``{"token": KEY}`` (declare a liveliness token).  EOF ends
+    the probe."""
+    import zenoh
+
+    from fleet.runtime import announce
+
+    out = _Out()
+    try:
+        session = zenoh.open(conf)
+    except zenoh.ZError as e:
+        out(event="open_failed", error=str(e))
+        return 3
+
+    def on_sample(s: Any) -> None:
+        out(event="sample", key=str(s.key_expr), payload=s.payload.to_bytes().decode(errors="replace"))
+
+    def on_token(s: Any) -> None:
+        kind = "delete" if s.kind == zenoh.SampleKind.DELETE else "put"
+        out(event="token", key=str(s.key_expr), kind=kind)
+
+    keep: list[Any] = [session.declare_subscriber(k, on_sample) for k in subs]
+    keep += [session.liveliness().declare_subscriber(k, on_token, history=True) for k in lives]
+    pubs: dict[str, Any] = {}
+    with out.lock:
+        announce("probe", identity=label, zid=str(session.info.zid()))
+    try:
+        for line in sys.stdin:
+            if not line.strip():
+                continue
+            try:
+                req = json.loads(line)
+                if "put" in req:
+                    key = str(req["put"])
+                    if key not in pubs:
+                        pubs[key] = session.declare_publisher(
+                            key, congestion_control=zenoh.CongestionControl.BLOCK, express=True
+                        )
+                    pubs[key].put(str(req.get("payload", "")).encode())
+                    out(event="done", op="put", key=key)
+                elif "token" in req:
+                    key = str(req["token"])
+                    keep.append(session.liveliness().declare_token(key))
+                    out(event="done", op="token", key=key)
+                else:
+                    out(event="error", error=f"unknown request {sorted(req)}")
+            except (json.JSONDecodeError, AttributeError, TypeError, zenoh.ZError) as e:
+                out(event="error", error=f"{type(e).__name__}: {e}")
+    finally:
+        session.close()
+    return 0
+
+
+def _values(pairs: list[str]) -> dict[str, str]:
+    values = {}
+    for p in pairs:
+        name, sep, value = p.partition("=")
+        if not sep or not name:
+            raise SecureConfigError(f"--set: expected NAME=VALUE, got {p!r}")
+        values[name] = value
+    return values
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="python -m fleet.secure", description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+
+    def router_args(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--certs", help="certificate directory of deploy/make_certs.py")
+        p.add_argument("--listen", help="the router's endpoint, tls/<address>:<port>")
+        p.add_argument("--robots", nargs="+", help="robot ids of the fleet")
+        p.add_argument("--fleet", default="lab", help="fleet name in the keys (default lab)")
+        p.add_argument("--sim-tracker", action="store_true",
+                       help="the simulated tracker: it may also publish every robot's odom")  # fmt: skip
+        p.add_argument("--allow-wildcard", action="store_true",
+                       help="accept a listen endpoint on every interface (0.0.0.0, [::])")  # fmt: skip
+
+    r = sub.add_parser("router", help="run the fleet's router until SIGTERM")
+    r.add_argument("--config", help="router configuration file (JSON5; instead of --certs/--listen/--robots)")
+    r.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                   help="value of a ${NAME} placeholder of --config (repeatable)")  # fmt: skip
+    router_args(r)
+
+    c = sub.add_parser("config", help="print a role's configuration as JSON")
+    c.add_argument("role", choices=[*ROLES, ROUTER])
+    c.add_argument("--robot", help="robot id (agent, link)")
+    c.add_argument("--router", help="the router's endpoint, tls/<host>:<port> (clients)")
+    c.add_argument("--connect-timeout", type=float, default=0.0,
+                   help="seconds to retry connecting (0 once, negative for ever)")  # fmt: skip
+    router_args(c)
+
+    p = sub.add_parser("probe", help="a diagnostic client (JSON lines on stdin/stdout)")
+    p.add_argument("--config", help="client configuration file (instead of --role/--certs/--router)")
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE")
+    p.add_argument("--role", choices=ROLES)
+    p.add_argument("--robot")
+    p.add_argument("--certs")
+    p.add_argument("--router")
+    p.add_argument("--sub", action="append", default=[], help="key expression to subscribe to")
+    p.add_argument("--live", action="append", default=[], help="liveliness key expression to watch")
+    return ap
+
+
+def _need(args: argparse.Namespace, *names: str) -> None:
+    missing = [f"--{n.replace('_', '-')}" for n in names if getattr(args, n) in (None, [])]
+    if missing:
+        raise SecureConfigError(f"{', '.join(missing)}: required here")
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        if args.cmd == "router":
+            if args.config:
+                conf = load_config(args.config, _values(args.set))
+            else:
+                _need(args, "certs", "listen", "robots")
+                conf = to_zenoh(
+                    router_json(args.listen, args.certs, args.robots, args.fleet, args.sim_tracker,
+                                args.allow_wildcard)
+                )  # fmt: skip
+            return serve_router(conf, args.allow_wildcard)
+        if args.cmd == "config":
+            if args.role == ROUTER:
+                _need(args, "certs", "listen", "robots")
+                d = router_json(args.listen, args.certs, args.robots, args.fleet, args.sim_tracker,
+                                args.allow_wildcard)  # fmt: skip
+            else:
+                _need(args, "certs", "router")
+                d = client_json(args.role, args.certs, args.router, args.robot, args.connect_timeout)
+            print(json.dumps(d, indent=2))
+            return 0
+        # probe
+        if args.config:
+            conf, label = load_config(args.config, _values(args.set)), str(args.config)
+        else:
+            _need(args, "role", "certs", "router")
+            conf = client_config(args.role, args.certs, args.router, args.robot)
+            label = identity(args.role, args.robot)
+        return probe(conf, args.sub, args.live, label)
+    except SecureConfigError as e:
+        print(f"fleet.secure: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    from fleet.runtime import exit_process
+
+    exit_process(main())

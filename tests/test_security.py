@@ -1,0 +1,519 @@
+"""Secure deployment (issue 5): mutual TLS and access control at a real Zenoh router.
+
+One router process (``python -m fleet.secure router`` on the shipped template
+``deploy/router.json5``) listens on ``tls/127.0.0.1:<free port>``; the clients
+are ``python -m fleet.secure probe`` processes, each with its own
+certificate.  Certificates come from ``deploy/make_certs.py`` into tmp_path.
+Multicast scouting is off everywhere; nothing binds a wildcard address.
+
+Absence of a delivery is proved with a barrier, not a pause: the sender
+publishes the forbidden message, then an allowed one of the same kind on the
+same session, so both travel in one priority lane (data for puts, control
+for liveliness declarations) and keep their order on the sender's link to
+the router and on the router's link to the observer.  Once the observer has
+the allowed one, the forbidden one would have arrived before it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import stat
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from contextlib import ExitStack, contextmanager
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from fleet.net import free_port
+from fleet.secure import (
+    Credentials,
+    SecureConfigError,
+    acl_json,
+    check_endpoint,
+    check_router,
+    client_json,
+    identity,
+    render,
+    router_json,
+    to_zenoh,
+)
+from fleet.wire import Keys
+
+ROOT = Path(__file__).resolve().parent.parent
+DEPLOY = ROOT / "deploy"
+ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
+K = Keys("lab")
+READY_S = 30.0
+"""Limit for a process to announce itself [s] (two shared cores)."""
+DELIVERY_S = 10.0
+"""Limit for an allowed message to arrive [s]."""
+
+Event = dict[str, Any]
+
+
+class Proc:
+    """A child process that prints JSON lines; its events are kept and can be waited on."""
+
+    def __init__(self, name: str, args: list[str], ends_on_eof: bool = True):
+        self.name = name
+        self.ends_on_eof = ends_on_eof
+        """The process ends when its stdin closes (probes); otherwise SIGTERM ends it (router)."""
+        self.popen = subprocess.Popen(
+            [sys.executable, *args], cwd=ROOT, env=ENV, text=True,
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        )  # fmt: skip
+        self.events: list[Event] = []
+        self.stderr: list[str] = []
+        self.cond = threading.Condition()
+        threading.Thread(target=self._pump_out, daemon=True).start()
+        threading.Thread(target=self._pump_err, daemon=True).start()
+
+    def _pump_out(self) -> None:
+        assert self.popen.stdout is not None
+        for line in self.popen.stdout:
+            try:
+                ev = json.loads(line)
+            except json.JSONDecodeError:
+                ev = {"event": "text", "text": line}
+            with self.cond:
+                self.events.append(ev)
+                self.cond.notify_all()
+        with self.cond:
+            self.events.append({"event": "eof"})
+            self.cond.notify_all()
+
+    def _pump_err(self) -> None:
+        assert self.popen.stderr is not None
+        for line in self.popen.stderr:
+            self.stderr.append(line)
+
+    def wait_for(self, pred: Callable[[Event], bool], timeout: float) -> Event | None:
+        """The first event (so far or within ``timeout`` [s]) that satisfies ``pred``, else None."""
+        deadline = time.monotonic() + timeout
+        with self.cond:
+            while True:
+                for ev in self.events:
+                    if pred(ev):
+                        return ev
+                left = deadline - time.monotonic()
+                if left <= 0 or (self.events and self.events[-1]["event"] == "eof"):
+                    return None
+                self.cond.wait(left)
+
+    def started(self) -> Event:
+        """The readiness or open-failure line; fails the test if neither comes."""
+        ev = self.wait_for(lambda e: e["event"] in ("ready", "open_failed"), READY_S)
+        assert ev is not None, f"{self.name} did not start: {''.join(self.stderr)[-2000:]}"
+        return ev
+
+    def ready(self) -> Event:
+        ev = self.started()
+        assert ev["event"] == "ready", f"{self.name}: {ev}"
+        return ev
+
+    def send(self, **req: str) -> None:
+        assert self.popen.stdin is not None
+        self.popen.stdin.write(json.dumps(req) + "\n")
+        self.popen.stdin.flush()
+
+    def samples(self, key: str | None = None) -> list[Event]:
+        with self.cond:
+            return [e for e in self.events if e["event"] == "sample" and (key is None or e["key"] == key)]
+
+    def tokens(self) -> list[Event]:
+        with self.cond:
+            return [e for e in self.events if e["event"] == "token"]
+
+    def stop(self) -> int:
+        """End the process by its pid (EOF on stdin if that ends it, SIGTERM, then SIGKILL); its exit code."""
+        p = self.popen
+        try:
+            if p.poll() is None and p.stdin is not None and self.ends_on_eof:
+                p.stdin.close()
+                p.wait(timeout=5)
+        except (subprocess.TimeoutExpired, BrokenPipeError):
+            pass
+        if p.poll() is None:
+            p.terminate()
+            try:
+                p.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                p.kill()
+        return p.wait(timeout=5)
+
+
+def _has(payload: str, key: str) -> Callable[[Event], bool]:
+    return lambda e: e["event"] == "sample" and e["key"] == key and e["payload"] == payload
+
+
+def deliver(sender: Proc, key: str, receivers: list[Proc], timeout: float = DELIVERY_S) -> str:
+    """Publish fresh markers on ``key`` until every receiver got the same one; returns it.
+
+    Repeats because a client learns of remote subscribers asynchronously; once
+    one marker is through, the route exists."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        marker = f"ok-{uuid.uuid4().hex[:8]}"
+        sender.send(put=key, payload=marker)
+        if all(r.wait_for(_has(marker, key), 0.3) is not None for r in receivers):
+            return marker
+    raise AssertionError(f"{key} from {sender.name} did not reach {[r.name for r in receivers]}")
+
+
+def barrier(sender: Proc, key: str, receivers: list[Proc]) -> None:
+    """Publish one marker on ``key`` (an allowed key, after the forbidden ones) and wait for it."""
+    marker = f"barrier-{uuid.uuid4().hex[:8]}"
+    sender.send(put=key, payload=marker)
+    for r in receivers:
+        assert r.wait_for(_has(marker, key), DELIVERY_S) is not None, f"barrier {key} missed {r.name}"
+
+
+# ------------------------------------------------------------------ fixtures
+@pytest.fixture(scope="module")
+def certs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """(fleet certificates, an unrelated CA's certificate for r1).
+
+    The fleet's are for r1 r2 r3 r9 and the services; the router's ACL lists r1 r2 r3 only."""
+    base = tmp_path_factory.mktemp("pki")
+    fleet, rogue = base / "certs", base / "rogue"
+    for args in ([str(fleet), "--robots", "r1", "r2", "r3", "r9"],
+                 [str(rogue), "--robots", "r1", "--no-services", "--new-ca"]):  # fmt: skip
+        res = subprocess.run(
+            [sys.executable, str(DEPLOY / "make_certs.py"), *args], capture_output=True, text=True, timeout=60
+        )
+        assert res.returncode == 0, res.stderr
+    return fleet, rogue
+
+
+@pytest.fixture(scope="module")
+def router(certs: tuple[Path, Path]) -> Iterator[tuple[str, Proc]]:
+    """(endpoint, process) of a router running the shipped deploy/router.json5."""
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    proc = Proc("router", ["-m", "fleet.secure", "router", "--config", str(DEPLOY / "router.json5"),
+                           "--set", f"CERTS={certs[0]}", "--set", f"LISTEN={endpoint}"],
+                ends_on_eof=False)  # fmt: skip
+    try:
+        ev = proc.ready()
+        assert ev["role"] == "router" and ev["pid"] == proc.popen.pid and ev["listen"] == [endpoint]
+        yield endpoint, proc
+    finally:
+        code = proc.stop()
+    assert code == 0, f"the router did not stop cleanly on SIGTERM: {''.join(proc.stderr)[-2000:]}"
+
+
+@contextmanager
+def probes() -> Iterator[Callable[..., Proc]]:
+    """A factory of probe processes, every one stopped by pid on exit."""
+    with ExitStack() as stack:
+
+        def start(name: str, *args: str, subs: tuple[str, ...] = (), lives: tuple[str, ...] = ()) -> Proc:
+            extra = [a for s in subs for a in ("--sub", s)] + [a for s in lives for a in ("--live", s)]
+            p = Proc(name, ["-m", "fleet.secure", "probe", *args, *extra])
+            stack.callback(p.stop)
+            return p
+
+        yield start
+
+
+def _member(certs: Path, endpoint: str, role: str, robot: str | None = None) -> tuple[str, ...]:
+    args = ("--role", role, "--certs", str(certs), "--router", endpoint)
+    return (*args, "--robot", robot) if robot else args
+
+
+# ------------------------------------------------------------- certificates
+def test_make_certs_writes_a_ca_and_one_identity_per_name(certs: tuple[Path, Path]) -> None:
+    from cryptography import x509
+    from cryptography.exceptions import InvalidSignature
+    from cryptography.x509.oid import NameOID
+
+    fleet, rogue = certs
+    ca = x509.load_pem_x509_certificate((fleet / "ca.pem").read_bytes())
+    other_ca = x509.load_pem_x509_certificate((rogue / "ca.pem").read_bytes())
+    assert stat.S_IMODE((fleet / "ca.key").stat().st_mode) == 0o600
+    for name in ("r1", "r2", "r3", "tracker", "supervisor", "operator", "router"):
+        d = fleet / name
+        assert stat.S_IMODE(d.stat().st_mode) == 0o700
+        assert stat.S_IMODE((d / "key.pem").stat().st_mode) == 0o600
+        cert = x509.load_pem_x509_certificate((d / "cert.pem").read_bytes())
+        assert cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)[0].value == name
+        cert.verify_directly_issued_by(ca)  # raises if not signed by the fleet CA
+        assert (d / "ca.pem").read_bytes() == (fleet / "ca.pem").read_bytes()
+    san = x509.load_pem_x509_certificate((fleet / "router/cert.pem").read_bytes()).extensions
+    names = san.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert "localhost" in names.get_values_for_type(x509.DNSName)
+    assert [str(a) for a in names.get_values_for_type(x509.IPAddress)] == ["127.0.0.1"]
+    assert sorted(p.name for p in rogue.iterdir()) == ["ca.key", "ca.pem", "r1"]
+    assert other_ca.subject == ca.subject and other_ca.public_key() != ca.public_key()
+    with pytest.raises(InvalidSignature):  # same CN r1, but another CA's signature
+        x509.load_pem_x509_certificate((rogue / "r1/cert.pem").read_bytes()).verify_directly_issued_by(ca)
+
+
+def test_make_certs_reuses_the_ca_and_keeps_identities(certs: tuple[Path, Path]) -> None:
+    fleet, _ = certs
+    before = {p: p.read_bytes() for p in (fleet / "ca.pem", fleet / "r1/cert.pem")}
+    res = subprocess.run(
+        [sys.executable, str(DEPLOY / "make_certs.py"), str(fleet), "--robots", "r1"],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert res.returncode == 0 and "reusing the CA" in res.stderr and "kept" in res.stderr
+    assert all(p.read_bytes() == b for p, b in before.items())
+    res = subprocess.run(
+        [sys.executable, str(DEPLOY / "make_certs.py"), str(fleet), "--robots", "bad/name"],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert res.returncode == 2 and "must match" in res.stderr
+
+
+# ------------------------------------------------------------------ router
+def _listening(pid: int) -> list[tuple[str, int]]:
+    """(IPv4 address, port) of the listening TCP sockets of ``pid`` (IPv6 ones as ("v6", port))."""
+    inodes = set()
+    for fd in (Path("/proc") / str(pid) / "fd").iterdir():
+        try:
+            target = os.readlink(fd)
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[8:-1])
+    out = []
+    for table in ("tcp", "tcp6"):
+        for line in (Path("/proc") / str(pid) / "net" / table).read_text().splitlines()[1:]:
+            cols = line.split()
+            if cols[3] == "0A" and cols[9] in inodes:  # 0A = LISTEN
+                addr, port = cols[1].split(":")
+                host = ".".join(str(b) for b in reversed(bytes.fromhex(addr))) if table == "tcp" else "v6"
+                out.append((host, int(port, 16)))
+    return out
+
+
+def test_router_listens_only_on_its_tls_loopback_endpoint(router: tuple[str, Proc]) -> None:
+    endpoint, proc = router
+    port = int(endpoint.rsplit(":", 1)[1])
+    assert _listening(proc.popen.pid) == [("127.0.0.1", port)]
+
+
+# -------------------------------------------------------- authentication
+def _intruder_config(kind: str, certs: tuple[Path, Path], endpoint: str) -> dict[str, Any]:
+    """A client configuration that is r2's except for its credentials."""
+    conf = client_json("agent", certs[0], endpoint, "r2")
+    tls = conf["transport"]["link"]["tls"]
+    if kind == "no certificate":  # a plain TLS client: verifies the router, presents nothing
+        del tls["connect_certificate"], tls["connect_private_key"]
+        tls["enable_mtls"] = False
+    else:  # CN r1, signed by another CA; trusts the fleet CA, so it can verify the router
+        rogue = Credentials.of(certs[1], "r1")
+        tls["connect_certificate"], tls["connect_private_key"] = str(rogue.cert), str(rogue.key)
+    return conf
+
+
+@pytest.mark.parametrize("kind", ["no certificate", "another CA"])
+def test_a_client_without_a_fleet_certificate_gets_no_data_either_way(
+    kind: str, certs: tuple[Path, Path], router: tuple[str, Proc], tmp_path: Path
+) -> None:
+    """The intruder and a certified control differ only in credentials: the control's samples
+    flow both ways through the router, the intruder's in neither direction.  (With zenoh 1.10
+    the router refuses the TLS handshake, so the intruder's ``zenoh.open`` raises; should a
+    later version connect it anyway, the access control must still cut it off.)"""
+    endpoint, _ = router
+    bad, good = tmp_path / "intruder.json5", tmp_path / "control.json5"
+    bad.write_text(json.dumps(_intruder_config(kind, certs, endpoint)))
+    good.write_text(json.dumps(client_json("agent", certs[0], endpoint, "r2")))
+    everything = (f"{K.root}/**",)
+    with probes() as start:
+        observer = start("supervisor", *_member(certs[0], endpoint, "supervisor"), subs=everything)
+        sender = start("r1", *_member(certs[0], endpoint, "agent", "r1"))
+        intruder = start("intruder", "--config", str(bad), subs=everything)
+        control = start("control", "--config", str(good), subs=everything)
+        for p in (observer, sender, control):
+            p.ready()
+        outcome = intruder.started()
+        if outcome["event"] == "ready":  # connected after all: then it must be cut off by the ACL
+            intruder.send(put=K.plan("r2"), payload="intruder")
+        # Positive control, same setup: r1 → control and observer; control (r2) → observer.
+        marker = deliver(sender, K.plan("r1"), [observer, control])
+        deliver(control, K.plan("r2"), [observer])
+        barrier(sender, K.plan("r1"), [observer, control])
+        assert not [e for e in observer.samples() if e["payload"] == "intruder"]
+        if outcome["event"] == "open_failed":
+            assert intruder.popen.wait(timeout=10) == 3
+        else:  # the control got r1's marker; the intruder, a client of the same router, must not
+            assert intruder.wait_for(_has(marker, K.plan("r1")), 1.0) is None
+            assert [e["payload"] for e in intruder.samples()] == ["intruder"]  # only its own, locally
+
+
+# ---------------------------------------------------------- access control
+def test_a_robot_cannot_publish_for_another_robot(certs: tuple[Path, Path], router: tuple[str, Proc]) -> None:
+    endpoint, _ = router
+    with probes() as start:
+        observer = start("supervisor", *_member(certs[0], endpoint, "supervisor"),
+                         subs=(f"{K.root}/**",), lives=(K.alive(),))  # fmt: skip
+        r1 = start("r1", *_member(certs[0], endpoint, "agent", "r1"))
+        r2 = start("r2", *_member(certs[0], endpoint, "agent", "r2"))
+        for p in (observer, r1, r2):
+            p.ready()
+        # Controls: each robot's own plan is delivered, r2's plan key included.
+        deliver(r1, K.plan("r1"), [observer])
+        deliver(r2, K.plan("r2"), [observer])
+        forged = {K.plan("r2"), K.cmd("r2"), K.odom("r2"), K.wheels("r2"), K.goal("r2"), K.plan("r3")}
+        for key in sorted(forged):
+            r1.send(put=key, payload="forged")
+        r1.send(token=K.alive("r2"))
+        r1.send(token=K.alive("r1"))
+        barrier(r1, K.plan("r1"), [observer])
+        barrier(r1, K.cmd("r1"), [observer])  # its own command is delivered
+        own = observer.wait_for(lambda e: e["event"] == "token" and e["key"] == K.alive("r1"), DELIVERY_S)
+        assert own is not None and own["kind"] == "put"
+        assert [e["key"] for e in observer.samples() if e["payload"] == "forged"] == []
+        assert [e["key"] for e in observer.tokens()] == [K.alive("r1")]
+
+
+def test_only_the_tracker_publishes_poses_truth_and_the_clock(
+    certs: tuple[Path, Path], router: tuple[str, Proc]
+) -> None:
+    endpoint, _ = router
+    with probes() as start:
+        observer = start("r2", *_member(certs[0], endpoint, "agent", "r2"), subs=(f"{K.root}/**",))
+        tracker = start("tracker", *_member(certs[0], endpoint, "tracker"))
+        r1 = start("r1", *_member(certs[0], endpoint, "agent", "r1"))
+        operator = start("operator", *_member(certs[0], endpoint, "operator"))
+        for p in (observer, tracker, r1, operator):
+            p.ready()
+        for key in (K.pose("r1"), K.truth("r1"), K.clock):  # controls: the tracker's are delivered
+            deliver(tracker, key, [observer])
+        deliver(r1, K.plan("r1"), [observer])
+        deliver(operator, K.goal("r1"), [observer])
+        forged = (K.pose("r1"), K.pose("r2"), K.truth("r1"), K.clock)
+        for attacker, allowed in ((r1, K.plan("r1")), (operator, K.goal("r1"))):
+            for key in forged:
+                attacker.send(put=key, payload=f"forged by {attacker.name}")
+            barrier(attacker, allowed, [observer])
+        got = [(e["key"], e["payload"]) for e in observer.samples() if e["payload"].startswith("forged")]
+        assert got == []
+
+
+GRACE_S = 1.0
+"""How long after a listed client got a sample an unlisted one must still have nothing [s]."""
+
+
+def test_a_fleet_certificate_missing_from_the_acl_gets_nothing(
+    certs: tuple[Path, Path], router: tuple[str, Proc]
+) -> None:
+    """r9 holds a valid fleet certificate but the router does not list it (a revoked robot):
+    it connects, and the router drops its traffic both ways.  It may publish nothing, so no
+    barrier exists: absence is judged GRACE_S after the same traffic reached a listed client."""
+    endpoint, _ = router
+    everything, alive = (f"{K.root}/**",), (K.alive(),)
+    with probes() as start:
+        observer = start(
+            "supervisor", *_member(certs[0], endpoint, "supervisor"), subs=everything, lives=alive
+        )
+        r1 = start("r1", *_member(certs[0], endpoint, "agent", "r1"))
+        r9 = start("r9", *_member(certs[0], endpoint, "agent", "r9"), subs=everything, lives=alive)
+        for p in (observer, r1, r9):
+            p.ready()
+        r9.send(put=K.plan("r9"), payload="stranger")
+        r9.send(token=K.alive("r9"))
+        assert r9.wait_for(lambda e: e["event"] == "done" and e["op"] == "token", DELIVERY_S)
+        marker = deliver(r1, K.plan("r1"), [observer])
+        r1.send(token=K.alive("r1"))
+        assert observer.wait_for(lambda e: e["event"] == "token" and e["key"] == K.alive("r1"), DELIVERY_S)
+        late = r9.wait_for(lambda e: e.get("payload") == marker or e.get("key") == K.alive("r1"), GRACE_S)
+        assert late is None, late
+        assert [e["payload"] for e in r9.samples()] == ["stranger"]  # its own, delivered locally
+        assert [e["key"] for e in r9.tokens()] == [K.alive("r9")]
+        assert [e["payload"] for e in observer.samples() if e["payload"] == "stranger"] == []
+        assert [e["key"] for e in observer.tokens()] == [K.alive("r1")]
+
+
+# ----------------------------------------------------- configuration code
+def _same(a: Any, b: Any, keys: list[str]) -> None:
+    for k in keys:
+        assert json.loads(a.get_json(k)) == json.loads(b.get_json(k)), k
+
+
+COMMON = ["mode", "connect/endpoints", "listen/endpoints", "scouting/multicast/enabled", "transport/link/tls"]
+
+
+@pytest.mark.parametrize("role", ["agent", "tracker", "supervisor", "operator"])
+def test_client_templates_equal_the_builder(role: str, certs: tuple[Path, Path]) -> None:
+    endpoint = "tls/127.0.0.1:7447"
+    robot = "r1" if role == "agent" else None
+    values = {"CERTS": str(certs[0]), "ROUTER": endpoint} | ({"ROBOT": "r1"} if robot else {})
+    import zenoh
+
+    shipped = zenoh.Config.from_json5(render((DEPLOY / f"{role}.json5").read_text(), values))
+    built = to_zenoh(client_json(role, certs[0], endpoint, robot))
+    _same(shipped, built, [*COMMON, "connect/timeout_ms"])
+    tls = json.loads(built.get_json("transport/link/tls"))
+    assert tls["connect_certificate"] == str(certs[0] / identity(role, robot) / "cert.pem")
+    assert tls["enable_mtls"] is True and tls["verify_name_on_connect"] is True
+
+
+def test_router_template_equals_the_builder(certs: tuple[Path, Path]) -> None:
+    import zenoh
+
+    endpoint = "tls/127.0.0.1:7447"
+    text = (DEPLOY / "router.json5").read_text()
+    shipped = zenoh.Config.from_json5(render(text, {"CERTS": str(certs[0]), "LISTEN": endpoint}))
+    built = to_zenoh(router_json(endpoint, certs[0], ["r1", "r2", "r3"]))
+    _same(shipped, built, [*COMMON, "access_control"])
+    assert check_router(shipped) == [endpoint]
+
+
+def test_acl_grants_exactly_the_documented_rights() -> None:
+    acl = acl_json(["r1", "r2"], fleet="lab")
+    rules = {r["id"]: r for r in acl["rules"]}
+    assert acl["default_permission"] == "deny"
+    assert rules["publish-r1"]["key_exprs"] == [K.plan("r1"), K.cmd("r1"), K.odom("r1"), K.wheels("r1"),
+                                                K.emu("r1")]  # fmt: skip
+    assert rules["token-r1"] == {"id": "token-r1", "messages": ["liveliness_token"], "flows": ["ingress"],
+                                 "permission": "allow", "key_exprs": [K.alive("r1")]}  # fmt: skip
+    assert rules["publish-tracker"]["key_exprs"] == [K.pose(), K.truth(), K.clock]
+    sim = {r["id"]: r for r in acl_json(["r1"], sim_tracker=True)["rules"]}
+    assert sim["publish-tracker"]["key_exprs"] == [K.pose(), K.truth(), K.clock, K.odom()]
+    ingress_puts = [r for r in acl["rules"] if "put" in r["messages"] and "ingress" in r["flows"]]
+    assert sorted(r["id"] for r in ingress_puts) == ["publish-operator", "publish-r1", "publish-r2",
+                                                     "publish-tracker"]  # fmt: skip
+    assert all(r["permission"] == "allow" for r in acl["rules"])
+
+
+def test_bad_configurations_are_refused_naming_the_field(certs: tuple[Path, Path], tmp_path: Path) -> None:
+    cases: list[tuple[Callable[[], object], str]] = [
+        (lambda: identity("agent"), "robot"),
+        (lambda: identity("agent", "tracker"), "robot"),
+        (lambda: identity("tracker", "r1"), "robot"),
+        (lambda: identity("camera"), "role"),
+        (lambda: check_endpoint("tcp/127.0.0.1:7447"), "only TLS"),
+        (lambda: check_endpoint("tls/127.0.0.1:0"), "port"),
+        (lambda: check_endpoint("tls/0.0.0.0:7447", listen=True), "every interface"),
+        (lambda: client_json("agent", tmp_path, "tls/127.0.0.1:7447", "r1"), "r1/ca.pem is missing"),
+        (lambda: acl_json(["r1", "r1"]), "distinct"),
+        (lambda: render("${CERTS}/x", {}), "${CERTS}"),
+    ]
+    for fn, words in cases:
+        with pytest.raises(SecureConfigError) as e:
+            fn()
+        assert words in str(e.value), (words, str(e.value))
+    good = router_json("tls/127.0.0.1:7447", certs[0], ["r1"])
+    for path, value, words in [
+        (("listen", "endpoints"), ["tcp/127.0.0.1:7447"], "only TLS"),
+        (("transport", "link", "tls", "enable_mtls"), False, "enable_mtls"),
+        (("access_control", "enabled"), False, "access_control/enabled"),
+        (("access_control", "default_permission"), "allow", "default_permission"),
+    ]:
+        bad = json.loads(json.dumps(good))
+        node = bad
+        for p in path[:-1]:
+            node = node[p]
+        node[path[-1]] = value
+        with pytest.raises(SecureConfigError) as e:
+            check_router(to_zenoh(bad))
+        assert words in str(e.value)
+    assert check_endpoint("tls/[::1]:7447", listen=True) == "tls/[::1]:7447"
