@@ -31,8 +31,10 @@ from agent.coordination import (
     PARKED,
     RETURNING,
     UNDER_WAY,
+    Hazard,
     Navigator,
     NeighbourInfo,
+    hazard_halfplanes,
     obstacle_halfplanes,
     polynomial_penalty,
     split_halfplanes,
@@ -91,6 +93,8 @@ class Counters:
     repairs: int = 0
     """Solutions whose ȳ was pulled back onto the coordination rows (solver tolerance)."""
     status_counts: dict[str, int] = field(default_factory=dict)
+    holds: int = 0
+    """Steps without a usable measurement: braked, nothing new committed (:meth:`TubeMPC.hold`)."""
 
 
 class TubeMPC:
@@ -202,8 +206,14 @@ class TubeMPC:
         return c
 
     # ---------------------------------------------------------------- step
-    def step(self, x: Array, neighbours: Sequence[NeighbourInfo]) -> StepOutput:
-        """One control step from measured state ``x`` (4,) [m, m/s]."""
+    def step(
+        self, x: Array, neighbours: Sequence[NeighbourInfo], hazards: Sequence[Hazard] = ()
+    ) -> StepOutput:
+        """One control step from measured state ``x`` (4,) [m, m/s].
+
+        ``neighbours`` are coordinated with by the split rule (their plans of
+        the previous step are in); ``hazards`` are neighbours known only from an
+        older plan, or dead, kept clear of as static discs (:class:`Hazard`)."""
         t0 = time.perf_counter()
         p, design, qp = self.params, self.design, self.qp
         c_i = self.last_point
@@ -213,9 +223,13 @@ class TubeMPC:
         on, ob = obstacle_halfplanes(c_i, self.r, self.obstacles, p.epsilon)
         normals += on
         bounds += ob
+        hn, hb = hazard_halfplanes(c_i, self.r, hazards, p.epsilon)
+        normals += hn
+        bounds += hb
         if p.deadlock:
             self.nav.phase = self.phase
-            self.target, mode = self.nav.target(c_i, self.goal, neighbours)
+            known = [*neighbours, *(h.info for h in hazards if h.info is not None)]
+            self.target, mode = self.nav.target(c_i, self.goal, known)
         else:
             self.target, mode = self.goal, "goal"
         pen = None
@@ -284,6 +298,28 @@ class TubeMPC:
             mode=mode,
             iterations=res.iterations,
         )
+
+    def hold(self, x: Array) -> StepOutput:
+        """A step without a usable measurement: brake and hold, commit nothing new.
+
+        ``x`` (4,) [m, m/s] is the predicted state.  No QP is built: the shifted
+        candidate is applied and "stay put" appended (the references already
+        committed stay valid for the neighbours), and the command brakes the
+        predicted velocity to rest at up to ``a_max`` per axis [m/s²]."""
+        t0 = time.perf_counter()
+        p, qp = self.params, self.qp
+        cand = self.candidate()
+        self.xi = cand
+        self._append(cand[qp.iy])
+        a = np.clip(-np.asarray(x)[[1, 3]] / p.Ts, -p.a_max, p.a_max)
+        self.counters.holds += 1
+        self.k += 1
+        return StepOutput(
+            a=a, committed=self.y_ref.copy(), plan=(qp.S_pos @ cand).reshape(self.N + 1, 2),
+            x_hat=cand[0:4].copy(), status="HOLD_NO_POSE", fallback=True, solve_time=0.0,
+            step_time=time.perf_counter() - t0, candidate_violation=0.0, tube_ok=True, min_slack=math.inf,
+            target=np.asarray(self.target, dtype=float).copy(), mode="hold",
+        )  # fmt: skip
 
     def _repair(self, ybar: Array, data: StepData) -> Array:
         """Pull ȳ towards c_i until every ȳ row holds exactly.

@@ -134,6 +134,49 @@ def obstacle_halfplanes(
     return normals, bounds
 
 
+@dataclass
+class Hazard:
+    """A neighbour that agent i can no longer coordinate with, as a static disc.
+
+    A neighbour whose plan of the previous step is missing (lost, late or a
+    dead agent) cannot take its share of the split rule with fresh data, so i
+    keeps its own appended point clear of every place the neighbour's can be:
+    j's last known committed point grown by ε per step it may have moved
+    since (DESIGN §5, "Timing")."""
+
+    id: str
+    centre: Array
+    """j's last known committed point ĉ_j (2,) [m], world frame."""
+    radius: float
+    """r_j plus the growth [m]: where j's appended point can be now."""
+    info: NeighbourInfo | None = None
+    """What j's last plan said (for the navigator's yielding; None for a dead robot)."""
+
+
+def hazard_halfplanes(
+    c_i: Array, r_i: float, hazards: Sequence[Hazard], eps: float
+) -> tuple[list[Array], list[float]]:
+    """Rows ``nᵀ ȳ ≥ b`` keeping ȳ at least ``r_i + radius`` from each hazard's centre.
+
+    n is the unit vector from the centre to c_i and b = nᵀo + min(r_i + radius, ‖c_i − o‖):
+    when c_i is already closer than the margin (the hazard appeared or grew onto
+    it), the row asks only not to come closer.  Staying put always satisfies
+    it, so the QP stays feasible; if nothing else is safe the robot stays put
+    ("stops in its tube")."""
+    normals: list[Array] = []
+    bounds: list[float] = []
+    for hz in hazards:
+        d = c_i - hz.centre
+        dist = float(math.hypot(d[0], d[1]))
+        need = r_i + hz.radius
+        if dist - need >= SQRT2 * eps * 1.01:
+            continue  # implied by the ε box
+        n = d / dist if dist > 1e-9 else np.array([1.0, 0.0])
+        normals.append(n)
+        bounds.append(float(n @ hz.centre + min(need, dist)))
+    return normals, bounds
+
+
 def penalty_coefficients(dlim: float, weight: float) -> Array:
     """a_0 … a_5 of f(ρ) = weight·(1 − ρ/d_lim)^5 (paper eq. 34's degree-5 polynomial).
 

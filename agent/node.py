@@ -20,11 +20,23 @@ from typing import Any
 import numpy as np
 
 from agent.controller import TubeMPC
-from agent.coordination import NeighbourInfo
+from agent.coordination import Hazard, NeighbourInfo
 from agent.models import measured_state
-from fleet.runtime import Inbox, add_common_args, announce, load_validated, log, open_session, publisher
+from fleet.runtime import (
+    Inbox,
+    add_common_args,
+    announce,
+    fault_plan,
+    load_validated,
+    log,
+    open_session,
+    publisher,
+)
 from fleet.scenario import ConfigError, check_point, controlled_point
 from fleet.wire import Command, Goal, Keys, Odom, Plan, Pose, Tick
+
+REJOIN_GAP = 5
+"""Steps missed (0.5 s at Ts = 0.1 s, the link watchdog's time) after which an agent re-initialises."""
 
 
 def _neighbour(plan: Plan) -> NeighbourInfo:
@@ -44,6 +56,10 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m agent", description=__doc__.splitlines()[0])
     add_common_args(ap)
     ap.add_argument("--robot", required=True, help="robot id from the scenario")
+    ap.add_argument(
+        "--blind-steps", type=int, default=3,
+        help="steps to run on the nominal model's prediction when poses stop (then brake and hold)",
+    )  # fmt: skip
     args = ap.parse_args(argv)
     role = f"agent {args.robot}"
     try:
@@ -70,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
     keys = Keys(args.fleet)
     me = args.robot
     session = open_session(args)
-    inbox = Inbox(keys, role)
+    inbox = Inbox(keys, role, fault_plan(args))
     subs = [
         inbox.subscribe(session, keys.pose(me), Pose, keep=True),
         inbox.subscribe(session, keys.odom(me), Odom, keep=True),
@@ -83,9 +99,23 @@ def main(argv: list[str] | None = None) -> int:
     pub_cmd = publisher(session, keys.cmd(me))
     token = session.liveliness().declare_token(keys.alive(me))
     announce("agent", robot=me)
-    stale = 0
+    others = [r for r in ids if r != me]
+    starts = {
+        r.id: NeighbourInfo(
+            id=r.id, last_point=controlled_point(r.start, p.lookahead), footprint=design.footprint,
+            priority=r.priority, rank=i, target=np.array(r.goal, float), goal=np.array(r.goal, float),
+        )
+        for i, r in enumerate(scn.robots)
+    }  # fmt: skip
+    guard = Guard(me, design)
     k = 0
+    joined = False
+    x_est: np.ndarray | None = None
+    a_prev = np.zeros(2)
+    blind = 0
     goal_seen: Goal | None = None
+    last: dict[str, Plan | None] = {}
+    lockstep = args.clock == "lockstep"
     try:
         while True:
             if not inbox.wait(partial(_tick_at_least, inbox, k), args.timeout):
@@ -95,34 +125,66 @@ def main(argv: list[str] | None = None) -> int:
             assert tick is not None
             if tick.stop:
                 break
-            if not inbox.wait(partial(_measured, inbox, me, k), args.timeout):
-                log(role, f"no pose/odometry for step {k}; stopping")
-                return 1
-            others = [r for r in ids if r != me]
+            if tick.step > k:
+                if joined and tick.step > k + REJOIN_GAP:
+                    # Hung for a while (its robot was braked, its neighbours gave up on
+                    # it): start again from where the robot is, like a restarted agent.
+                    joined = False
+                    x_est = None
+                if joined:
+                    log(role, f"fell behind the clock: step {k} → {tick.step}")
+                k = tick.step
+            inbox.release(k)
+            # Own measurement of step k, then the live neighbours' plans of step k − 1.
+            # Realtime: neither may hold up this step's deadline; a withheld message
+            # (fault plan) is never waited for.
+            limit = args.timeout if lockstep else 0.3 * p.Ts
+            inbox.wait(partial(_measured, inbox, me, k), limit)
             if k > 0:
-                # Realtime: the neighbours' plans must not hold up this step's deadline.
-                limit = args.timeout if args.clock == "lockstep" else 0.3 * p.Ts
-                ok = inbox.wait(partial(_plans_in, inbox, others, k - 1), limit)
-                if not ok:
-                    stale += 1
+                inbox.wait(partial(_plans_in, inbox, others, k - 1), limit)
             with inbox.cond:
                 pose = inbox.get(Pose, me, k)
                 odom = inbox.get(Odom, me, k)
-                plans = [inbox.get(Plan, j, k - 1) or inbox.get(Plan, j) for j in others]
+                fresh = {j: inbox.get(Plan, j, k - 1) for j in others}
+                for j in others:  # the newest plan of step ≤ k − 1: what arrived later must not count
+                    pl = inbox.newest(Plan, j, k - 1)
+                    if pl is not None and (last.get(j) is None or last[j].step < pl.step):  # type: ignore[union-attr]
+                        last[j] = pl
+                live = set(inbox.live)
                 goal = inbox.get(Goal, me)
+            if pose is not None and odom is not None:
+                x = measured_state(
+                    np.array([pose.x, pose.y, pose.theta]), np.array([odom.vx, odom.vy]), p.lookahead
+                )
+                if blind > args.blind_steps:
+                    log(role, f"step {k}: measurements back after {blind} steps; planning again")
+                blind = 0
+                if not joined and k > 0:
+                    # (Re)joining a running fleet: start at rest where the robot is.
+                    ctrl.reset(x[[0, 2]])
+                    log(role, f"joined at step {k} at ({x[0]:.3f}, {x[2]:.3f})")
+                joined = True
+            elif x_est is not None:
+                blind += 1
+                x = design.A @ x_est + design.B @ a_prev  # the nominal model's prediction
+                if blind == args.blind_steps + 1:
+                    log(role, f"step {k}: no pose for {blind} steps; braking and holding")
+            else:
+                # Not joined yet and nothing measured: keep the robot still, commit nothing.
+                pub_cmd.put(Command(robot=me, step=k, ax=0.0, ay=0.0).encode())
+                k += 1
+                continue
             if goal is not None and goal is not goal_seen:
                 goal_seen = goal
-                problem = goal_problem(scn, design.footprint, goal.goal, [pl for pl in plans if pl])
+                problem = goal_problem(scn, design.footprint, goal.goal, [pl for pl in last.values() if pl])
                 if problem is not None:
                     log(role, f"goal {goal.goal.round(3).tolist()} rejected: {problem}")
                 elif not np.array_equal(goal.goal, ctrl.goal):
                     ctrl.set_goal(goal.goal)
                     log(role, f"new goal {goal.goal.round(3).tolist()} at step {k}")
-            assert pose is not None and odom is not None
-            cam = np.array([pose.x, pose.y, pose.theta])
-            x = measured_state(cam, np.array([odom.vx, odom.vy]), p.lookahead)
-            nbs = [_neighbour(pl) for pl in plans if pl is not None]
-            out = ctrl.step(x, nbs)
+            nbs, hazards = guard.classify(k, others, fresh, last, live, starts)
+            out = ctrl.hold(x) if blind > args.blind_steps else ctrl.step(x, nbs, hazards)
+            x_est, a_prev = x, out.a
             info = ctrl.info()
             # The command first: the robot side waits on it; the neighbours need the
             # plan only at the next step, which cannot start before the robots move.
@@ -142,7 +204,8 @@ def main(argv: list[str] | None = None) -> int:
         log(
             role,
             f"stopped after {k} steps: {c.solves} solves, {c.fallbacks} fallbacks, "
-            f"{c.tube_exits} tube exits, {stale} late neighbour plans, "
+            f"{c.tube_exits} tube exits, {c.holds} blind holds, {guard.hazard_steps} neighbour-steps "
+            f"kept clear of as static discs ({guard.transitions} changes), {inbox.injected} injected faults, "
             f"{inbox.rejects.total} rejected payloads",
         )
         token.undeclare()
@@ -150,6 +213,86 @@ def main(argv: list[str] | None = None) -> int:
             s.undeclare()
         session.close()
     return 0
+
+
+class Guard:
+    """Sorts the other robots, each step, into neighbours and hazards (DESIGN §5, "Timing").
+
+    * A live robot whose plan of step k − 1 is in is a *neighbour*: the split rule.
+    * A live robot whose latest plan is m ≥ 1 steps older (lost or late) is a
+      *hazard*: a static disc around its last known committed point ĉ_j of
+      radius r_j + (m + 1)·ε, since its appended point moves at most ε a step.
+    * A dead robot (liveliness gone; its robot side brakes it) is a hazard of
+      radius r_j + max(N, m + 1)·ε + v_max²/(2 a_max): wherever its reference was
+      when it died is within that of ĉ_j, and braking adds the stopping distance.
+    * At step 0 every robot is a neighbour at its scenario start, as in
+      ``fleet simulate``.
+
+    The disc rule alone keeps the appended points R apart whatever the other
+    robot does, so mixing it with a neighbour's split rule is safe.  Changes
+    are logged the first time each, then only counted."""
+
+    def __init__(self, me: str, design: Any):
+        p = design.params
+        self.me = me
+        self.eps = p.epsilon
+        self.N = p.horizon
+        self.brake = p.v_max**2 / (2.0 * p.a_max)
+        self.hazard_steps = 0
+        self.transitions = 0
+        self._state: dict[str, str] = {}
+        self._logged: set[tuple[str, str, str]] = set()
+
+    def classify(
+        self, k: int, others: list[str], fresh: dict[str, Plan | None], last: dict[str, Plan | None],
+        live: set[str], starts: dict[str, NeighbourInfo],
+    ) -> tuple[list[NeighbourInfo], list[Hazard]]:  # fmt: skip
+        """(neighbours, hazards) for step k from the plans of step k − 1 (``fresh``),
+        the latest plans (``last``) and the live set."""
+        nbs: list[NeighbourInfo] = []
+        hazards: list[Hazard] = []
+        for j in others:
+            pl = fresh.get(j)
+            if k == 0:
+                nbs.append(starts[j])
+                continue
+            if pl is not None and j in live:
+                nbs.append(_neighbour(pl))
+                self._note(j, "neighbour", k)
+                continue
+            old = last.get(j)
+            centre, since, r_j = (
+                (starts[j].last_point, -1, starts[j].footprint) if old is None
+                else (old.committed[-1], old.step, old.footprint)
+            )  # fmt: skip
+            m = max(k - 1 - since, 0)
+            if j in live:
+                radius = r_j + (m + 1) * self.eps
+                info = _neighbour(old) if old is not None else starts[j]
+                self._note(j, "stale", k)
+            else:
+                radius = r_j + max(self.N, m + 1) * self.eps + self.brake
+                info = None
+                self._note(j, "dead", k)
+            hazards.append(Hazard(j, np.array(centre, dtype=float), radius, info))
+        self.hazard_steps += len(hazards)
+        return nbs, hazards
+
+    def _note(self, j: str, state: str, k: int) -> None:
+        before = self._state.get(j, "neighbour")
+        self._state[j] = state
+        if state == before or (state == "stale" and before == "dead"):
+            return
+        self.transitions += 1
+        if (j, state, before) in self._logged:
+            return  # each kind of change is logged once per neighbour, then counted
+        self._logged.add((j, state, before))
+        what = {
+            "neighbour": "coordinating again",
+            "stale": "its plan is late or lost; kept clear of as a growing static disc",
+            "dead": "not alive; kept clear of as a static obstacle while its robot stops",
+        }[state]
+        log(f"agent {self.me}", f"step {k}: {j}: {what}")
 
 
 def goal_problem(scn: Any, footprint: float, goal: np.ndarray, plans: list[Plan]) -> str | None:
@@ -170,12 +313,15 @@ def goal_problem(scn: Any, footprint: float, goal: np.ndarray, plans: list[Plan]
 
 
 def _measured(inbox: Inbox, me: str, k: int) -> bool:
-    return inbox.get(Pose, me, k) is not None and inbox.get(Odom, me, k) is not None
+    """This robot's pose and odometry of step k are in, or withheld by the fault plan."""
+    return all(inbox.get(t, me, k) is not None or inbox.lost(t, me, k) for t in (Pose, Odom))
 
 
 def _plans_in(inbox: Inbox, others: list[str], step: int) -> bool:
-    """Every live neighbour's plan of ``step`` has arrived."""
-    return all(inbox.get(Plan, j, step) is not None for j in others if j in inbox.live)
+    """Every live neighbour's plan of ``step`` has arrived (or was withheld by the fault plan)."""
+    return all(
+        inbox.get(Plan, j, step) is not None or inbox.lost(Plan, j, step) for j in others if j in inbox.live
+    )
 
 
 def _tick_at_least(inbox: Inbox, k: int) -> bool:

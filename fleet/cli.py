@@ -147,6 +147,13 @@ def cmd_run(args: argparse.Namespace) -> int:
     if not design.admissible:
         return _bad(f"controller: inadmissible tube design: {'; '.join(design.failures)}")
     check_geometry(scn, design.footprint)
+    if args.faults:
+        from fleet.faults import FaultPlan, FaultPlanError
+
+        try:
+            FaultPlan.parse(args.faults)
+        except FaultPlanError as e:
+            return _bad(f"--faults: {e}")
     links = _run_links(scn)
     emulated = "emulator" in links.values()
     clock = args.clock or ("realtime" if emulated else "lockstep")
@@ -156,7 +163,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     code, verdict, summary = run_fleet(
         str(Path(args.scenario).resolve()), [r.id for r in scn.robots], out.resolve(), args.seed,
-        viewer=args.viewer, clock=clock, hub=args.listen, links=links,
+        viewer=args.viewer, clock=clock, hub=args.listen, links=links, faults=args.faults,
     )  # fmt: skip
     if summary is not None:
         print(
@@ -217,6 +224,18 @@ def _calibrate_arguments(ap: argparse.ArgumentParser) -> None:
     add_arguments(ap)
 
 
+def _markers_arguments(ap: argparse.ArgumentParser) -> None:
+    from fleet.markers import add_arguments
+
+    add_arguments(ap)
+
+
+def cmd_markers(args: argparse.Namespace) -> int:
+    from fleet.markers import run
+
+    return int(run(args))
+
+
 def cmd_calibrate(args: argparse.Namespace) -> int:
     from fleet.calibrate import run
 
@@ -270,6 +289,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="Zenoh endpoint of the fleet's hub, e.g. tcp/127.0.0.1:7447, so an operator can connect "
         "(default: a free loopback port)",
     )  # fmt: skip
+    r.add_argument(
+        "--faults", metavar="JSON",
+        help="fault plan for every process (JSON text or file; see fleet/faults.py): drop or delay messages",
+    )  # fmt: skip
     r.set_defaults(func=cmd_run)
     g = sub.add_parser("goal", help="give a running agent a new goal and wait until it takes it")
     g.add_argument("scenario", help="scenario TOML file of the running fleet")
@@ -280,6 +303,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--fleet", default="lab", help="fleet name in the Zenoh keys (default lab)")
     g.add_argument("--timeout", type=float, default=30.0, help="wait limit [s]")
     g.set_defaults(func=cmd_goal)
+    mk = sub.add_parser("markers", help="write the scenario's ArUco markers as a printable PDF (and PNGs)")
+    _markers_arguments(mk)
+    mk.set_defaults(func=cmd_markers)
     c = sub.add_parser("calibrate", help="fit the camera's floor homography from the scenario's fiducials")
     _calibrate_arguments(c)
     c.set_defaults(func=cmd_calibrate)

@@ -105,10 +105,12 @@ def run_fleet(
     clock: str = "lockstep",
     hub: str | None = None,
     links: dict[str, str] | None = None,
+    faults: str | None = None,
 ) -> tuple[int, str, dict[str, Any] | None]:
     """Run the fleet; returns (exit code, one-line verdict, summary or None).
 
     ``hub`` is the tracker's listening endpoint (default: a free loopback port).
+    ``faults`` is a fault plan (:mod:`fleet.faults`) handed to every process.
     ``links`` maps robot id → link; robots on ``"emulator"`` get an e-puck
     firmware emulator process (advanced sercom on a pseudo-terminal) and an
     ``epuck_link`` process driving it, and the tracker observes the emulators
@@ -118,7 +120,15 @@ def run_fleet(
     hub = hub or loopback(free_port())
     print(f"fleet: hub {hub} (fleet goal --connect {hub} ...)", file=sys.stderr, flush=True)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "RERUN_ANALYTICS": "0"}
-    common = ["--scenario", scenario, "--fleet", fleet, "--clock", clock]
+    common = [
+        "--scenario",
+        scenario,
+        "--fleet",
+        fleet,
+        "--clock",
+        clock,
+        *(["--faults", faults] if faults else []),
+    ]
     seed_args = [] if seed is None else ["--seed", str(seed)]
     procs: list[Proc] = []
     try:

@@ -47,9 +47,6 @@ class NetConfig:
         conf.insert_json5("listen/endpoints", json.dumps(self.listen))
         conf.insert_json5("connect/endpoints", json.dumps(self.connect))
         conf.insert_json5("scouting/multicast/enabled", "false")
-        # Liveliness lease ~1 s (DESIGN §6): a hung peer's tokens vanish within about a second.
-        conf.insert_json5("transport/link/tx/lease", "1000")
-        conf.insert_json5("transport/link/tx/keep_alive", "4")
         return conf
 
     def args(self) -> list[str]:

@@ -16,6 +16,7 @@ import time
 from collections.abc import Callable
 from typing import Any, NoReturn, TypeVar
 
+from fleet.faults import DELIVER, FaultPlan, FaultPlanError
 from fleet.net import NetConfig, loopback
 from fleet.wire import Keys, Message, RejectCounter, WireError, decode
 
@@ -28,6 +29,10 @@ def add_common_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--listen", action="append", default=None, help="Zenoh endpoint to listen on")
     ap.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
     ap.add_argument(
+        "--faults", default=None, metavar="JSON",
+        help="fault plan (JSON text or file, fleet/faults.py): drop or delay chosen received messages",
+    )  # fmt: skip
+    ap.add_argument(
         "--zenoh-config", default=None, metavar="FILE",
         help="Zenoh JSON5 configuration (secure deployment, deploy/README.md); replaces --listen/--connect",
     )  # fmt: skip
@@ -36,6 +41,23 @@ def add_common_args(ap: argparse.ArgumentParser) -> None:
         "--clock", choices=["lockstep", "realtime"], default="lockstep",
         help="lockstep: step when every agent answered; realtime: wall-clock steps at Ts",
     )  # fmt: skip
+
+
+def fault_plan(args: argparse.Namespace) -> FaultPlan | None:
+    """The ``--faults`` plan of a process, or None; a bad plan is one line on stderr and exit 2."""
+    if not getattr(args, "faults", None):
+        return None
+    try:
+        return FaultPlan.parse(args.faults)
+    except FaultPlanError as e:
+        print(f"error: --faults: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
+def _step_of(msg: Any) -> int | None:
+    """The step (plans, commands, ticks) or sequence number (poses, odometry) of a message."""
+    step = getattr(msg, "step", None)
+    return getattr(msg, "seq", None) if step is None else step
 
 
 def net_config(args: argparse.Namespace) -> NetConfig:
@@ -113,9 +135,17 @@ class Inbox:
     Subscriber callbacks run on Zenoh's threads; the process's main loop waits
     on :meth:`wait` with a deadline, never sleeps."""
 
-    def __init__(self, keys: Keys, role: str):
+    def __init__(self, keys: Keys, role: str, faults: FaultPlan | None = None):
         self.keys = keys
         self.role = role
+        self.faults = faults
+        """Injected losses and delays (tests, fleet run --faults); None: none."""
+        self.missing: dict[tuple[str, str], set[int]] = {}
+        """Steps per (type, robot) that the fault plan dropped or delayed: waiting for them is moot."""
+        self.held: list[tuple[int, str, Any, bool]] = []
+        """Delayed messages: (release step, type, message, keep)."""
+        self.injected = 0
+        """Messages the fault plan dropped or delayed so far."""
         self.cond = threading.Condition()
         self.latest: dict[tuple[str, str], Any] = {}
         self.history: dict[tuple[str, str], dict[int, Any]] = {}
@@ -147,19 +177,47 @@ class Inbox:
                     self.rejects.reject(k, e)
                 return
             now = time.monotonic()
+            step = _step_of(msg)
             with self.cond:
-                self.latest[(typ.TYPE, msg.robot)] = msg
+                if self.faults is not None and step is not None:
+                    fate, delay = self.faults.decide(self.role, k.split("/", 2)[-1], step)
+                    if fate != DELIVER or delay:
+                        self.injected += 1
+                        self.missing.setdefault((typ.TYPE, msg.robot), set()).add(step)
+                        if fate == DELIVER:
+                            self.held.append((step + delay, typ.TYPE, msg, keep))
+                        self._wake()
+                        return
+                self._store(typ.TYPE, msg, keep)
                 self.arrived[(typ.TYPE, msg.robot)] = now
                 self.first.setdefault(typ.TYPE, now)
-                if keep:
-                    step = getattr(msg, "step", getattr(msg, "seq", None))
-                    if step is not None:
-                        self.history.setdefault((typ.TYPE, msg.robot), {})[step] = msg
                 self._wake()
 
         if remote:
             return session.declare_subscriber(key, on_sample, allowed_origin=zenoh.Locality.REMOTE)
         return session.declare_subscriber(key, on_sample)
+
+    def _store(self, type_name: str, msg: Any, keep: bool) -> None:
+        """Record ``msg`` (lock held): ``latest`` never goes back to an older step."""
+        step = _step_of(msg)
+        old = self.latest.get((type_name, msg.robot))
+        if step is None or old is None or (_step_of(old) or 0) <= step:
+            self.latest[(type_name, msg.robot)] = msg
+        if keep and step is not None:
+            self.history.setdefault((type_name, msg.robot), {})[step] = msg
+
+    def release(self, step: int) -> None:
+        """Deliver the delayed messages due by ``step`` (the receiver's current step)."""
+        with self.cond:
+            due = [h for h in self.held if h[0] <= step]
+            if due:
+                self.held = [h for h in self.held if h[0] > step]
+                for _, type_name, msg, keep in due:
+                    self._store(type_name, msg, keep)
+
+    def lost(self, typ: type[Message], robot: str, step: int) -> bool:
+        """The fault plan withheld the message of ``step`` (lock held or not: a set look-up)."""
+        return step in self.missing.get((typ.TYPE, robot), ())
 
     def watch_liveliness(self, session: Any) -> Any:
         import zenoh
@@ -201,11 +259,23 @@ class Inbox:
                 self._awaited = None
 
     def prune(self, before: int) -> None:
-        """Forget kept messages of steps < ``before``."""
+        """Forget kept messages (and tombstones) of steps < ``before``."""
         with self.cond:
             for hist in self.history.values():
                 for s in [s for s in hist if s < before]:
                     del hist[s]
+            for gone in self.missing.values():
+                gone.difference_update([s for s in gone if s < before])
+
+    def newest(self, typ: type[M], robot: str, at_most: int) -> M | None:
+        """The newest kept message of ``robot`` whose step is ≤ ``at_most`` (lock held):
+        unlike ``get(typ, robot)``, it does not depend on what arrived since."""
+        hist = self.history.get((typ.TYPE, robot), {})
+        steps = [s for s in hist if s <= at_most]
+        if steps:
+            return hist[max(steps)]  # type: ignore[no-any-return]
+        msg = self.latest.get((typ.TYPE, robot))
+        return msg if msg is not None and (_step_of(msg) or 0) <= at_most else None
 
     def get(self, typ: type[M], robot: str, step: int | None = None) -> M | None:
         if step is None:

@@ -57,6 +57,8 @@ class Monitor:
         self.robot: dict[str, dict[str, Any]] = {
             r: {"solves": 0, "failures": 0, "tube_exits": 0, "status": {}, "solve_ms": []} for r in self.ids
         }
+        self.last_plans: dict[str, Plan] = {}
+        """The latest plan of each robot seen so far."""
         self.pose_error: dict[str, list[float]] = {r: [0.0, 0.0] for r in self.ids}
         """Largest camera error per robot: [per-axis position [m], heading [rad]]."""
         self.steps = 0
@@ -93,8 +95,25 @@ class Monitor:
             self.errors[a].append(float(np.linalg.norm(pt - self.goals[a])))
 
     def plans(self, plans: dict[str, Plan]) -> None:
+        """One step of plans.  A robot missing from ``plans`` (dead, or it skipped the
+        step) is checked with its last known plan and not counted as a solve."""
+        fresh = set(plans)
+        plans = {**self.last_plans, **plans}
+        self.last_plans = plans
         for i, a in enumerate(self.ids):
+            if a not in plans:
+                continue
             pa = plans[a]
+            for b in self.ids[i + 1 :]:
+                if b not in plans:
+                    continue
+                pb = plans[b]
+                d = float(np.linalg.norm(pa.committed[-1] - pb.committed[-1]))
+                self.min_ref = min(self.min_ref, d)
+                if d < pa.footprint + pb.footprint - 1e-9:
+                    self.ref_violations += 1
+            if a not in fresh:
+                continue
             st = self.robot[a]
             st["solves"] += 1
             st["status"][pa.status] = st["status"].get(pa.status, 0) + 1
@@ -103,12 +122,6 @@ class Monitor:
             st["solve_ms"].append(pa.solve_time * 1e3)
             self.goals[a] = pa.goal.copy()  # a goal changed at run time counts from here on
             self.refs[a].append(pa.committed[0].copy())
-            for b in self.ids[i + 1 :]:
-                pb = plans[b]
-                d = float(np.linalg.norm(pa.committed[-1] - pb.committed[-1]))
-                self.min_ref = min(self.min_ref, d)
-                if d < pa.footprint + pb.footprint - 1e-9:
-                    self.ref_violations += 1
         self.steps += 1
 
     def trace(self, Ts: float, footprint: float) -> Trace:
@@ -184,6 +197,25 @@ def _run_wall_time(inbox: Inbox, fallback: float) -> float:
     return (end if end is not None else time.monotonic()) - start
 
 
+def _plan_step(inbox: Inbox, ids: list[str], k: int) -> dict[str, Plan] | None:
+    """The plans of step k once every robot's is in or will never come: a robot
+    whose agent has already sent a later plan (it skipped step k, realtime) or is
+    dead is left out.  None while some plan of step k may still arrive."""
+    plans: dict[str, Plan] = {}
+    for r in ids:
+        pl = inbox.get(Plan, r, k)
+        if pl is not None:
+            plans[r] = pl
+            continue
+        latest = inbox.get(Plan, r)
+        if latest is not None and latest.step > k:
+            continue  # skipped
+        if r not in inbox.live and latest is not None:
+            continue  # dead: no more plans
+        return None
+    return plans if plans else None
+
+
 def _step_in(inbox: Inbox, ids: list[str], k: int) -> bool:
     """Step k's ground truth and camera poses are all in (the final step has no camera pose)."""
     if any(inbox.get(Truth, r, k) is None for r in ids):
@@ -198,7 +230,7 @@ def _progress(inbox: Inbox, ids: list[str], k_truth: int, k_plan: int, stopping:
     return (
         stopping["signal"]
         or all(inbox.get(Truth, r, k_truth) is not None for r in ids)
-        or all(inbox.get(Plan, r, k_plan) is not None for r in ids)
+        or _plan_step(inbox, ids, k_plan) is not None
     )
 
 
@@ -263,9 +295,8 @@ def main(argv: list[str] | None = None) -> int:
                     kk = k_truth + len(truths)
                     measured = {r: inbox.get(Pose, r, kk) for r in ids}
                     truths.append(({r: inbox.get(Truth, r, kk) for r in ids}, measured))
-                while all(inbox.get(Plan, r, k_plan + len(plan_steps)) is not None for r in ids):
-                    kk = k_plan + len(plan_steps)
-                    plan_steps.append({r: inbox.get(Plan, r, kk) for r in ids})
+                while (step_plans := _plan_step(inbox, ids, k_plan + len(plan_steps))) is not None:
+                    plan_steps.append(step_plans)
             for truth, measured in truths:
                 mon.truth(truth, measured)  # type: ignore[arg-type]
                 recorder.truth(k_truth, p.Ts, truth, measured)  # type: ignore[arg-type]

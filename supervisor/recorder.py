@@ -154,8 +154,7 @@ class Recorder:
         """Queue one step of plans (sent by :meth:`flush`); events are logged at once."""
         rr, row = self.rr, self._row
         k = step + 1  # committed[0] is the reference for the next sample
-        for rid in self.ids:
-            pl = plans[rid]
+        for rid, pl in plans.items():
             y = pl.committed[0]
             base = f"world/robots/{rid}"
             row(f"{base}/footprint", rr.Ellipses2D, k, Ts, centers=[y], half_sizes=[[pl.footprint] * 2])
@@ -164,19 +163,20 @@ class Recorder:
             row(f"{base}/plan", rr.LineStrips2D, k, Ts, strips=[pl.nominal])
             row(f"solve_ms/{rid}", rr.Scalars, k, Ts, scalars=[pl.solve_time * 1e3])
         self._time(k, Ts)
-        for rid in self.ids:
-            pl = plans[rid]
+        for rid, pl in plans.items():
             if pl.status != "PROXQP_SOLVED":
                 self.event(f"{rid}: fallback at step {step} ({pl.status})", "WARN")
             if not pl.tube_ok:
                 self.event(f"{rid}: tube exit at step {step}", "WARN")
-        changed = [r for r in self.ids if tuple(plans[r].goal.tolist()) != self.goals[r]]
+        changed = [r for r in plans if tuple(plans[r].goal.tolist()) != self.goals[r]]
         for rid in changed:
             self.goals[rid] = tuple(plans[rid].goal.tolist())
             self.event(f"{rid}: new goal ({self.goals[rid][0]:.3f}, {self.goals[rid][1]:.3f}) at step {step}")
         if changed:
             self._log_goals()
         for a, b in self.pairs:
+            if a not in plans or b not in plans:
+                continue
             d = float(np.linalg.norm(plans[a].committed[-1] - plans[b].committed[-1]))
             row(f"separation/reference/{a}-{b}", rr.Scalars, k, Ts, scalars=[d])
         row("separation/reference/required", rr.Scalars, k, Ts, scalars=[2.0 * self.footprint])

@@ -32,8 +32,9 @@ Process.  It publishes, every Ts = ``controller.Ts`` (step k, time k·Ts), one
 :class:`fleet.wire.Pose` per robot whose marker was found, ``seq = k`` and
 ``t`` = the capture time [s] of the frame used, then ``Tick(robot="tracker",
 step=k, t=k·Ts, stop=False, misses=0)``: the simulated tracker's messages
-and keys, without Odom or Truth (on hardware ``epuck_link`` publishes the
-odometry).  Clocks:
+and keys, without Odom (on hardware ``epuck_link`` publishes the
+odometry); the same pose goes on the truth key too, as the supervisor's best
+ground truth on real robots.  Clocks:
 
 * ``--video FILE``: frame i was captured at t = i / fps [s]; step k uses the
   last frame with t ≤ k·Ts and is published at wall time k·Ts / ``--rate``
@@ -982,7 +983,7 @@ def _run(
 ) -> int:
     """Open Zenoh, announce, step until the end of the video, ``--steps`` or a signal."""
     from fleet.runtime import Inbox, open_session, publisher
-    from fleet.wire import Keys, Pose, Tick
+    from fleet.wire import Keys, Pose, Tick, Truth
 
     ids = [r.id for r in scn.robots]
     keys = Keys(args.fleet)
@@ -993,6 +994,9 @@ def _run(
     inbox = Inbox(keys, ROLE)
     subs = [inbox.watch_liveliness(session)]
     pubs = {rid: publisher(session, keys.pose(rid)) for rid in ids}
+    # On hardware the camera is the best ground truth there is: the supervisor's
+    # safety monitor reads it on the truth key (not express: nobody waits on it).
+    truths = {rid: publisher(session, keys.truth(rid), express=False) for rid in ids}
     clock = publisher(session, keys.clock)
     video = isinstance(source, VideoSource)
     limit = args.steps
@@ -1045,6 +1049,7 @@ def _run(
                 found = tracker.process(frame.image, label=f"{frame.index} (step {k})")
                 for rid, (x, y, th) in found.items():
                     pubs[rid].put(Pose(robot=rid, seq=k, t=frame.t, x=x, y=y, theta=_wrap(th)).encode())
+                    truths[rid].put(Truth(robot=rid, seq=k, t=frame.t, x=x, y=y, theta=_wrap(th)).encode())
             clock.put(Tick(robot=ROLE, step=k, t=t_k, stop=False, misses=0).encode())
             if k % PROGRESS_EVERY == 0 and k:
                 report(f"step {k}")

@@ -35,7 +35,16 @@ from typing import Any
 import numpy as np
 
 from fleet.harness import GOAL_TOLERANCE, Disturbance, PoseNoise, make_plant
-from fleet.runtime import Inbox, add_common_args, announce, load_validated, log, open_session, publisher
+from fleet.runtime import (
+    Inbox,
+    add_common_args,
+    announce,
+    fault_plan,
+    load_validated,
+    log,
+    open_session,
+    publisher,
+)
 from fleet.scenario import ConfigError
 from fleet.wire import Command, Keys, Odom, Plan, Pose, Tick, Truth
 
@@ -105,6 +114,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=None, help="override the scenario's duration [steps]")
     ap.add_argument("--start-timeout", type=float, default=60.0, help="wait for agents to come up [s]")
     ap.add_argument(
+        "--watchdog", type=float, default=0.5,
+        help="brake a robot whose agent sent no command for this long [s] (as epuck_link does)",
+    )  # fmt: skip
+    ap.add_argument(
         "--deadline",
         type=float,
         default=0.5,
@@ -130,7 +143,7 @@ def main(argv: list[str] | None = None) -> int:
     steps = args.steps if args.steps is not None else round(scn.duration / p.Ts)
     keys = Keys(args.fleet)
     session = open_session(args)
-    inbox = Inbox(keys, role)
+    inbox = Inbox(keys, role, fault_plan(args))
     subs = [
         inbox.subscribe(session, keys.cmd(), Command, keep=True),
         inbox.subscribe(session, keys.plan(), Plan, keep=True),
@@ -154,9 +167,9 @@ def main(argv: list[str] | None = None) -> int:
     announce(role, robots=ids, steps=steps)
     code = 0
     try:
-        expected = {*ids, SUPERVISOR}
-        if not inbox.wait(lambda: expected <= inbox.live, args.start_timeout):
-            missing = sorted(expected - inbox.live)
+        everyone = {*ids, SUPERVISOR}
+        if not inbox.wait(lambda: everyone <= inbox.live, args.start_timeout):
+            missing = sorted(everyone - inbox.live)
             log(role, f"not up within {args.start_timeout} s: {', '.join(missing)}")
             return 1
         if args.source == "emulator" and not inbox.wait(
@@ -168,6 +181,8 @@ def main(argv: list[str] | None = None) -> int:
         k = 0
         misses = 0
         last_a = {rid: np.zeros(2) for rid in ids}
+        quiet = dict.fromkeys(ids, 0)
+        braking = dict.fromkeys(ids, False)
         realtime = args.clock == "realtime"
         t_start = time.monotonic()
         for k in range(steps):
@@ -176,6 +191,10 @@ def main(argv: list[str] | None = None) -> int:
                 _until(t_start + t)
             # The tick first, then each robot's pose and odometry (an agent starts as
             # soon as its own are in), then the truth, which only the supervisor reads.
+            with inbox.cond:
+                # Who answers this step: the agents live now.  One that (re)joins
+                # during the step takes part from the next tick on.
+                answering = [r for r in ids if r in inbox.live]
             clock.put(Tick(robot=role, step=k, t=t, stop=False, misses=misses).encode())
             with inbox.cond:
                 truths = {rid: world.pose(rid).copy() for rid in ids}
@@ -195,29 +214,42 @@ def main(argv: list[str] | None = None) -> int:
                 # A command must arrive within the deadline; otherwise the robot side
                 # holds the previous acceleration and the miss is counted.
                 wait = t_start + t + args.deadline * p.Ts - time.monotonic()
-                inbox.wait(partial(_answered, inbox, ids, k), max(0.0, wait))
+                inbox.wait(partial(_answered, inbox, answering, k), max(0.0, wait))
                 late = [r for r in ids if inbox.get(Command, r, k) is None and r in inbox.live]
                 if late:
                     misses += len(late)
                     log(role, f"step {k}: deadline missed by {', '.join(late)}")
             else:
-                answered = inbox.wait(partial(_answered, inbox, ids, k), args.timeout)
+                answered = inbox.wait(partial(_answered, inbox, answering, k), args.timeout)
                 if not answered:
                     late = [r for r in ids if inbox.get(Command, r, k) is None]
                     log(role, f"step {k}: no command from {', '.join(late)} within {args.timeout} s")
-            dead = [r for r in ids if r not in inbox.live]
-            if dead:
-                log(role, f"step {k}: agent(s) {', '.join(dead)} not alive; stopping the run")
-                code = 3
-                break
+            with inbox.cond:
+                live = set(inbox.live)
             for rid in ids:
                 cmd = inbox.get(Command, rid, k)
-                a = last_a[rid] if cmd is None else np.array([cmd.ax, cmd.ay])
+                quiet[rid] = 0 if cmd is not None else quiet[rid] + 1
+                # The robot side's watchdog: a dead agent's robot, or one without a
+                # command for --watchdog seconds, is braked to rest and held there.
+                stopped = rid not in live or quiet[rid] * p.Ts > args.watchdog
+                if stopped != braking[rid]:
+                    braking[rid] = stopped
+                    why = "its agent is not alive" if rid not in live else f"no command for {args.watchdog} s"
+                    log(role, f"step {k}: {rid}: " + (f"{why}; braking" if stopped else "commands again"))
+                if stopped:
+                    q = world.state(rid)[[1, 3]]
+                    a = np.clip(-q / p.Ts, -p.a_max, p.a_max)
+                else:
+                    a = last_a[rid] if cmd is None else np.array([cmd.ax, cmd.ay])
                 last_a[rid] = a
                 world.advance(rid, a, p.Ts)
+            if not live & set(ids):
+                log(role, f"step {k}: no agent alive; stopping the run")
+                k += 1
+                break
             # Agents send the command before the plan of a step; the early stop below
             # judges the plans of this very step, as `fleet simulate` does.
-            inbox.wait(partial(_planned, inbox, ids, k), args.timeout if not realtime else 0.0)
+            inbox.wait(partial(_planned, inbox, answering, k), args.timeout if not realtime else 0.0)
             inbox.prune(k)
             if _all_home(inbox, ids, world, k):
                 k += 1
@@ -248,13 +280,15 @@ def _until(when: float) -> None:
 
 
 def _answered(inbox: Inbox, ids: list[str], k: int) -> bool:
-    """Every live agent's command of step k has arrived."""
-    return all(inbox.get(Command, r, k) is not None for r in ids if r in inbox.live)
+    """Every live agent's command of step k has arrived (or was withheld by the fault plan)."""
+    return all(
+        inbox.get(Command, r, k) is not None or inbox.lost(Command, r, k) for r in ids if r in inbox.live
+    )
 
 
 def _planned(inbox: Inbox, ids: list[str], k: int) -> bool:
-    """Every live agent's plan of step k has arrived."""
-    return all(inbox.get(Plan, r, k) is not None for r in ids if r in inbox.live)
+    """Every live agent's plan of step k has arrived (or was withheld by the fault plan)."""
+    return all(inbox.get(Plan, r, k) is not None or inbox.lost(Plan, r, k) for r in ids if r in inbox.live)
 
 
 def _all_home(inbox: Inbox, ids: list[str], world: SimulatedWorld | EmulatedWorld, k: int) -> bool:
@@ -262,7 +296,9 @@ def _all_home(inbox: Inbox, ids: list[str], world: SimulatedWorld | EmulatedWorl
     current goal (a goal changed at run time counts) and every controlled point
     within half the goal tolerance of it."""
     for rid in ids:
-        plan = inbox.get(Plan, rid, k) or inbox.get(Plan, rid)
+        if rid not in inbox.live:
+            continue  # a dead agent's robot is braked where it is: it cannot get home
+        plan = inbox.get(Plan, rid, k) or inbox.newest(Plan, rid, k)
         if plan is None or np.linalg.norm(plan.committed[-1] - plan.goal) >= 1e-3:
             return False
         with inbox.cond:

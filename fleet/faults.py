@@ -1,0 +1,137 @@
+"""Fault injection on the receiving side of a process's subscriptions (issue 5).
+
+A fault plan drops or delays chosen messages, seeded and reproducible:
+whether the message of step k on key K is lost for receiver R depends only on
+(seed, R, K, k), never on timing, so a lockstep run with faults is as
+deterministic as one without.  A JSON plan (a file path, or the text itself)::
+
+    {"seed": 3, "rules": [
+        {"key": "plan/*", "drop": 0.1},                        # 10 % random loss
+        {"key": "plan/r2", "bursts": [[40, 45]], "to": ["agent r1"]},  # steps 40..44 lost
+        {"key": "pose/r1", "delay": 2}                          # delivered 2 steps late
+    ]}
+
+``key`` is an ``fnmatch`` pattern on the key below ``fleet/F/`` (``plan/r2``,
+``pose/*``, ``clock``); ``to`` (optional) lists the receiving roles (``agent
+r1``, ``tracker``, ``supervisor``; default: every receiver).  ``drop`` is a
+probability in [0, 1]; ``bursts`` are half-open step ranges ``[first,
+end)`` lost entirely; ``delay`` holds a message back ``delay`` steps (it
+reaches the receiver when its own step passes ``k + delay``, or never if the
+run ends first).  The first matching rule decides.  Only messages that carry
+a step or sequence number are subject to faults.
+
+:class:`fleet.runtime.Inbox` applies the plan: a dropped or delayed message
+leaves a tombstone, so a receiver that waits for step k learns at once that
+it will not come in time and carries on with what it has, as it would after
+a real loss.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import json
+import math
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+DELIVER, DROP = "deliver", "drop"
+
+
+class FaultPlanError(ValueError):
+    """A fault plan that cannot be used; the message names the field."""
+
+
+@dataclass(frozen=True)
+class FaultRule:
+    """One rule of a fault plan (see the module docstring)."""
+
+    key: str
+    drop: float = 0.0
+    bursts: tuple[tuple[int, int], ...] = ()
+    delay: int = 0
+    to: tuple[str, ...] | None = None
+
+
+class FaultPlan:
+    """Decides the fate of each received message, reproducibly."""
+
+    def __init__(self, rules: list[FaultRule], seed: int = 0):
+        self.rules = rules
+        self.seed = seed
+
+    @classmethod
+    def parse(cls, text_or_path: str) -> FaultPlan:
+        """A plan from JSON text or a JSON file; raises FaultPlanError naming the field."""
+        text = text_or_path
+        if not text_or_path.lstrip().startswith("{"):
+            try:
+                text = Path(text_or_path).read_text()
+            except OSError as e:
+                raise FaultPlanError(f"faults: cannot read {text_or_path!r} ({e.strerror})") from None
+        try:
+            raw = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise FaultPlanError(f"faults: not JSON ({e.msg} at line {e.lineno})") from None
+        if not isinstance(raw, dict) or set(raw) - {"seed", "rules"}:
+            raise FaultPlanError("faults: expected an object with 'seed' and 'rules'")
+        seed = raw.get("seed", 0)
+        if isinstance(seed, bool) or not isinstance(seed, int):
+            raise FaultPlanError("faults.seed: expected an integer")
+        rules_raw = raw.get("rules", [])
+        if not isinstance(rules_raw, list):
+            raise FaultPlanError("faults.rules: expected a list")
+        return cls([_rule(r, f"faults.rules[{i}]") for i, r in enumerate(rules_raw)], seed)
+
+    def decide(self, receiver: str, key: str, step: int) -> tuple[str, int]:
+        """(DELIVER, 0), (DROP, 0) or (DELIVER, d): delivered ``d`` steps late.
+
+        ``key`` is the part below ``fleet/F/``; ``step`` the message's step or seq."""
+        for rule in self.rules:
+            if not fnmatch.fnmatchcase(key, rule.key):
+                continue
+            if rule.to is not None and receiver not in rule.to:
+                continue
+            if any(a <= step < b for a, b in rule.bursts):
+                return DROP, 0
+            if rule.drop > 0 and _uniform(self.seed, receiver, key, step) < rule.drop:
+                return DROP, 0
+            return DELIVER, rule.delay
+        return DELIVER, 0
+
+
+def _uniform(seed: int, receiver: str, key: str, step: int) -> float:
+    """A number in [0, 1) fixed by its arguments (CRC-32, not Python's salted hash)."""
+    return zlib.crc32(f"{seed}|{receiver}|{key}|{step}".encode()) / 2**32
+
+
+def _rule(raw: Any, path: str) -> FaultRule:
+    if not isinstance(raw, dict):
+        raise FaultPlanError(f"{path}: expected an object")
+    unknown = set(raw) - {"key", "drop", "bursts", "delay", "to"}
+    if unknown:
+        raise FaultPlanError(f"{path}: unknown field {sorted(unknown)[0]!r}")
+    key = raw.get("key")
+    if not isinstance(key, str) or not key:
+        raise FaultPlanError(f"{path}.key: expected a key pattern such as 'plan/*'")
+    drop = raw.get("drop", 0.0)
+    if isinstance(drop, bool) or not isinstance(drop, int | float) or not (0.0 <= drop <= 1.0):
+        raise FaultPlanError(f"{path}.drop: expected a probability in [0, 1]")
+    if isinstance(drop, float) and math.isnan(drop):
+        raise FaultPlanError(f"{path}.drop: expected a probability in [0, 1]")
+    bursts = raw.get("bursts", [])
+    if not isinstance(bursts, list) or not all(
+        isinstance(b, list) and len(b) == 2 and all(type(v) is int for v in b) and 0 <= b[0] <= b[1]
+        for b in bursts
+    ):
+        raise FaultPlanError(f"{path}.bursts: expected [[first, end), ...] step pairs")
+    delay = raw.get("delay", 0)
+    if type(delay) is not int or delay < 0:
+        raise FaultPlanError(f"{path}.delay: expected a whole number of steps >= 0")
+    to = raw.get("to")
+    if to is not None and (not isinstance(to, list) or not all(isinstance(r, str) for r in to)):
+        raise FaultPlanError(f"{path}.to: expected a list of receiving roles")
+    return FaultRule(
+        key, float(drop), tuple((b[0], b[1]) for b in bursts), delay, None if to is None else tuple(to)
+    )
