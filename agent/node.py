@@ -13,6 +13,7 @@ time is used with its last known plan, and the event is counted.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from functools import partial
 from typing import Any
@@ -221,9 +222,10 @@ class Guard:
     * A live robot whose plan of step k − 1 is in is a *neighbour*: the split rule.
     * A live robot whose latest plan is m ≥ 1 steps older (lost or late) is a
       *hazard*: a static disc around its last known committed point ĉ_j of
-      radius r_j + (m + 1)·ε, since its appended point moves at most ε a step.
+      radius r_j + (m + 1)·√2·ε, since its appended point moves at most ε per
+      axis a step.
     * A dead robot (liveliness gone; its robot side brakes it) is a hazard of
-      radius r_j + max(N, m + 1)·ε + v_max²/(2 a_max): wherever its reference was
+      radius r_j + max(N, m + 1)·√2·ε + v_max²/(2 a_max): wherever its reference was
       when it died is within that of ĉ_j, and braking adds the stopping distance.
     * At step 0 every robot is a neighbour at its scenario start, as in
       ``fleet simulate``.
@@ -235,7 +237,8 @@ class Guard:
     def __init__(self, me: str, design: Any):
         p = design.params
         self.me = me
-        self.eps = p.epsilon
+        self.eps = math.sqrt(2.0) * p.epsilon
+        """Euclidean reach of one step [m]: ȳ moves at most ε per axis (the QP's ε box)."""
         self.N = p.horizon
         self.brake = p.v_max**2 / (2.0 * p.a_max)
         self.hazard_steps = 0

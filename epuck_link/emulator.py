@@ -387,7 +387,7 @@ def main(argv: list[str] | None = None) -> int:
         return fail("--speed-limit", f"{args.speed_limit} outside 1..32767")
     if not 0 < args.rate <= 1000:
         return fail("--rate", f"{args.rate} Hz outside (0, 1000]")
-    if args.robot is not None and not ROBOT_ID.match(args.robot):
+    if args.robot is not None and not ROBOT_ID.fullmatch(args.robot):
         return fail("--robot", f"{args.robot!r} must match {ROBOT_ID.pattern}")
     start = tuple(args.start) if args.start is not None else (0.0, 0.0, 0.0)
     if args.start is None and args.scenario is not None and args.robot is not None:

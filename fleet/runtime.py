@@ -126,7 +126,10 @@ def announce(role: str, **info: Any) -> None:
 
 
 def log(role: str, msg: str) -> None:
-    print(f"[{role}] {msg}", file=sys.stderr, flush=True)
+    """One line on stderr, written whole: processes share the launcher's stderr, and
+    ``print`` writes the text and the newline separately, which interleaves lines."""
+    sys.stderr.write(f"[{role}] {msg}\n")
+    sys.stderr.flush()
 
 
 class Inbox:

@@ -90,7 +90,7 @@ def identity(role: str, robot: str | None = None) -> str:
     if role not in ROLES:
         raise SecureConfigError(f"role: {role!r} is not one of {', '.join(ROLES)}")
     if role in ("agent", "link"):
-        if robot is None or not ROBOT_ID.match(robot):
+        if robot is None or not ROBOT_ID.fullmatch(robot):
             raise SecureConfigError(f"robot: role {role!r} needs a robot id matching {ROBOT_ID.pattern}")
         if robot in (*SERVICES, ROUTER):
             raise SecureConfigError(f"robot: {robot!r} is the name of a service")

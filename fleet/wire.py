@@ -58,7 +58,7 @@ class Keys:
     """Key expressions of one fleet."""
 
     def __init__(self, fleet: str):
-        if not ROBOT_ID.match(fleet):
+        if not ROBOT_ID.fullmatch(fleet):
             raise ValueError(f"fleet name {fleet!r} must match {ROBOT_ID.pattern}")
         self.root = f"fleet/{fleet}"
 
@@ -96,7 +96,7 @@ class Keys:
     def robot_of(self, key: str) -> str:
         """The robot id at the end of a per-robot key; raises WireError otherwise."""
         rid = str(key).rsplit("/", 1)[-1]
-        if not ROBOT_ID.match(rid):
+        if not ROBOT_ID.fullmatch(rid):
             raise WireError(f"key {key!r}: bad robot id")
         return rid
 
@@ -152,7 +152,7 @@ def _int(v: Any, name: str, lo: int = 0, hi: int = 2**62) -> int:
 
 
 def _str(v: Any, name: str, pattern: re.Pattern[str] | None = None, maxlen: int = 64) -> str:
-    if not isinstance(v, str) or len(v) > maxlen or (pattern is not None and not pattern.match(v)):
+    if not isinstance(v, str) or len(v) > maxlen or (pattern is not None and not pattern.fullmatch(v)):
         raise WireError(f"{name}: bad string")
     return v
 
@@ -409,8 +409,8 @@ def decode(payload: bytes, expected: type[M], robot: str | None = None) -> M:
         raise WireError(f"payload: not msgpack ({type(e).__name__})") from None
     if not isinstance(d, dict):
         raise WireError("payload: not a map")
-    if d.get("schema") != SCHEMA_VERSION or isinstance(d.get("schema"), bool):
-        raise WireError(f"schema: version {d.get('schema')!r}, expected {SCHEMA_VERSION}")
+    if type(d.get("schema")) is not int or d["schema"] != SCHEMA_VERSION:
+        raise WireError(f"schema: version {_short(repr(d.get('schema')))}, expected {SCHEMA_VERSION}")
     if d.get("type") != expected.TYPE:
         raise WireError(f"type: {d.get('type')!r}, expected {expected.TYPE!r}")
     names = {f.name for f in fields(expected)}
@@ -430,21 +430,43 @@ def decode(payload: bytes, expected: type[M], robot: str | None = None) -> M:
     return expected(robot=rid, **checked)
 
 
-class RejectCounter:
-    """Counts rejected payloads per (source, reason); reports each source once."""
+def _short(text: str, limit: int = 160) -> str:
+    """``text`` made safe for one log line: escaped (a key or field may carry
+    newlines or control characters) and cut to ``limit`` characters."""
+    safe = text.encode("unicode_escape").decode("ascii")
+    return safe if len(safe) <= limit else safe[: limit - 1] + "…"
 
-    def __init__(self, report: Any = None):
+
+class RejectCounter:
+    """Counts rejected payloads per (source, reason); reports each source once.
+
+    Sources are chosen by the sender (any key under a subscription), so at
+    most ``max_sources`` distinct ones are reported and kept apart; the rest
+    are counted together under ``"(other sources)"`` with one last line."""
+
+    OTHER = "(other sources)"
+
+    def __init__(self, report: Any = None, max_sources: int = 32):
         self.counts: dict[tuple[str, str], int] = {}
         self._reported: set[str] = set()
         self._report = report
+        self.max_sources = max_sources
 
     def reject(self, source: str, err: WireError) -> None:
-        key = (source, err.reason.split(":", 1)[0])
+        if source not in self._reported and len(self._reported) >= self.max_sources:
+            if self.OTHER not in self._reported and self._report is not None:
+                self._report(
+                    f"rejected payloads from more than {self.max_sources} keys; further sources are counted"
+                )
+            self._reported.add(self.OTHER)
+            source = self.OTHER
+        key = (source, _short(err.reason.split(":", 1)[0], 64))
         self.counts[key] = self.counts.get(key, 0) + 1
         if source not in self._reported:
             self._reported.add(source)
             if self._report is not None:
-                self._report(f"rejected payload from {source}: {err.reason} (further rejections are counted)")
+                src, why = _short(source), _short(err.reason)
+                self._report(f"rejected payload from {src}: {why} (further rejections are counted)")
 
     @property
     def total(self) -> int:

@@ -82,8 +82,8 @@ def test_bad_fault_plans_name_the_field(text, field):
 
 # ------------------------------------------------------------------ theory
 def test_hazard_rows_keep_the_appended_points_apart_whatever_the_other_does():
-    """i's rows against a disc (ĉ_j, r_j + (m+1)ε) plus its ε box: every feasible ȳ_i is ≥ R
-    from every point j can append after m missed steps (j moves ≤ ε per step)."""
+    """i's rows against a disc (ĉ_j, r_j + (m+1)√2ε) plus its ε box: every feasible ȳ_i is ≥ R
+    from every point j can append after m missed steps (j moves ≤ ε per axis per step)."""
     rng = np.random.default_rng(11)
     eps, r = 0.0055, 0.134
     checked = 0
@@ -91,15 +91,15 @@ def test_hazard_rows_keep_the_appended_points_apart_whatever_the_other_does():
         m = int(rng.integers(1, 8))
         c_j = rng.uniform(-0.5, 0.5, 2)
         c_i = c_j + rng.normal(size=2) * 0.2
-        hz = Hazard("j", c_j, r + (m + 1) * eps)
+        hz = Hazard("j", c_j, r + (m + 1) * math.sqrt(2) * eps)
         normals, bounds = hazard_halfplanes(c_i, r, [hz], eps)
         # staying put is always feasible
         assert all(n @ c_i >= b - 1e-12 for n, b in zip(normals, bounds, strict=True))
-        if np.linalg.norm(c_i - c_j) < 2 * r + (m + 1) * eps:
+        if np.linalg.norm(c_i - c_j) < 2 * r + (m + 1) * math.sqrt(2) * eps:
             continue  # already inside the margin: the row only forbids approaching
-        # j's true appended point: m + 1 moves of ≤ ε (∞-norm box) from ĉ_j, worst case towards i
-        for _ in range(20):
-            y_j = c_j + rng.uniform(-1, 1, 2) * (m + 1) * eps / math.sqrt(2)
+        # j's true appended point: m + 1 moves of ≤ ε per axis from ĉ_j, corners included
+        for n in range(20):
+            y_j = c_j + (rng.choice([-1.0, 1.0], 2) if n < 4 else rng.uniform(-1, 1, 2)) * (m + 1) * eps
             y_i = c_i + rng.uniform(-1, 1, 2) * eps
             if all(n @ y_i >= b - 1e-12 for n, b in zip(normals, bounds, strict=True)):
                 assert np.linalg.norm(y_i - y_j) >= 2 * r - 1e-9
@@ -196,14 +196,15 @@ def test_guard_grows_stale_discs_by_epsilon_and_caps_dead_ones():
     nbs, hz = g.classify(8, ["r2"], {"r2": old}, {"r2": old}, {"r2"}, starts)
     assert [n.id for n in nbs] == ["r2"] and not hz  # fresh: the split rule
     nbs, hz = g.classify(12, ["r2"], {"r2": None}, {"r2": old}, {"r2"}, starts)
-    assert not nbs and hz[0].radius == pytest.approx(design.footprint + 5 * p.epsilon)  # m = 4 missed
+    reach = math.sqrt(2) * p.epsilon  # ε per axis per step
+    assert not nbs and hz[0].radius == pytest.approx(design.footprint + 5 * reach)  # m = 4 missed
     assert np.array_equal(hz[0].centre, [0.3, 0.2])
     nbs, hz = g.classify(12, ["r2"], {"r2": None}, {"r2": old}, set(), starts)
     brake = p.v_max**2 / (2 * p.a_max)
-    assert hz[0].radius == pytest.approx(design.footprint + p.horizon * p.epsilon + brake)
+    assert hz[0].radius == pytest.approx(design.footprint + p.horizon * reach + brake)
     nbs, hz = g.classify(9, ["r3"], {"r3": None}, {"r3": None}, {"r3"}, starts)
     assert np.array_equal(hz[0].centre, starts["r3"].last_point)  # never heard: its start
-    assert hz[0].radius == pytest.approx(design.footprint + 10 * p.epsilon)  # steps 0..9 appended
+    assert hz[0].radius == pytest.approx(design.footprint + 10 * reach)  # steps 0..9 appended
 
 
 # -------------------------------------------------------------- processes

@@ -180,3 +180,18 @@ def test_fuzz_decoders_never_raise_anything_but_wire_error(name):
             if isinstance(v, np.ndarray):
                 assert np.all(np.isfinite(v))
     assert accepted < 10_000  # the generator really produced bad payloads
+
+
+def test_reject_reports_are_capped_escaped_and_short():
+    """A sender chooses the key and the payload: the counter reports at most max_sources
+    keys (then one line), escapes newlines and cuts long reasons, and still counts all."""
+    from fleet.wire import RejectCounter, WireError
+
+    lines: list[str] = []
+    rc = RejectCounter(report=lines.append, max_sources=4)
+    for i in range(50):
+        rc.reject(f"fleet/lab/plan/x{i}\nFORGED", WireError("fields: " + "z" * 5000))
+    assert rc.total == 50
+    assert len(lines) == 5 and "more than 4 keys" in lines[-1]
+    assert all("\n" not in ln and len(ln) < 400 for ln in lines)
+    assert "\\nFORGED" in lines[0]

@@ -264,7 +264,7 @@ def main(argv: list[str] | None = None) -> int:
                 x, y, th = (float(v) for v in world.pose(rid))
             pubs[rid][2].put(Truth(robot=rid, seq=k, t=k * p.Ts, x=x, y=y, theta=th).encode())
         clock.put(Tick(robot=role, step=k, t=k * p.Ts, stop=True, misses=misses).encode())
-        log(role, f"run ended at step {k}; {misses} deadline misses")
+        log(role, f"run ended at step {k}; {misses} deadline misses, {inbox.rejects.total} rejected payloads")
     finally:
         for s in subs:
             s.undeclare()
