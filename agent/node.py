@@ -15,6 +15,8 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+import threading
+import time
 from functools import partial
 from typing import Any
 
@@ -86,19 +88,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     keys = Keys(args.fleet)
     me = args.robot
-    session = open_session(args)
-    inbox = Inbox(keys, role, fault_plan(args))
-    subs = [
-        inbox.subscribe(session, keys.pose(me), Pose, keep=True),
-        inbox.subscribe(session, keys.odom(me), Odom, keep=True),
-        inbox.subscribe(session, keys.plan(), Plan, keep=True, remote=True),
-        inbox.subscribe(session, keys.goal(me), Goal),
-        inbox.subscribe(session, keys.clock, Tick),
-        inbox.watch_liveliness(session),
-    ]
-    pub_plan = publisher(session, keys.plan(me))
-    pub_cmd = publisher(session, keys.cmd(me))
-    token = session.liveliness().declare_token(keys.alive(me))
+    link = _Link(args, keys, me, role)
+    inbox, pub_cmd, pub_plan = link.inbox, link.pub_cmd, link.pub_plan
     announce("agent", robot=me)
     others = [r for r in ids if r != me]
     starts = {
@@ -117,11 +108,21 @@ def main(argv: list[str] | None = None) -> int:
     goal_seen: Goal | None = None
     last: dict[str, Plan | None] = {}
     lockstep = args.clock == "lockstep"
+    silent_since = time.monotonic()
     try:
         while True:
-            if not inbox.wait(partial(_tick_at_least, inbox, k), args.timeout):
-                log(role, f"no tick {k} within {args.timeout} s; stopping")
-                return 1
+            if not inbox.wait(partial(_tick_at_least, inbox, k), 1.0):
+                with inbox.cond:
+                    now = time.monotonic()
+                    seen = {f"{t}/{r}": round(now - at, 1) for (t, r), at in inbox.arrived.items()}
+                    alive = sorted(inbox.live)
+                if now - silent_since >= args.timeout:
+                    log(
+                        role, f"no tick {k} within {args.timeout} s; stopping (live {alive}; s since: {seen})"
+                    )
+                    return 1
+                continue
+            silent_since = time.monotonic()
             tick = inbox.get(Tick, "tracker")
             assert tick is not None
             if tick.stop:
@@ -209,11 +210,43 @@ def main(argv: list[str] | None = None) -> int:
             f"kept clear of as static discs ({guard.transitions} changes), {inbox.injected} injected faults, "
             f"{inbox.rejects.total} rejected payloads",
         )
-        token.undeclare()
-        for s in subs:
-            s.undeclare()
-        session.close()
+        link.close()
     return 0
+
+
+class _Link:
+    """The agent's side of Zenoh: session, subscriptions, publishers, liveliness token."""
+
+    def __init__(self, args: argparse.Namespace, keys: Keys, me: str, role: str):
+        self.args, self.keys, self.me, self.role = args, keys, me, role
+        self.open()
+
+    def open(self) -> None:
+        args, keys, me = self.args, self.keys, self.me
+        self.session = open_session(args)
+        self.inbox = inbox = Inbox(keys, self.role, fault_plan(args))
+        self.subs = [
+            inbox.subscribe(self.session, keys.pose(me), Pose, keep=True),
+            inbox.subscribe(self.session, keys.odom(me), Odom, keep=True),
+            inbox.subscribe(self.session, keys.plan(), Plan, keep=True, remote=True),
+            inbox.subscribe(self.session, keys.goal(me), Goal),
+            inbox.subscribe(self.session, keys.clock, Tick),
+            inbox.watch_liveliness(self.session),
+        ]
+        self.pub_plan = publisher(self.session, keys.plan(me))
+        self.pub_cmd = publisher(self.session, keys.cmd(me))
+        # A peer that joins a running fleet drops what it publishes until it has
+        # heard the others' subscriptions; the tracker waits for the commands of
+        # every live agent, so become live only once the commands have a taker.
+        if not _wait_matching(self.pub_cmd, args.timeout):
+            log(self.role, f"nobody subscribes to {keys.cmd(me)} within {args.timeout} s; going live anyway")
+        self.token = self.session.liveliness().declare_token(keys.alive(me))
+
+    def close(self) -> None:
+        self.token.undeclare()
+        for sub in self.subs:
+            sub.undeclare()
+        self.session.close()
 
 
 class Guard:
@@ -313,6 +346,16 @@ def goal_problem(scn: Any, footprint: float, goal: np.ndarray, plans: list[Plan]
             need = footprint + pl.footprint
             return f"{d:.3f} m from {pl.robot}'s goal, closer than the footprints allow ({need:.3f} m)"
     return None
+
+
+def _wait_matching(pub: Any, timeout: float) -> bool:
+    """Wait until ``pub`` has a matching subscriber, for at most ``timeout`` [s]."""
+    matched = threading.Event()
+    listener = pub.declare_matching_listener(lambda status: matched.set() if status.matching else None)
+    try:
+        return bool(pub.matching_status) or matched.wait(timeout)
+    finally:
+        listener.undeclare()
 
 
 def _measured(inbox: Inbox, me: str, k: int) -> bool:
