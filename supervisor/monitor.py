@@ -57,6 +57,8 @@ class Monitor:
         self.robot: dict[str, dict[str, Any]] = {
             r: {"solves": 0, "failures": 0, "tube_exits": 0, "status": {}, "solve_ms": []} for r in self.ids
         }
+        self.skipped_steps = 0
+        """Steps whose ground truth was lost on the way, not judged."""
         self.last_plans: dict[str, Plan] = {}
         """The latest plan of each robot seen so far."""
         self.pose_error: dict[str, list[float]] = {r: [0.0, 0.0] for r in self.ids}
@@ -182,6 +184,7 @@ class Monitor:
             "arena_violations": self.arena_violations,
             "all_goals_reached": all(v["reached_goal"] for v in robots.values()),
             "deadline_misses": 0,
+            "unjudged_steps": self.skipped_steps,
             "robots": robots,
         }
 
@@ -213,23 +216,33 @@ def _plan_step(inbox: Inbox, ids: list[str], k: int) -> dict[str, Plan] | None:
         if r not in inbox.live and latest is not None:
             continue  # dead: no more plans
         return None
-    return plans if plans else None
+    return plans
 
 
-def _step_in(inbox: Inbox, ids: list[str], k: int) -> bool:
-    """Step k's ground truth and camera poses are all in (the final step has no camera pose)."""
-    if any(inbox.get(Truth, r, k) is None for r in ids):
-        return False
+def _step_in(inbox: Inbox, ids: list[str], k: int) -> str:
+    """``"in"`` when step k's ground truth is all in and each camera pose is in or
+    will not come (a later one arrived; the final step has none); ``"skip"`` when a
+    robot's truth of step k will not come (a later one arrived: lost); else ``"wait"``."""
+
+    def later(typ: type[Pose], r: str) -> bool:
+        msg = inbox.get(typ, r)
+        return msg is not None and msg.seq > k
+
+    missing = [r for r in ids if inbox.get(Truth, r, k) is None]
+    if missing:
+        return "skip" if all(later(Truth, r) for r in missing) else "wait"
     tick = inbox.get(Tick, "tracker")
     final = tick is not None and tick.stop and k >= tick.step
-    return final or all(inbox.get(Pose, r, k) is not None for r in ids)
+    if final or all(inbox.get(Pose, r, k) is not None or later(Pose, r) for r in ids):
+        return "in"
+    return "wait"
 
 
 def _progress(inbox: Inbox, ids: list[str], k_truth: int, k_plan: int, stopping: dict[str, bool]) -> bool:
     """Something to process: a full step of truth or plans, or SIGTERM."""
     return (
         stopping["signal"]
-        or all(inbox.get(Truth, r, k_truth) is not None for r in ids)
+        or _step_in(inbox, ids, k_truth) != "wait"
         or _plan_step(inbox, ids, k_plan) is not None
     )
 
@@ -288,18 +301,25 @@ def main(argv: list[str] | None = None) -> int:
             inbox.wait(partial(_progress, inbox, ids, k_truth, k_plan, stopping), 0.2)
             # Take the complete steps under the lock; log them outside it, so the
             # Zenoh callbacks are never held up by Rerun.
-            truths: list[tuple[dict[str, Any], dict[str, Any]]] = []
+            truths: list[tuple[dict[str, Any], dict[str, Any]] | None] = []
             plan_steps: list[dict[str, Any]] = []
             with inbox.cond:
-                while _step_in(inbox, ids, k_truth + len(truths)):
+                while (state := _step_in(inbox, ids, k_truth + len(truths))) != "wait":
                     kk = k_truth + len(truths)
+                    if state == "skip":
+                        truths.append(None)  # lost on the way: this step is not judged
+                        continue
                     measured = {r: inbox.get(Pose, r, kk) for r in ids}
                     truths.append(({r: inbox.get(Truth, r, kk) for r in ids}, measured))
                 while (step_plans := _plan_step(inbox, ids, k_plan + len(plan_steps))) is not None:
                     plan_steps.append(step_plans)
-            for truth, measured in truths:
-                mon.truth(truth, measured)  # type: ignore[arg-type]
-                recorder.truth(k_truth, p.Ts, truth, measured)  # type: ignore[arg-type]
+            for item in truths:
+                if item is not None:
+                    truth, measured = item
+                    mon.truth(truth, measured)  # type: ignore[arg-type]
+                    recorder.truth(k_truth, p.Ts, truth, measured)  # type: ignore[arg-type]
+                else:
+                    mon.skipped_steps += 1
                 k_truth += 1
             for plans in plan_steps:
                 mon.plans(plans)  # type: ignore[arg-type]
