@@ -224,6 +224,18 @@ def _calibrate_arguments(ap: argparse.ArgumentParser) -> None:
     add_arguments(ap)
 
 
+def _bench_arguments(ap: argparse.ArgumentParser) -> None:
+    from fleet.bench import add_arguments
+
+    add_arguments(ap)
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from fleet.bench import run
+
+    return int(run(args))
+
+
 def _markers_arguments(ap: argparse.ArgumentParser) -> None:
     from fleet.markers import add_arguments
 
@@ -303,6 +315,11 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--fleet", default="lab", help="fleet name in the Zenoh keys (default lab)")
     g.add_argument("--timeout", type=float, default=30.0, help="wait limit [s]")
     g.set_defaults(func=cmd_goal)
+    b = sub.add_parser(
+        "bench", help="step times, solvers, real-time factors, latency and memory (prints, writes JSON)"
+    )
+    _bench_arguments(b)
+    b.set_defaults(func=cmd_bench)
     mk = sub.add_parser("markers", help="write the scenario's ArUco markers as a printable PDF (and PNGs)")
     _markers_arguments(mk)
     mk.set_defaults(func=cmd_markers)

@@ -193,6 +193,8 @@ def run_fleet(
         return 1, "process failed: " + ", ".join(f"{r} (exit {codes[r]})" for r in crashed), summary
     if summary is None:
         return 1, "supervisor wrote no summary", None
+    if not summary.get("completed", False):
+        return 1, f"the supervisor judged only {summary['steps']} steps of the run", summary
     if summary["collisions"]:
         return 1, f"{summary['collisions']} collision samples", summary
     missing = [r for r, v in summary["robots"].items() if not v["reached_goal"]]

@@ -203,20 +203,24 @@ def _run_wall_time(inbox: Inbox, fallback: float) -> float:
 def _plan_step(inbox: Inbox, ids: list[str], k: int) -> dict[str, Plan] | None:
     """The plans of step k once every robot's is in or will never come: a robot
     whose agent has already sent a later plan (it skipped step k, realtime) or is
-    dead is left out.  None while some plan of step k may still arrive."""
+    dead is left out.  None while some plan of step k may still arrive, and once
+    no robot has reached step k (every agent gone: nothing left to judge)."""
     plans: dict[str, Plan] = {}
+    reached = False
     for r in ids:
         pl = inbox.get(Plan, r, k)
         if pl is not None:
             plans[r] = pl
+            reached = True
             continue
         latest = inbox.get(Plan, r)
         if latest is not None and latest.step > k:
-            continue  # skipped
+            reached = True
+            continue  # skipped, or its plan of step k was lost
         if r not in inbox.live and latest is not None:
             continue  # dead: no more plans
         return None
-    return plans
+    return plans if reached else None
 
 
 def _step_in(inbox: Inbox, ids: list[str], k: int) -> str:

@@ -1,0 +1,95 @@
+"""``fleet bench``: the scale and performance benchmark (issue 5).
+
+The harness is ``benchmarks/bench_scale.py`` in the source tree (it shares its
+instrumentation with ``benchmarks/bench_step.py``); this module is the command's
+thin shell.  :func:`add_arguments` declares the options without importing
+anything heavy (building the ``fleet`` parser stays cheap), and :func:`run`
+loads the harness from the checkout and runs it.  ``python -m fleet.bench``
+does the same without the ``fleet`` entry point.  What the figures mean:
+benchmarks/README.md, "Scale and performance".
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import os
+import sys
+from pathlib import Path
+from types import ModuleType
+
+HARNESS = Path(__file__).resolve().parent.parent / "benchmarks" / "bench_scale.py"
+"""The harness in the source checkout this package is installed from (editable install)."""
+
+
+class HarnessMissing(RuntimeError):
+    """The package was installed without its source tree, so there is no harness to run."""
+
+
+def _harness() -> ModuleType:
+    """The harness module, loaded once from :data:`HARNESS`."""
+    if not HARNESS.is_file():
+        raise HarnessMissing(f"{HARNESS} not found: fleet bench needs the source checkout (pip install -e .)")
+    os.environ["OMP_NUM_THREADS"] = "1"  # before the harness imports proxsuite
+    mod = sys.modules.get("bench_scale")
+    if mod is None or getattr(mod, "__file__", None) != str(HARNESS):
+        spec = importlib.util.spec_from_file_location("bench_scale", HARNESS)
+        assert spec is not None and spec.loader is not None
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules["bench_scale"] = mod
+        spec.loader.exec_module(mod)
+    return mod
+
+
+def add_arguments(ap: argparse.ArgumentParser) -> None:
+    """Declare the options of ``fleet bench`` (and of ``benchmarks/bench_scale.py``) on ``ap``.
+
+    Fleet sizes name shipped scenes: 3 paper_three_robots, 8 swap_8, 16 swap_16, 32 swap_32."""
+    ap.add_argument(
+        "--quick", action="store_true", help="tiny configuration (< 1 min): every figure, few samples"
+    )
+    ap.add_argument("--json", metavar="OUT.json", help="where to write the figures (default DIR/bench.json)")
+    ap.add_argument(
+        "--out", metavar="DIR", default="out/bench", help="run directories and JSON (default out/bench)"
+    )
+    ap.add_argument("--seed", type=int, default=0, help="seed of the step grid and the recorded QPs")
+    ap.add_argument(
+        "--steps", type=int, default=None, help="steps per step-grid cell (default 600; quick 12)"
+    )
+    ap.add_argument(
+        "--lockstep", default=None, metavar="N,N,…",
+        help="fleet sizes of the lockstep real-time-factor runs (default 3,8,16,32; quick 3)",
+    )  # fmt: skip
+    ap.add_argument(
+        "--realtime", default=None, metavar="N,N,…",
+        help="fleet sizes of the realtime runs (default 16,32; quick 3)",
+    )  # fmt: skip
+    ap.add_argument(
+        "--lockstep-s", type=float, default=None, metavar="S",
+        help="simulated seconds per lockstep run (default 40; quick 3)",
+    )  # fmt: skip
+    ap.add_argument(
+        "--realtime-s", type=float, default=None, metavar="S",
+        help="seconds per realtime run at Ts (default 60; quick 3)",
+    )  # fmt: skip
+    ap.add_argument("--no-fleet", action="store_true", help="skip the fleet runs (figures [4] and [5])")
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the benchmark; 0 once the tables are printed and the JSON written, 2 without a harness."""
+    try:
+        mod = _harness()
+    except HarnessMissing as e:
+        print(f"fleet: error: {e}", file=sys.stderr)
+        return 2
+    return int(mod.run(args))
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="fleet bench", description=__doc__.splitlines()[0])
+    add_arguments(ap)
+    return run(ap.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

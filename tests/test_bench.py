@@ -1,0 +1,194 @@
+"""``fleet bench`` (fleet/bench.py → benchmarks/bench_scale.py): the tiny ``--quick`` run
+completes, and its JSON has every figure, finite and of the right sign.
+
+No speed threshold is checked here: the figures depend on the machine's load.
+What is checked besides the schema is correctness the benchmark reports on
+the way: ProxSuite agrees with DAQP on the applied input, and the fleet runs
+have no collision.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+ENV = {**os.environ, "OMP_NUM_THREADS": "1", "RERUN_ANALYTICS": "0", "PYTHONIOENCODING": "utf-8"}
+
+
+def _command() -> list[str]:
+    """``-m fleet.cli bench`` once the subcommand is registered, else ``-m fleet.bench`` (same code)."""
+    from fleet.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return ["-m", "fleet.cli", "bench"] if "bench" in sub.choices else ["-m", "fleet.bench"]
+
+
+def _reject_constant(name: str) -> Any:
+    raise ValueError(f"non-standard JSON constant {name}")
+
+
+def positive(x: Any, what: str) -> None:
+    assert isinstance(x, int | float) and not isinstance(x, bool), f"{what}: expected a number, got {x!r}"
+    assert math.isfinite(x) and x > 0, f"{what}: expected finite > 0, got {x!r}"
+
+
+def count(x: Any, what: str) -> None:
+    assert isinstance(x, int) and not isinstance(x, bool) and x >= 0, f"{what}: expected a count, got {x!r}"
+
+
+def percentiles(s: dict[str, Any], what: str) -> None:
+    for k in ("p50", "p99", "max"):
+        positive(s[k], f"{what}.{k}")
+    count(s["n"], f"{what}.n")
+    assert s["n"] > 0, f"{what}: no samples"
+    assert s["p50"] <= s["p99"] <= s["max"], f"{what}: p50 ≤ p99 ≤ max violated: {s}"
+
+
+@pytest.fixture(scope="module")
+def quick(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> tuple[subprocess.CompletedProcess[str], dict[str, Any]]:
+    out = tmp_path_factory.mktemp("bench")
+    proc = subprocess.run(
+        [sys.executable, *_command(), "--quick", "--out", str(out), "--json", str(out / "b.json")],
+        cwd=ROOT, env=ENV, capture_output=True, text=True, encoding="utf-8", timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    data = json.loads((out / "b.json").read_text(), parse_constant=_reject_constant)
+    return proc, data
+
+
+def test_quick_prints_the_tables(quick: tuple[subprocess.CompletedProcess[str], dict[str, Any]]) -> None:
+    proc, _ = quick
+    assert "Traceback" not in proc.stdout + proc.stderr
+    for heading in (
+        "[1] per-agent step time",
+        "[2] solvers",
+        "[3] wire codec",
+        "[4] fleet run",
+        "[5] realtime",
+    ):
+        assert heading in proc.stdout, f"missing {heading!r} in\n{proc.stdout}"
+    assert "load average at start" in proc.stdout
+
+
+def test_quick_json_header(quick: tuple[subprocess.CompletedProcess[str], dict[str, Any]]) -> None:
+    _, d = quick
+    assert d["schema"] == "fleet-bench/1"
+    assert d["quick"] is True
+    for key in ("loadavg_at_start",):
+        la = d["machine"][key]
+        assert len(la) == 3 and all(isinstance(v, int | float) and v >= 0 for v in la)
+    assert len(d["loadavg_at_end"]) == 3
+    positive(d["machine"]["nproc"], "nproc")
+    positive(d["total_wall_s"], "total_wall_s")
+
+
+def test_quick_step_grid(quick: tuple[subprocess.CompletedProcess[str], dict[str, Any]]) -> None:
+    _, d = quick
+    cells = {(c["horizon"], c["neighbours"]): c for c in d["step_grid"]}
+    assert set(cells) == {(n, k) for n in (10, 20, 40) for k in (1, 8, 32)}
+    for (n, k), c in cells.items():
+        percentiles(c["step_ms"], f"step N={n} nb={k}")
+        percentiles(c["solve_ms"], f"solve N={n} nb={k}")
+        assert c["qp_variables"] == 2 * n + 6
+        # The nearest ring (up to 6) of lattice neighbours is within reach: its rows are in the QP.
+        assert c["mean_coordination_rows"] == pytest.approx(min(k, 6))
+        count(c["fallbacks"], "fallbacks")
+        assert c["step_ms"]["p50"] >= c["solve_ms"]["p50"]
+
+
+def test_quick_solvers(quick: tuple[subprocess.CompletedProcess[str], dict[str, Any]]) -> None:
+    _, d = quick
+    s = d["solvers"]
+    positive(s["qps"], "qps")
+    v = s["variants"]
+    assert "proxsuite" in v
+    pytest.importorskip("daqp")
+    assert s["reference"] == "daqp_model" and "daqp_model" in v
+    for name, row in v.items():
+        percentiles(row["ms"], name)
+        positive(row["ratio_p50"], f"{name}.ratio_p50")
+        positive(row["ratio_p99"], f"{name}.ratio_p99")
+        count(row["failures"], f"{name}.failures")
+    assert v["daqp_model"]["ratio_p50"] == pytest.approx(1.0)
+    # Every ProxSuite variant solves every QP and applies the same input as DAQP.
+    for name, row in v.items():
+        if name.startswith("proxsuite"):
+            assert row["failures"] == 0, name
+            assert row["max_dv_first_input"] < 1e-3, name
+    positive(s["proxsuite_over_daqp_p50"], "proxsuite_over_daqp_p50")
+
+
+def test_quick_wire(quick: tuple[subprocess.CompletedProcess[str], dict[str, Any]]) -> None:
+    _, d = quick
+    w = d["wire"]
+    assert set(w["per_message_us"]) == {"plan", "pose", "odom", "tick", "cmd"}
+    for name, m in w["per_message_us"].items():
+        for k in ("bytes", "encode", "decode"):
+            positive(m[k], f"wire.{name}.{k}")
+    per = w["agent_codec_ms_per_step"]
+    assert [float(per[n]) for n in ("3", "8", "16", "32")] == sorted(
+        float(per[n]) for n in ("3", "8", "16", "32")
+    )
+
+
+def test_quick_fleet_runs(quick: tuple[subprocess.CompletedProcess[str], dict[str, Any]]) -> None:
+    _, d = quick
+    runs = d["fleet_runs"]
+    assert {r["clock"] for r in runs} == {"lockstep", "realtime"}
+    for r in runs:
+        what = f"{r['clock']} {r['robots']}"
+        assert "error" not in r, f"{what}: {r.get('error')}: {r['verdict']}"
+        for k in ("steps", "sim_s", "wall_s", "rtf"):
+            positive(r[k], f"{what}.{k}")
+        count(r["deadline_misses"], f"{what}.deadline_misses")
+        assert 0.0 <= r["miss_rate"] <= 1.0
+        assert r["collisions"] == 0, what
+        for k in ("agent_p50", "agent_max", "agent_peak_max", "tracker", "supervisor"):
+            positive(r["rss_mb"][k], f"{what}.rss_mb.{k}")
+        assert r["rss_mb"]["agents_sampled"] == r["robots"]
+        for k in ("cores_used", "agents_cores", "agent_ms_per_step", "window_s"):
+            positive(r["cpu"][k], f"{what}.cpu.{k}")
+        percentiles(r["latency"]["pose_to_command_ms"], f"{what} pose→command")
+        percentiles(r["latency"]["tick_to_command_ms"], f"{what} tick→command")
+    positive(d["lockstep_rtf"]["3"], "lockstep_rtf[3]")
+    positive(d["rss_mb_per_agent"]["p50"], "rss_mb_per_agent.p50")
+    assert d["latency"], "no latency figures"
+    assert d["goals"] and all(isinstance(g["met"], bool) for g in d["goals"])
+
+
+def test_hex_lattice_neighbours_keep_their_distance() -> None:
+    """The synthetic neighbours of the step grid: the 32 nearest lattice points are ≥ 1
+    apart (times the spacing r_i + r_j + √2·ε), the first ring exactly 6 at distance 1."""
+    from fleet.bench import _harness
+
+    pts = _harness().hex_offsets(32)
+    assert pts.shape == (32, 2)
+    r = np.hypot(pts[:, 0], pts[:, 1])
+    assert np.all(np.diff(r) >= -1e-12)
+    assert np.sum(np.isclose(r, 1.0)) == 6
+    d = np.hypot(*(pts[:, None, :] - pts[None, :, :]).transpose(2, 0, 1))
+    assert d[~np.eye(32, dtype=bool)].min() == pytest.approx(1.0)
+
+
+def test_swap_32_file_matches_generator() -> None:
+    from fleet.scenario import load_scenario, parse_scenario
+    from fleet.scenes import COMPACT_CONTROLLER, antipodal_swap
+
+    from_file = load_scenario(ROOT / "scenarios" / "swap_32.toml")
+    data = antipodal_swap(32, radius=1.55, arena=(-1.8, 1.8, -1.8, 1.8), duration=300.0)
+    data["controller"] = dict(COMPACT_CONTROLLER)
+    generated = parse_scenario(data)
+    assert dataclasses.replace(from_file, source="") == dataclasses.replace(generated, source="")
