@@ -238,10 +238,11 @@ def test_lockstep_run_with_lost_plans_and_poses_is_safe_and_deterministic(tmp_pa
     assert "r2: its plan is late or lost; kept clear of as a growing static disc" in err
     injected = dict(re.findall(r"\[agent (r\d)\] stopped after .*?, (\d+) injected faults", err))
     assert set(injected) == {"r1", "r2", "r3"} and all(int(n) > 20 for n in injected.values()), injected
-    # The trajectories are the same; the supervisor's pairing of a lost plan with the last
-    # one it had depends on arrival order, which moves the minimum in the last bits only.
-    assert (s["steps"], s["min_distance_m"]) == (s2["steps"], s2["min_distance_m"])
-    assert s["min_reference_separation_m"] == pytest.approx(s2["min_reference_separation_m"], abs=1e-12)
+    # The same run twice: same steps, and the same figures to 1e-12 (a run that depended on
+    # timing would differ by millimetres; seen under load: a difference in the last bit).
+    assert s["steps"] == s2["steps"]
+    for key in ("min_distance_m", "min_reference_separation_m"):
+        assert s[key] == pytest.approx(s2[key], abs=1e-12)
 
 
 def _launch(
