@@ -22,13 +22,34 @@ ROOT = Path(__file__).resolve().parent.parent
 SCENES = ["paper_three_robots", "swap_8", "swap_16"]
 
 
+def machine_speed(reps: int = 2000) -> float:
+    """One look-ahead plant step (20 substeps, scalar Python) [µs]: a fixed yardstick of how
+    fast this machine runs Python right now (the project's machine measured 27 µs and, later
+    the same day, 53–57 µs), printed with the real-time factors so runs can be compared."""
+    import numpy as np
+
+    from agent.models import LookaheadInnerLoop, UnicyclePlant
+    from agent.params import WheelGeometry
+
+    plant = UnicyclePlant(np.array([0.1, 0.2, 0.3]), LookaheadInnerLoop(0.04), WheelGeometry())
+    a = np.array([0.1, -0.1])
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        plant.step(a, 0.1)
+    return (time.perf_counter() - t0) / reps * 1e6
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", help="write the figures to this file")
     ap.add_argument("--scenes", nargs="*", default=SCENES)
     args = ap.parse_args()
     env = {**os.environ, "OMP_NUM_THREADS": "1", "RERUN_ANALYTICS": "0"}
-    print(f"fleet run, lockstep, nproc {os.cpu_count()}, python {sys.version.split()[0]}")
+    speed = machine_speed()
+    print(
+        f"fleet run, lockstep, nproc {os.cpu_count()}, python {sys.version.split()[0]}, "
+        f"load {os.getloadavg()[0]:.1f}, yardstick (one plant step) {speed:.0f} µs"
+    )
     print(
         f"{'scenario':<20}{'robots':>7}{'steps':>7}{'sim s':>8}{'wall s':>8}{'RTF':>7}{'total s':>9}  verdict"
     )
@@ -66,6 +87,7 @@ def main() -> int:
                 "rtf": rtf,
                 "total_s": total,
                 "ok": res.returncode == 0,
+                "yardstick_us": speed,
             }
         )
         print(
