@@ -301,7 +301,9 @@ def test_killed_agent_is_braked_avoided_and_rejoins_when_restarted(tmp_path):
         os.kill(_agent_pid(launcher.pid, "r2"), signal.SIGKILL)
         _until(lines, "[tracker] step 100", log)
         restarted = subprocess.Popen(
-            [sys.executable, "-m", "agent", "--scenario", str(scenario), "--robot", "r2", "--connect", hub],
+            # --timeout outlasts a Zenoh stall (below), so the new agent does not give up first.
+            [sys.executable, "-m", "agent", "--scenario", str(scenario), "--robot", "r2", "--connect", hub,
+             "--timeout", "90"],
             cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
         )  # fmt: skip
         launcher.wait(timeout=300)

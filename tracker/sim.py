@@ -182,6 +182,7 @@ def main(argv: list[str] | None = None) -> int:
         misses = 0
         last_a = {rid: np.zeros(2) for rid in ids}
         quiet = dict.fromkeys(ids, 0)
+        heard: set[str] = set()
         braking = dict.fromkeys(ids, False)
         realtime = args.clock == "realtime"
         t_start = time.monotonic()
@@ -192,9 +193,17 @@ def main(argv: list[str] | None = None) -> int:
             # The tick first, then each robot's pose and odometry (an agent starts as
             # soon as its own are in), then the truth, which only the supervisor reads.
             with inbox.cond:
-                # Who answers this step: the agents live now.  One that (re)joins
-                # during the step takes part from the next tick on.
-                answering = [r for r in ids if r in inbox.live]
+                # Who answers this step: the live agents that have been heard since they
+                # came up (at step 0, all of them).  One that (re)joins is waited for only
+                # once a command of it arrived: before that it may not hear the clock yet
+                # (a joining Zenoh peer can miss the first samples), and waiting on it
+                # would stall the fleet.
+                heard &= inbox.live
+                for r in ids:
+                    cmd = inbox.get(Command, r)
+                    if r in inbox.live and cmd is not None and cmd.step >= k - 1:
+                        heard.add(r)
+                answering = [r for r in ids if r in inbox.live and (k == 0 or r in heard)]
             clock.put(Tick(robot=role, step=k, t=t, stop=False, misses=misses).encode())
             with inbox.cond:
                 truths = {rid: world.pose(rid).copy() for rid in ids}
