@@ -891,7 +891,8 @@ def _wait_port(port: int, timeout: float, proc: subprocess.Popen[Any]) -> bool:
     while time.monotonic() < deadline and proc.poll() is None:
         with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", port), timeout=0.2):
             return True
-        time.sleep(0.1)
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            proc.wait(timeout=0.1)  # paces the retries, and notices at once if the launcher died
     return False
 
 
