@@ -36,6 +36,13 @@ def _plan(robot="r1", n=20):
     )  # fmt: skip
 
 
+def _with(a, at, value):
+    """A copy of ``a`` with ``a[at] = value``."""
+    b = a.copy()
+    b[at] = value
+    return b
+
+
 SAMPLES = {
     "pose": Pose(robot="r1", seq=3, t=0.3, x=0.1, y=-0.2, theta=1.5),
     "truth": Truth(robot="r1", seq=3, t=0.3, x=0.1, y=-0.2, theta=1.5),
@@ -91,6 +98,13 @@ BAD = [
     ("NaN in array", lambda: _mutate(SAMPLES["goal"], goal=encode_array(np.array([np.nan, 0.0]))), Goal,
      "goal"),
     ("wrong shape", lambda: _mutate(SAMPLES["goal"], goal=encode_array(np.zeros(3))), Goal, "goal"),
+    ("-inf mid-array", lambda: _mutate(
+        _plan(), nominal=encode_array(_with(_plan().nominal, (9, 1), -np.inf))
+    ), Plan, "nominal"),
+    ("NaN in float32", lambda: _mutate(_plan(), committed={"dtype": "<f4", "shape": [2, 2],
+     "data": np.array([0, 0, np.nan, 0], "<f4").tobytes()}), Plan, "committed"),
+    ("sum overflows", lambda: _mutate(_plan(), committed=encode_array(np.full((20, 2), 1e308))), Plan,
+     "committed"),
     ("huge array", lambda: _mutate(_plan(), committed=encode_array(np.zeros((1000, 2)))), Plan, "committed"),
     ("short data", lambda: _mutate(_plan(), committed={"dtype": "<f8", "shape": [20, 2], "data": b"\0" * 8}),
      Plan, "committed"),
