@@ -204,7 +204,14 @@ def _plan_step(inbox: Inbox, ids: list[str], k: int) -> dict[str, Plan] | None:
     """The plans of step k once every robot's is in or will never come: a robot
     whose agent has already sent a later plan (it skipped step k, realtime) or is
     dead is left out.  None while some plan of step k may still arrive, and once
-    no robot has reached step k (every agent gone: nothing left to judge)."""
+    no robot has reached step k (every agent gone: nothing left to judge).
+
+    Only steps the clock has reached count: a plan is committed after its
+    step's tick, so one that claims a later step (a forged or corrupt far-future
+    step) neither makes step k judgeable nor marks another step as skipped."""
+    tick = inbox.get(Tick, "tracker")
+    if tick is None or k > tick.step:
+        return None
     plans: dict[str, Plan] = {}
     reached = False
     for r in ids:
@@ -213,7 +220,7 @@ def _plan_step(inbox: Inbox, ids: list[str], k: int) -> dict[str, Plan] | None:
             plans[r] = pl
             reached = True
             continue
-        latest = inbox.get(Plan, r)
+        latest = inbox.newest(Plan, r, tick.step)
         if latest is not None and latest.step > k:
             reached = True
             continue  # skipped, or its plan of step k was lost

@@ -1,0 +1,66 @@
+"""The supervisor's step bookkeeping against plans that claim steps the clock has not reached.
+
+A robot's own certificate lets it publish any step on its own plan key; the
+wire format accepts steps up to 2**62.  Before the clock bound, one plan of
+step 10**12 made every later step look "skipped" by that robot, and the
+supervisor's loop counted empty plan steps towards 10**12 under the inbox lock
+(found by tests/test_secure_fleet.py's attacker)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fleet.runtime import Inbox
+from fleet.wire import Keys, Plan, Tick
+from supervisor.monitor import _plan_step
+
+IDS = ["r1", "r2"]
+
+
+def _plan(robot: str, step: int) -> Plan:
+    pts = np.zeros((20, 2))
+    return Plan(
+        robot=robot, step=step, t0=0.1 * (step + 1), Ts=0.1, committed=pts, nominal=np.zeros((21, 2)),
+        footprint=0.1, priority=0, rank=IDS.index(robot), phase=0, target=np.zeros(2), goal=np.zeros(2),
+        status="PROXQP_SOLVED", solve_time=1e-4, tube_ok=True,
+    )  # fmt: skip
+
+
+def _inbox(tick_step: int, plans: dict[str, list[int]]) -> Inbox:
+    inbox = Inbox(Keys("lab"), "test")
+    inbox.live = set(IDS)
+    tick = Tick(robot="tracker", step=tick_step, t=0.1 * tick_step, stop=False, misses=0)
+    inbox._store(Tick.TYPE, tick, False)
+    for r, steps in plans.items():
+        for s in steps:
+            inbox._store(Plan.TYPE, _plan(r, s), True)
+    return inbox
+
+
+def test_a_full_step_within_the_clock_is_judged() -> None:
+    inbox = _inbox(5, {"r1": [0, 1, 2, 3, 4, 5], "r2": [0, 1, 2, 3, 4, 5]})
+    got = _plan_step(inbox, IDS, 3)
+    assert got is not None and sorted(got) == IDS and got["r2"].step == 3
+
+
+def test_a_far_future_plan_neither_skips_a_robot_nor_runs_past_the_clock() -> None:
+    far = 10**12
+    inbox = _inbox(5, {"r1": [0, 1, 2, 3, 4, 5], "r2": [0, 1, 2, 3, far]})
+    # r2's plan of step 4 may still come: the forged one must not count as "r2 moved on".
+    assert _plan_step(inbox, IDS, 4) is None
+    # The supervisor's drain loop: it must stop at the clock, not walk towards 10**12.
+    k, judged = 0, []
+    while (step := _plan_step(inbox, IDS, k)) is not None and k < 100:
+        judged.append(sorted(step))
+        k += 1
+    assert k == 4 and judged == [IDS] * 4
+    # Steps beyond the clock are never judgeable, even when every robot claims them.
+    inbox2 = _inbox(5, {"r1": [far], "r2": [far]})
+    assert all(_plan_step(inbox2, IDS, s) is None for s in (6, 7, far))
+
+
+def test_a_robot_that_skipped_a_step_is_left_out_once_it_is_past_it() -> None:
+    # Realtime: r2 fell behind and jumped from step 2 to step 4; its plan of step 3 never comes.
+    inbox = _inbox(5, {"r1": [0, 1, 2, 3, 4], "r2": [0, 1, 2, 4]})
+    got = _plan_step(inbox, IDS, 3)
+    assert got is not None and sorted(got) == ["r1"]
