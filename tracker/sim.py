@@ -145,8 +145,9 @@ def main(argv: list[str] | None = None) -> int:
     session = open_session(args)
     inbox = Inbox(keys, role, fault_plan(args))
     subs = [
-        inbox.subscribe(session, keys.cmd(), Command, keep=True),
-        inbox.subscribe(session, keys.plan(), Plan, keep=True),
+        # Realtime: commands are read once, at the deadline; plans once a step.
+        inbox.subscribe(session, keys.cmd(), Command, keep=True, drained=args.clock == "realtime"),
+        inbox.subscribe(session, keys.plan(), Plan, keep=True, drained=args.clock == "realtime"),
         inbox.watch_liveliness(session),
     ]
     world: SimulatedWorld | EmulatedWorld
@@ -192,6 +193,7 @@ def main(argv: list[str] | None = None) -> int:
                 _until(t_start + t)
             # The tick first, then each robot's pose and odometry (an agent starts as
             # soon as its own are in), then the truth, which only the supervisor reads.
+            inbox.drain()
             with inbox.cond:
                 # Who answers this step: the live agents that have been heard since they
                 # came up (at step 0, all of them).  One that (re)joins is waited for only
@@ -222,8 +224,8 @@ def main(argv: list[str] | None = None) -> int:
             if realtime:
                 # A command must arrive within the deadline; otherwise the robot side
                 # holds the previous acceleration and the miss is counted.
-                wait = t_start + t + args.deadline * p.Ts - time.monotonic()
-                inbox.wait(partial(_answered, inbox, answering, k), max(0.0, wait))
+                _until(t_start + t + args.deadline * p.Ts)
+                inbox.drain()
                 late = [r for r in ids if inbox.get(Command, r, k) is None and r in inbox.live]
                 if late:
                     misses += len(late)
