@@ -209,7 +209,15 @@ def cmd_goal(args: argparse.Namespace) -> int:
     from fleet.operator import send_goal
 
     goal = (args.x, args.y)
-    code, line = send_goal(args.scenario, args.robot, goal, args.connect, args.fleet, args.timeout)
+    if bool(args.connect) == bool(args.zenoh_config):
+        print(
+            "fleet goal: error: give the fleet's hub (--connect) or a --zenoh-config, not both",
+            file=sys.stderr,
+        )
+        return 2
+    code, line = send_goal(
+        args.scenario, args.robot, goal, args.connect or [], args.fleet, args.timeout, args.zenoh_config
+    )
     print(line, file=sys.stdout if code == 0 else sys.stderr)
     return code
 
@@ -311,7 +319,13 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--robot", required=True, help="robot id")
     g.add_argument("x", type=float, help="goal x [m], world frame")
     g.add_argument("y", type=float, help="goal y [m], world frame")
-    g.add_argument("--connect", action="append", type=_endpoint, required=True, help="the fleet's hub")
+    g.add_argument(
+        "--connect", action="append", type=_endpoint, help="the fleet's hub (loopback peer-to-peer)"
+    )
+    g.add_argument(
+        "--zenoh-config", metavar="FILE",
+        help="Zenoh JSON5 configuration instead of --connect (secure deployment: deploy/operator.json5)",
+    )  # fmt: skip
     g.add_argument("--fleet", default="lab", help="fleet name in the Zenoh keys (default lab)")
     g.add_argument("--timeout", type=float, default=30.0, help="wait limit [s]")
     g.set_defaults(func=cmd_goal)

@@ -25,13 +25,19 @@ RESEND = 0.5
 
 
 def send_goal(
-    scenario: str, robot: str, goal: tuple[float, float], connect: list[str], fleet: str, timeout: float
-) -> tuple[int, str]:
+    scenario: str, robot: str, goal: tuple[float, float], connect: list[str], fleet: str, timeout: float,
+    zenoh_config: str | None = None,
+) -> tuple[int, str]:  # fmt: skip
     """Send ``goal`` (x, y) [m, world frame] to ``robot``; (exit code, one line).
 
+    ``connect``: the hub's endpoints (peer-to-peer on loopback), or
+    ``zenoh_config``: a JSON5 file, such as deploy/operator.json5 for the
+    secure deployment (the operator's certificate may publish goals only).
     Exit 2: bad input (the line names the field); 1: the robot is not up, did
     not take the goal within ``timeout`` [s], or a neighbour parks too close."""
     import zenoh
+
+    from fleet.secure import SecureConfigError, load_config
 
     scn, design = load_validated(scenario)
     ids = [r.id for r in scn.robots]
@@ -42,12 +48,25 @@ def send_goal(
     if problem is not None:
         raise ConfigError("goal", problem)
     keys = Keys(fleet)
-    session = zenoh.open(NetConfig(connect=connect).zenoh())
+    if zenoh_config is not None:
+        try:
+            conf = load_config(zenoh_config)
+        except SecureConfigError as e:
+            raise ConfigError("--zenoh-config", str(e)) from None
+        where = zenoh_config
+    else:
+        conf, where = NetConfig(connect=connect).zenoh(), ", ".join(connect)
+    try:
+        session = zenoh.open(conf)
+    except zenoh.ZError as e:
+        raise ConfigError(
+            "--zenoh-config" if zenoh_config else "--connect", f"cannot open a session: {e}"
+        ) from None
     inbox = Inbox(keys, "operator")
     subs = [inbox.subscribe(session, keys.plan(), Plan), inbox.watch_liveliness(session)]
     try:
         if not inbox.wait(lambda: robot in inbox.live, timeout):
-            return 1, f"{robot} is not alive on {', '.join(connect)} within {timeout:g} s"
+            return 1, f"{robot} is not alive on {where} within {timeout:g} s"
         # The neighbours' current goals travel in their plans: wait for one from every live robot.
         inbox.wait(lambda: all(inbox.get(Plan, r) is not None for r in ids if r in inbox.live), timeout)
         with inbox.cond:

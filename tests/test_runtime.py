@@ -269,8 +269,22 @@ def test_goal_changed_at_run_time(tmp_path):
         wall = _fleet("goal", scn, "--robot", "r1", "0.0", "0.95", "--connect", hub, timeout=120)
         assert wall.returncode == 2 and wall.stderr.count("\n") == 1, wall.stderr
         assert "goal" in wall.stderr and "arena wall y = 1" in wall.stderr
-        # Taken: the command waits for r1 to come up, then for a plan of r1 carrying the goal.
-        ok = _fleet("goal", scn, "--robot", "r1", "0.7", "-0.45", "--connect", hub, "--timeout", "120")
+        # Neither or both of --connect and --zenoh-config: one line, exit 2, nothing sent.
+        both = _fleet("goal", scn, "--robot", "r1", "0.7", "-0.45", "--connect", hub, "--zenoh-config", "x")
+        assert both.returncode == 2 and both.stderr.count("\n") == 1 and "--connect" in both.stderr
+        missing = _fleet("goal", scn, "--robot", "r1", "0.7", "-0.45", "--zenoh-config", str(tmp_path / "no"))
+        assert missing.returncode == 2 and missing.stderr.count("\n") == 1, missing.stderr
+        assert "--zenoh-config" in missing.stderr and "Traceback" not in missing.stderr
+        # Taken, through a configuration file (as with deploy/operator.json5): the command waits
+        # for r1 to come up, then for a plan of r1 carrying the goal.
+        conf = tmp_path / "operator.json5"
+        conf.write_text(
+            "// the operator's session: a peer that connects to the hub only\n"
+            f'{{mode: "peer", connect: {{endpoints: ["{hub}"]}}, listen: {{endpoints: ["{loopback(0)}"]}},'
+            " scouting: {multicast: {enabled: false}}}\n"
+        )
+        args = ("--robot", "r1", "0.7", "-0.45", "--zenoh-config", str(conf), "--timeout", "120")
+        ok = _fleet("goal", scn, *args)
         assert ok.returncode == 0, ok.stderr
         assert ok.stdout.startswith("r1 took goal (0.700, -0.450) at step")
         # Refused: it would park r1 on top of r2's goal (0.35, -0.61).
