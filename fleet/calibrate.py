@@ -182,6 +182,12 @@ def run(args: argparse.Namespace) -> int:
         f"wrote {out}: {len(cal.image_points)} fiducials over {cal.frames} frame(s), "
         f"reprojection RMS {cal.rms_error * 1000:.3f} mm, max {cal.max_error * 1000:.3f} mm"
     )
+    if len(cal.image_points) == 4:
+        print(
+            "fleet calibrate: note: 4 fiducials fix a homography exactly, so the RMS is 0 by construction "
+            "and measures nothing; place 5 or more to check the calibration",
+            file=sys.stderr,
+        )
     return 0
 
 

@@ -575,6 +575,22 @@ def test_fleet_calibrate_writes_a_homography_that_maps_the_fiducials(tmp_path, r
     assert json.loads((tmp_path / "v.json").read_text())["frames"] == 5
 
 
+def test_fleet_calibrate_with_four_fiducials_says_the_rms_measures_nothing(tmp_path, renderer, capsys):
+    four = [{"id": k, "position": list(FIDUCIALS[k])} for k in (40, 42, 43, 45)]
+    scn = write_scenario(tmp_path / "s.toml", scenario_dict({"homography": "h.json", "fiducials": four}))
+    image = tmp_path / "floor.png"
+    cv2.imwrite(str(image), renderer.render({}, seed=2))
+    assert calibrate_main([str(scn), "--image", str(image)]) == 0
+    out, err = capsys.readouterr()
+    assert out.startswith(f"wrote {tmp_path / 'h.json'}: 4 fiducials") and "RMS 0.000 mm" in out, out
+    assert err.count("\n") == 1 and "RMS is 0 by construction" in err, err
+    # With all six the note is not printed, and the RMS is a real residual.
+    scn6 = write_scenario(tmp_path / "s6.toml", scenario_dict({"homography": "h6.json"}))
+    assert calibrate_main([str(scn6), "--image", str(image)]) == 0
+    out, err = capsys.readouterr()
+    assert "6 fiducials" in out and "RMS 0.000 mm" not in out and "by construction" not in err, (out, err)
+
+
 def test_fleet_calibrate_bad_input_exits_2_with_one_line(tmp_path, renderer, capsys):
     scn = write_scenario(tmp_path / "s.toml", scenario_dict())
     blank = tmp_path / "blank.png"
