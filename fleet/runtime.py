@@ -175,9 +175,10 @@ class Inbox:
         does not need its own plan back).  ``drained``: no callback per sample;
         Zenoh queues the samples and :meth:`drain` takes them in the caller's
         thread.  Each callback wakes a Python thread of zenoh's and takes the GIL
-        from the main loop (≈ 250 µs of CPU a sample in a 16-robot fleet): for
-        the n − 1 plans an agent gets each step, and the commands the realtime
-        clock reads at its deadline, draining once is far cheaper."""
+        from the main loop: for the commands the realtime tracker reads at its
+        deadline, draining once is cheaper (docs/runtime-notes.md, "Realtime
+        clock").  Nothing waits on a drained subscription: use it only for
+        messages read at a known time."""
         import zenoh
 
         def on_sample(sample: Any) -> None:
