@@ -42,14 +42,29 @@ Event = dict[str, Any]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "RERUN_ANALYTICS": "0", "PYTHONUNBUFFERED": "1"}
 
 
-class HostProc:
-    """A Python module run as a process inside a namespace host of ``topo``."""
+class Local:
+    """The "topology" of :class:`HostProc` for processes on this host: no namespace."""
 
-    def __init__(self, name: str, topo: Any, host: str, args: list[str], log_dir: Path, stdin: bool = False):
+    def exec_args(self, host: str, argv: list[str]) -> list[str]:
+        return list(argv)
+
+
+LOCAL = Local()
+
+
+class HostProc:
+    """A Python module run as a process inside a namespace host of ``topo`` (:data:`LOCAL`: here).
+
+    Its stdout JSON lines are kept as events to wait on; with a ``log_dir`` its stderr and events
+    are also written there."""
+
+    def __init__(
+        self, name: str, topo: Any, host: str, args: list[str], log_dir: Path | None, stdin: bool = False
+    ):
         self.name = name
         self.host = host
-        self.log_path = log_dir / f"{name.replace(' ', '-')}.log"
-        self._log = self.log_path.open("w")
+        self.log_path = None if log_dir is None else log_dir / f"{name.replace(' ', '-')}.log"
+        self._log = None if self.log_path is None else self.log_path.open("w")
         self.popen = subprocess.Popen(
             topo.exec_args(host, [sys.executable, *args]), cwd=ROOT, env=ENV, text=True,
             stdin=subprocess.PIPE if stdin else subprocess.DEVNULL,
@@ -90,7 +105,7 @@ class HostProc:
         for line in stream:
             with self.cond:
                 self.stderr.append((time.monotonic(), line.rstrip("\n")))
-                if not self._log.closed:
+                if self._log is not None and not self._log.closed:
                     self._log.write(f"{self.stderr[-1][0]:12.3f} {line}")
                     self._log.flush()
                 self.cond.notify_all()
@@ -125,13 +140,28 @@ class HostProc:
     def _drained(self) -> bool:
         return not any(t.is_alive() for t in self._pumps)
 
-    def ready(self, timeout: float) -> Event:
-        """The readiness line; fails the test (with the stderr tail) if it does not come in time."""
+    def started(self, timeout: float = 30.0) -> Event:
+        """The readiness or open-failure line (probes); fails the test if neither comes in time."""
         ev = self.wait_for(lambda e: e["event"] in ("ready", "open_failed"), timeout)
-        assert ev is not None and ev["event"] == "ready", (
-            f"{self.name} on host {self.host} not ready within {timeout} s ({ev}): {self.tail()}"
-        )
+        where = f"{self.name} on host {self.host}"
+        assert ev is not None, f"{where} did not start within {timeout} s: {self.tail()}"
         return ev
+
+    def ready(self, timeout: float = 30.0) -> Event:
+        """The readiness line; fails the test (with the stderr tail) if it does not come in time."""
+        ev = self.started(timeout)
+        assert ev["event"] == "ready", f"{self.name} on host {self.host} not ready ({ev}): {self.tail()}"
+        return ev
+
+    def samples(self, key: str | None = None) -> list[Event]:
+        """The samples a probe printed so far, on ``key`` or on any key."""
+        with self.cond:
+            return [e for e in self.events if e["event"] == "sample" and (key is None or e["key"] == key)]
+
+    def tokens(self) -> list[Event]:
+        """The liveliness tokens a probe printed so far."""
+        with self.cond:
+            return [e for e in self.events if e["event"] == "token"]
 
     def send(self, **req: str) -> None:
         """One JSON request line on stdin (probes)."""
@@ -171,9 +201,10 @@ class HostProc:
         code = p.wait(timeout=grace)
         for t in self._pumps:
             t.join(timeout=grace)
-        with self.cond:
-            self._log.close()
-            with self.log_path.with_suffix(".events.jsonl").open("w") as f:
-                for ev in self.events:
-                    f.write(json.dumps(ev) + "\n")
+        if self._log is not None and self.log_path is not None:
+            with self.cond:
+                self._log.close()
+                with self.log_path.with_suffix(".events.jsonl").open("w") as f:
+                    for ev in self.events:
+                        f.write(json.dumps(ev) + "\n")
         return code

@@ -61,7 +61,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from netns_util import ROOT, HostProc
+from netns_util import LOCAL, ROOT, HostProc
 
 from fleet.net import free_port
 from fleet.secure import client_json, router_json
@@ -271,16 +271,6 @@ exit_process(0)
 Floats go through JSON exactly (``repr``)."""
 
 
-class _Here:
-    """The "topology" of :class:`netns_util.HostProc` for processes on this host: no namespace."""
-
-    def exec_args(self, host: str, argv: list[str]) -> list[str]:
-        return list(argv)
-
-
-HERE = _Here()
-
-
 @pytest.fixture(scope="module")
 def certs(tmp_path_factory: pytest.TempPathFactory) -> Path:
     d = tmp_path_factory.mktemp("pki")
@@ -311,7 +301,7 @@ class Net:
             self.codes[name] = p.stop()
 
     def start(self, name: str, args: list[str], stdin: bool = False) -> HostProc:
-        p = HostProc(name, HERE, "local", args, self.logs, stdin=stdin)
+        p = HostProc(name, LOCAL, "local", args, self.logs, stdin=stdin)
         self.procs[name] = p
         return p
 

@@ -21,7 +21,6 @@ import os
 import stat
 import subprocess
 import sys
-import threading
 import time
 import uuid
 from collections.abc import Callable, Iterator
@@ -30,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from netns_util import LOCAL, HostProc
 
 from fleet.net import free_port
 from fleet.secure import (
@@ -48,105 +48,19 @@ from fleet.wire import Keys
 
 ROOT = Path(__file__).resolve().parent.parent
 DEPLOY = ROOT / "deploy"
-ENV = {**os.environ, "OMP_NUM_THREADS": "1"}
 K = Keys("lab")
-READY_S = 30.0
-"""Limit for a process to announce itself [s] (two shared cores)."""
 DELIVERY_S = 10.0
 """Limit for an allowed message to arrive [s]."""
 
 Event = dict[str, Any]
+Proc = HostProc
+"""A child process printing JSON lines (tests/netns_util.py), on this host here."""
 
 
-class Proc:
-    """A child process that prints JSON lines; its events are kept and can be waited on."""
-
-    def __init__(self, name: str, args: list[str], ends_on_eof: bool = True):
-        self.name = name
-        self.ends_on_eof = ends_on_eof
-        """The process ends when its stdin closes (probes); otherwise SIGTERM ends it (router)."""
-        self.popen = subprocess.Popen(
-            [sys.executable, *args], cwd=ROOT, env=ENV, text=True,
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-        )  # fmt: skip
-        self.events: list[Event] = []
-        self.stderr: list[str] = []
-        self.cond = threading.Condition()
-        threading.Thread(target=self._pump_out, daemon=True).start()
-        threading.Thread(target=self._pump_err, daemon=True).start()
-
-    def _pump_out(self) -> None:
-        assert self.popen.stdout is not None
-        for line in self.popen.stdout:
-            try:
-                ev = json.loads(line)
-            except json.JSONDecodeError:
-                ev = {"event": "text", "text": line}
-            with self.cond:
-                self.events.append(ev)
-                self.cond.notify_all()
-        with self.cond:
-            self.events.append({"event": "eof"})
-            self.cond.notify_all()
-
-    def _pump_err(self) -> None:
-        assert self.popen.stderr is not None
-        for line in self.popen.stderr:
-            self.stderr.append(line)
-
-    def wait_for(self, pred: Callable[[Event], bool], timeout: float) -> Event | None:
-        """The first event (so far or within ``timeout`` [s]) that satisfies ``pred``, else None."""
-        deadline = time.monotonic() + timeout
-        with self.cond:
-            while True:
-                for ev in self.events:
-                    if pred(ev):
-                        return ev
-                left = deadline - time.monotonic()
-                if left <= 0 or (self.events and self.events[-1]["event"] == "eof"):
-                    return None
-                self.cond.wait(left)
-
-    def started(self) -> Event:
-        """The readiness or open-failure line; fails the test if neither comes."""
-        ev = self.wait_for(lambda e: e["event"] in ("ready", "open_failed"), READY_S)
-        assert ev is not None, f"{self.name} did not start: {''.join(self.stderr)[-2000:]}"
-        return ev
-
-    def ready(self) -> Event:
-        ev = self.started()
-        assert ev["event"] == "ready", f"{self.name}: {ev}"
-        return ev
-
-    def send(self, **req: str) -> None:
-        assert self.popen.stdin is not None
-        self.popen.stdin.write(json.dumps(req) + "\n")
-        self.popen.stdin.flush()
-
-    def samples(self, key: str | None = None) -> list[Event]:
-        with self.cond:
-            return [e for e in self.events if e["event"] == "sample" and (key is None or e["key"] == key)]
-
-    def tokens(self) -> list[Event]:
-        with self.cond:
-            return [e for e in self.events if e["event"] == "token"]
-
-    def stop(self) -> int:
-        """End the process by its pid (EOF on stdin if that ends it, SIGTERM, then SIGKILL); its exit code."""
-        p = self.popen
-        try:
-            if p.poll() is None and p.stdin is not None and self.ends_on_eof:
-                p.stdin.close()
-                p.wait(timeout=5)
-        except (subprocess.TimeoutExpired, BrokenPipeError):
-            pass
-        if p.poll() is None:
-            p.terminate()
-            try:
-                p.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                p.kill()
-        return p.wait(timeout=5)
+def _local(name: str, args: list[str], ends_on_eof: bool = True) -> Proc:
+    """A child process on this host that prints JSON lines.  ``ends_on_eof``: it ends when its
+    stdin closes (probes); otherwise SIGTERM ends it (the router)."""
+    return HostProc(name, LOCAL, "local", args, None, stdin=ends_on_eof)
 
 
 def _has(payload: str, key: str) -> Callable[[Event], bool]:
@@ -196,7 +110,7 @@ def certs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
 def router(certs: tuple[Path, Path]) -> Iterator[tuple[str, Proc]]:
     """(endpoint, process) of a router running the shipped deploy/router.json5."""
     endpoint = f"tls/127.0.0.1:{free_port()}"
-    proc = Proc("router", ["-m", "fleet.secure", "router", "--config", str(DEPLOY / "router.json5"),
+    proc = _local("router", ["-m", "fleet.secure", "router", "--config", str(DEPLOY / "router.json5"),
                            "--set", f"CERTS={certs[0]}", "--set", f"LISTEN={endpoint}"],
                 ends_on_eof=False)  # fmt: skip
     try:
@@ -205,7 +119,7 @@ def router(certs: tuple[Path, Path]) -> Iterator[tuple[str, Proc]]:
         yield endpoint, proc
     finally:
         code = proc.stop()
-    assert code == 0, f"the router did not stop cleanly on SIGTERM: {''.join(proc.stderr)[-2000:]}"
+    assert code == 0, f"the router did not stop cleanly on SIGTERM: {proc.tail()}"
 
 
 @contextmanager
@@ -215,7 +129,7 @@ def probes() -> Iterator[Callable[..., Proc]]:
 
         def start(name: str, *args: str, subs: tuple[str, ...] = (), lives: tuple[str, ...] = ()) -> Proc:
             extra = [a for s in subs for a in ("--sub", s)] + [a for s in lives for a in ("--live", s)]
-            p = Proc(name, ["-m", "fleet.secure", "probe", *args, *extra])
+            p = _local(name, ["-m", "fleet.secure", "probe", *args, *extra])
             stack.callback(p.stop)
             return p
 
