@@ -68,6 +68,7 @@ from typing import Any
 
 import pytest
 from netns_util import ROOT, HostProc, netns
+from procfs import tcp_sockets
 
 from fleet.secure import client_json
 from fleet.wire import Keys
@@ -277,14 +278,6 @@ def _ns_of(netns_name: str) -> str:
 
 def _sockets(pid: int) -> list[tuple[str, str, str]]:
     """(state, local ip:port, remote ip:port) of the IPv4/IPv6 TCP sockets of ``pid``, in its namespace."""
-    inodes = set()
-    for fd in (Path("/proc") / str(pid) / "fd").iterdir():
-        try:
-            target = os.readlink(fd)
-        except OSError:
-            continue
-        if target.startswith("socket:["):
-            inodes.add(target[8:-1])
 
     def addr(hexa: str, v6: bool) -> str:
         h, port = hexa.split(":")
@@ -293,13 +286,11 @@ def _sockets(pid: int) -> list[tuple[str, str, str]]:
         return ".".join(str(b) for b in reversed(bytes.fromhex(h))) + f":{int(port, 16)}"
 
     states = {"01": "established", "0A": "listen"}
-    out = []
-    for table in ("tcp", "tcp6"):
-        for line in (Path("/proc") / str(pid) / "net" / table).read_text().splitlines()[1:]:
-            cols = line.split()
-            if cols[9] in inodes and cols[3] in states:
-                out.append((states[cols[3]], addr(cols[1], table == "tcp6"), addr(cols[2], table == "tcp6")))
-    return out
+    return [
+        (states[state], addr(local, v6), addr(remote, v6))
+        for state, local, remote, v6 in tcp_sockets(pid)
+        if state in states
+    ]
 
 
 def _check_placement(run: Run) -> None:

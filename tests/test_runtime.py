@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 import pytest
-from procfs import alive, children
+from procfs import alive, children, tcp_sockets
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENARIOS = ROOT / "scenarios"
@@ -36,29 +36,7 @@ def _cmdline(pid: int) -> list[str]:
 
 def _listening(pid: int) -> list[str]:
     """Local addresses (hex ip:port from /proc/net/tcp{,6}) of the listening TCP sockets of ``pid``."""
-    inodes = set()
-    fd_dir = Path("/proc") / str(pid) / "fd"
-    try:
-        for fd in fd_dir.iterdir():
-            try:
-                target = os.readlink(fd)
-            except OSError:
-                continue
-            if target.startswith("socket:["):
-                inodes.add(target[8:-1])
-    except OSError:
-        return []
-    addrs = []
-    for table in ("tcp", "tcp6"):
-        try:
-            rows = (Path("/proc") / str(pid) / "net" / table).read_text().splitlines()[1:]
-        except OSError:  # the process exited meanwhile
-            return addrs
-        for line in rows:
-            cols = line.split()
-            if cols[3] == "0A" and cols[9] in inodes:  # 0A = LISTEN
-                addrs.append(cols[1])
-    return addrs
+    return [local for state, local, _, _ in tcp_sockets(pid) if state == "0A"]  # 0A = LISTEN
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,6 @@ the allowed one, the forbidden one would have arrived before it.
 from __future__ import annotations
 
 import json
-import os
 import stat
 import subprocess
 import sys
@@ -30,6 +29,7 @@ from typing import Any
 
 import pytest
 from netns_util import LOCAL, HostProc
+from procfs import tcp_sockets
 
 from fleet.net import free_port
 from fleet.secure import (
@@ -188,22 +188,12 @@ def test_make_certs_reuses_the_ca_and_keeps_identities(certs: tuple[Path, Path])
 # ------------------------------------------------------------------ router
 def _listening(pid: int) -> list[tuple[str, int]]:
     """(IPv4 address, port) of the listening TCP sockets of ``pid`` (IPv6 ones as ("v6", port))."""
-    inodes = set()
-    for fd in (Path("/proc") / str(pid) / "fd").iterdir():
-        try:
-            target = os.readlink(fd)
-        except OSError:
-            continue
-        if target.startswith("socket:["):
-            inodes.add(target[8:-1])
     out = []
-    for table in ("tcp", "tcp6"):
-        for line in (Path("/proc") / str(pid) / "net" / table).read_text().splitlines()[1:]:
-            cols = line.split()
-            if cols[3] == "0A" and cols[9] in inodes:  # 0A = LISTEN
-                addr, port = cols[1].split(":")
-                host = ".".join(str(b) for b in reversed(bytes.fromhex(addr))) if table == "tcp" else "v6"
-                out.append((host, int(port, 16)))
+    for state, local, _, v6 in tcp_sockets(pid):
+        if state == "0A":  # LISTEN
+            addr, port = local.split(":")
+            host = "v6" if v6 else ".".join(str(b) for b in reversed(bytes.fromhex(addr)))
+            out.append((host, int(port, 16)))
     return out
 
 
