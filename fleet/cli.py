@@ -210,8 +210,9 @@ def cmd_goal(args: argparse.Namespace) -> int:
 
     goal = (args.x, args.y)
     if bool(args.connect) == bool(args.zenoh_config):
+        what = "both given" if args.connect else "neither given"
         print(
-            "fleet goal: error: give the fleet's hub (--connect) or a --zenoh-config, not both",
+            f"fleet goal: error: --connect: give the hub or a --zenoh-config, one of them ({what})",
             file=sys.stderr,
         )
         return 2
@@ -319,9 +320,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--robot", required=True, help="robot id")
     g.add_argument("x", type=float, help="goal x [m], world frame")
     g.add_argument("y", type=float, help="goal y [m], world frame")
-    g.add_argument(
-        "--connect", action="append", type=_endpoint, help="the fleet's hub (loopback peer-to-peer)"
-    )
+    g.add_argument("--connect", action="append", type=_endpoint, help="the fleet's hub (peer-to-peer)")
     g.add_argument(
         "--zenoh-config", metavar="FILE",
         help="Zenoh JSON5 configuration instead of --connect (secure deployment: deploy/operator.json5)",

@@ -250,6 +250,9 @@ def test_goal_changed_at_run_time(tmp_path):
         # Neither or both of --connect and --zenoh-config: one line, exit 2, nothing sent.
         both = _fleet("goal", scn, "--robot", "r1", "0.7", "-0.45", "--connect", hub, "--zenoh-config", "x")
         assert both.returncode == 2 and both.stderr.count("\n") == 1 and "--connect" in both.stderr
+        assert "both given" in both.stderr, both.stderr
+        neither = _fleet("goal", scn, "--robot", "r1", "0.7", "-0.45")
+        assert neither.returncode == 2 and "--connect" in neither.stderr and "neither given" in neither.stderr
         missing = _fleet("goal", scn, "--robot", "r1", "0.7", "-0.45", "--zenoh-config", str(tmp_path / "no"))
         assert missing.returncode == 2 and missing.stderr.count("\n") == 1, missing.stderr
         assert "--zenoh-config" in missing.stderr and "Traceback" not in missing.stderr
