@@ -8,6 +8,7 @@ lines (with a timeout) instead of sleeping.
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import os
 import sys
@@ -18,9 +19,11 @@ from typing import Any, NoReturn, TypeVar
 
 from fleet.faults import DELIVER, FaultPlan, FaultPlanError
 from fleet.net import NetConfig, loopback
-from fleet.wire import Keys, Message, RejectCounter, WireError, decode
+from fleet.wire import Digest, Keys, Message, Plan, RejectCounter, WireError, decode
 
 M = TypeVar("M", bound=Message)
+_SENDER_KEYS = ("/clock", "/digest")
+"""Keys that name no robot: the message's ``robot`` is its sender (the tracker)."""
 DRAIN_CAPACITY = 4096
 """Samples a drained subscription queues between two drains (Zenoh blocks the sender beyond)."""
 
@@ -42,6 +45,11 @@ def add_common_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument(
         "--clock", choices=["lockstep", "realtime"], default="lockstep",
         help="lockstep: step when every agent answered; realtime: wall-clock steps at Ts",
+    )  # fmt: skip
+    ap.add_argument(
+        "--exchange", choices=["mesh", "relay"], default="mesh",
+        help="plans: mesh, every agent subscribes to every plan; relay, the tracker sends each "
+        "agent one digest of a step's plans (docs/runtime-notes.md, \"Relayed plans\")",
     )  # fmt: skip
 
 
@@ -123,7 +131,15 @@ def exit_process(code: int) -> NoReturn:
 
 
 def announce(role: str, **info: Any) -> None:
-    """Print the readiness line the launcher waits for."""
+    """Freeze the start-up heap, then print the readiness line the launcher waits for.
+
+    ``gc.freeze`` moves every object alive now (modules, the tube design, the
+    solver, Zenoh's) out of the collector's reach, so a full collection during
+    the run scans only what the run allocated.  Without it, agents started
+    together ran their full collections at about the same step, and at 16
+    robots on 2 cores those steps missed the realtime deadline together."""
+    gc.collect()
+    gc.freeze()
     print(json.dumps({"event": "ready", "role": role, "pid": os.getpid(), **info}), flush=True)
 
 
@@ -210,27 +226,39 @@ class Inbox:
     def _accept(self, k: str, payload: bytes, typ: type[Message], keep: bool, now: float) -> None:
         """Decode, check and store one received payload on key ``k`` (any thread)."""
         try:
-            rid = self.keys.robot_of(k) if not k.endswith("/clock") else None
+            rid = None if k.endswith(_SENDER_KEYS) else self.keys.robot_of(k)
             msg = decode(payload, typ, robot=rid)
         except WireError as e:
             with self.cond:
                 self.rejects.reject(k, e)
             return
-        step = _step_of(msg)
         with self.cond:
-            if self.faults is not None and step is not None:
-                fate, delay = self.faults.decide(self.role, k.split("/", 2)[-1], step)
-                if fate != DELIVER or delay:
-                    self.injected += 1
-                    self.missing.setdefault((typ.TYPE, msg.robot), set()).add(step)
-                    if fate == DELIVER:
-                        self.held.append((step + delay, typ.TYPE, msg, keep))
-                    self._wake()
-                    return
-            self._store(typ.TYPE, msg, keep)
-            self.arrived[(typ.TYPE, msg.robot)] = now
-            self.first.setdefault(typ.TYPE, now)
+            if isinstance(msg, Digest):
+                # Each relayed plan goes the way it would have come on its own key,
+                # fault plan included; the digest itself marks the step as relayed.
+                for plan in msg.plans():
+                    self._admit(f"plan/{plan.robot}", Plan, plan, keep, now)
+                self._store(Digest.TYPE, msg, False)
+                self._wake()
+                return
+            self._admit(k.split("/", 2)[-1], typ, msg, keep, now)
             self._wake()
+
+    def _admit(self, tail: str, typ: type[Message], msg: Any, keep: bool, now: float) -> None:
+        """Store a decoded message received on key ``fleet/F/<tail>``, unless the
+        fault plan drops or delays it (lock held)."""
+        step = _step_of(msg)
+        if self.faults is not None and step is not None:
+            fate, delay = self.faults.decide(self.role, tail, step)
+            if fate != DELIVER or delay:
+                self.injected += 1
+                self.missing.setdefault((typ.TYPE, msg.robot), set()).add(step)
+                if fate == DELIVER:
+                    self.held.append((step + delay, typ.TYPE, msg, keep))
+                return
+        self._store(typ.TYPE, msg, keep)
+        self.arrived[(typ.TYPE, msg.robot)] = now
+        self.first.setdefault(typ.TYPE, now)
 
     def _store(self, type_name: str, msg: Any, keep: bool) -> None:
         """Record ``msg`` (lock held): ``latest`` never goes back to an older step."""

@@ -18,6 +18,7 @@ Keys, for a fleet named ``F`` and a robot id ``R``:
 ``fleet/F/cmd/R``          agent → robot side: acceleration (:class:`Command`)
 ``fleet/F/goal/R``         operator → agent: new goal (:class:`Goal`)
 ``fleet/F/clock``          lockstep tick (:class:`Tick`)
+``fleet/F/digest``         tracker → agents: one step's plans, relayed (:class:`Digest`)
 ``fleet/F/alive/R``        liveliness token of agent R
 ``fleet/F/wheels/R``       ``epuck_link`` → all: wheel odometry (:class:`Wheels`)
 ``fleet/F/emu/R``          e-puck emulator → tests: its true pose (:class:`Truth`)
@@ -42,6 +43,8 @@ MAX_PAYLOAD = 64 * 1024
 """Largest accepted message [bytes]."""
 MAX_HORIZON = 200
 """Largest accepted committed-reference length [points]."""
+MAX_RELAYED = 64
+"""Most plans one :class:`Digest` carries [robots] (msgpack's array limit in :func:`decode`)."""
 ROBOT_ID = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 _DTYPES = {"<f8": np.float64, "<f4": np.float32}
 _ITEMSIZE = {"<f8": 8, "<f4": 4}
@@ -95,6 +98,10 @@ class Keys:
     @property
     def clock(self) -> str:
         return f"{self.root}/clock"
+
+    @property
+    def digest(self) -> str:
+        return f"{self.root}/digest"
 
     def robot_of(self, key: str) -> str:
         """The robot id at the end of a per-robot key; raises WireError otherwise."""
@@ -179,6 +186,8 @@ class Message:
     """Base class: subclasses list their fields and how each is checked."""
 
     TYPE: ClassVar[str] = ""
+    MAX_BYTES: ClassVar[int] = MAX_PAYLOAD
+    """Largest accepted encoding of this type [bytes]."""
     robot: str
 
     def _fields(self) -> dict[str, Any]:
@@ -368,6 +377,101 @@ class Tick(Message):
 
 
 @dataclass(frozen=True)
+class Digest(Message):
+    """Tracker → agents (``--exchange relay``): the plans of one step, in one message.
+
+    The tracker already receives every plan; relaying them lets each agent take
+    one message a step instead of n − 1 (docs/runtime-notes.md, "Relayed
+    plans").  Row i is robot ``ids[i]``'s plan of ``step`` as the tracker
+    received it on that robot's own key, with what a neighbour uses of it: the
+    whole committed reference, footprint, precedence and goal.  The nominal
+    plan, solver status and timing stay on ``fleet/F/plan/R`` for the supervisor.
+    ``robot`` is the sender ("tracker")."""
+
+    TYPE: ClassVar[str] = "digest"
+    MAX_BYTES: ClassVar[int] = 4 * MAX_PAYLOAD
+    step: int
+    """Step k at which every relayed plan was committed."""
+    Ts: float
+    """Sampling period [s]."""
+    ids: list[str] = field(compare=False)
+    """Robot ids, (n,), distinct, 0 ≤ n ≤ MAX_RELAYED."""
+    priority: list[int] = field(compare=False)
+    rank: list[int] = field(compare=False)
+    phase: list[int] = field(compare=False)
+    """Per robot, (n,) each: as in :class:`Plan`."""
+    footprint: NDArray[np.float64] = field(compare=False)
+    """Footprint radii r_i, (n,) [m]."""
+    committed: NDArray[np.float64] = field(compare=False)
+    """Committed references ỹ_{k+1} … ỹ_{k+N}, (n, N, 2) [m], world frame."""
+    target: NDArray[np.float64] = field(compare=False)
+    goal: NDArray[np.float64] = field(compare=False)
+    """Navigation waypoints and goals, (n, 2) each [m], world frame."""
+
+    @classmethod
+    def of(cls, sender: str, step: int, Ts: float, horizon: int, plans: list[Plan]) -> Digest:
+        """The digest of ``plans``: all of ``step``, each committing ``horizon``
+        points, at most MAX_RELAYED of them (none is a valid digest)."""
+        n = len(plans)
+        return cls(
+            robot=sender, step=step, Ts=Ts, ids=[p.robot for p in plans],
+            priority=[p.priority for p in plans], rank=[p.rank for p in plans],
+            phase=[p.phase for p in plans], footprint=np.array([p.footprint for p in plans], float),
+            committed=np.array([p.committed for p in plans], float).reshape(n, horizon, 2),
+            target=np.array([p.target for p in plans], float).reshape(n, 2),
+            goal=np.array([p.goal for p in plans], float).reshape(n, 2),
+        )  # fmt: skip
+
+    def plans(self) -> list[Plan]:
+        """The relayed plans.  They carry no nominal plan (shape (0, 2)), status
+        ``"relayed"``, solve time 0 and ``tube_ok`` True: a neighbour does not use those."""
+        empty = np.zeros((0, 2))
+        t0 = (self.step + 1) * self.Ts
+        out = []
+        for i, rid in enumerate(self.ids):
+            plan = Plan(
+                robot=rid, step=self.step, t0=t0, Ts=self.Ts, committed=self.committed[i], nominal=empty,
+                footprint=float(self.footprint[i]), priority=self.priority[i], rank=self.rank[i],
+                phase=self.phase[i], target=self.target[i], goal=self.goal[i], status="relayed",
+                solve_time=0.0, tube_ok=True,
+            )  # fmt: skip
+            out.append(plan)
+        return out
+
+    @classmethod
+    def _check(cls, d: dict[str, Any]) -> dict[str, Any]:
+        Ts = _num(d["Ts"], "Ts")
+        if not 0 < Ts <= 10:
+            raise WireError("Ts: outside (0, 10] s")
+        ids = d["ids"]
+        if type(ids) is not list:
+            raise WireError("ids: expected a list")
+        n = len(ids)
+        ids = [_str(r, "ids", ROBOT_ID) for r in ids]
+        if len(set(ids)) != n:
+            raise WireError("ids: a robot appears twice")
+        cols: dict[str, list[int]] = {}
+        for name, lo, hi in (("priority", -(2**31), 2**31), ("rank", 0, 2**31), ("phase", 0, 2)):
+            col = d[name]
+            if type(col) is not list or len(col) != n:
+                raise WireError(f"{name}: expected a list of {n} integers")
+            cols[name] = [_int(v, name, lo, hi) for v in col]
+        fp = decode_array(d["footprint"], "footprint", (n,))
+        if not (fp > 0).all() or not (fp <= 10).all():
+            raise WireError("footprint: outside (0, 10] m")
+        return {
+            "step": _int(d["step"], "step"),
+            "Ts": Ts,
+            "ids": ids,
+            **cols,
+            "footprint": fp,
+            "committed": decode_array(d["committed"], "committed", (n, None, 2)),
+            "target": decode_array(d["target"], "target", (n, 2)),
+            "goal": decode_array(d["goal"], "goal", (n, 2)),
+        }
+
+
+@dataclass(frozen=True)
 class Wheels(Message):
     """``epuck_link`` → all: wheel odometry from the robot's encoders.
 
@@ -401,7 +505,7 @@ class Wheels(Message):
 
 
 MESSAGES: dict[str, type[Message]] = {
-    m.TYPE: m for m in (Pose, Truth, Odom, Plan, Command, Goal, Tick, Wheels)
+    m.TYPE: m for m in (Pose, Truth, Odom, Plan, Command, Goal, Tick, Digest, Wheels)
 }
 
 
@@ -412,11 +516,11 @@ def decode(payload: bytes, expected: type[M], robot: str | None = None) -> M:
     id is rejected.  Raises :class:`WireError` and nothing else."""
     if not isinstance(payload, bytes | bytearray | memoryview):
         raise WireError("payload: not bytes")
-    if len(payload) > MAX_PAYLOAD:
-        raise WireError(f"payload: {len(payload)} bytes exceeds {MAX_PAYLOAD}")
+    if len(payload) > expected.MAX_BYTES:
+        raise WireError(f"payload: {len(payload)} bytes exceeds {expected.MAX_BYTES}")
     try:
         d = msgpack.unpackb(
-            payload, raw=False, strict_map_key=True, max_bin_len=MAX_PAYLOAD, max_str_len=4096,
+            payload, raw=False, strict_map_key=True, max_bin_len=expected.MAX_BYTES, max_str_len=4096,
             max_array_len=64, max_map_len=64,
         )  # fmt: skip
     except (ValueError, TypeError, OverflowError) as e:  # msgpack's errors for garbage

@@ -8,10 +8,14 @@ import msgpack
 import numpy as np
 import pytest
 
+from fleet.faults import FaultPlan
+from fleet.runtime import Inbox
 from fleet.wire import (
     MAX_PAYLOAD,
+    MAX_RELAYED,
     SCHEMA_VERSION,
     Command,
+    Digest,
     Goal,
     Keys,
     Odom,
@@ -51,6 +55,7 @@ SAMPLES = {
     "odom": Odom(robot="r1", seq=4, t=0.4, vx=0.05, vy=-0.01),
     "goal": Goal(robot="r1", goal=np.array([0.3, 0.4])),
     "tick": Tick(robot="tracker", step=12, t=1.2, stop=False, misses=0),
+    "digest": Digest.of("tracker", 7, 0.1, 20, [_plan("r1"), _plan("r2"), _plan("r3")]),
 }
 
 
@@ -113,6 +118,21 @@ BAD = [
     ("zero footprint", lambda: _mutate(_plan(), footprint=0.0), Plan, "footprint"),
     ("bad phase", lambda: _mutate(_plan(), phase=7), Plan, "phase"),
     ("oversize", lambda: b"\x00" * (MAX_PAYLOAD + 1), Plan, "payload"),
+    ("digest: id twice", lambda: _mutate(SAMPLES["digest"], ids=["r1", "r2", "r1"]), Digest, "ids"),
+    ("digest: bad id", lambda: _mutate(SAMPLES["digest"], ids=["r1", "r 2", "r3"]), Digest, "ids"),
+    ("digest: short column", lambda: _mutate(SAMPLES["digest"], rank=[0, 1]), Digest, "rank"),
+    ("digest: bad phase", lambda: _mutate(SAMPLES["digest"], phase=[0, 3, 0]), Digest, "phase"),
+    ("digest: rows and ids differ", lambda: _mutate(
+        SAMPLES["digest"], committed=encode_array(np.zeros((2, 20, 2)))), Digest, "committed"),
+    ("digest: NaN in a reference", lambda: _mutate(SAMPLES["digest"], committed=encode_array(
+        _with(SAMPLES["digest"].committed, (1, 19, 0), np.nan))), Digest, "committed"),
+    ("digest: zero footprint", lambda: _mutate(
+        SAMPLES["digest"], footprint=encode_array(np.array([0.1, 0.0, 0.1]))), Digest, "footprint"),
+    ("digest: goals of 2 robots", lambda: _mutate(
+        SAMPLES["digest"], goal=encode_array(np.zeros((2, 2)))), Digest, "goal"),
+    ("digest: too many robots", lambda: _mutate(
+        SAMPLES["digest"], ids=[f"r{i}" for i in range(MAX_RELAYED + 1)]), Digest, "payload"),
+    ("digest: oversize", lambda: b"\x00" * (Digest.MAX_BYTES + 1), Digest, "payload"),
 ]  # fmt: skip
 
 
@@ -130,10 +150,44 @@ def test_a_plan_claiming_another_robots_id_is_rejected():
     assert decode(payload, Plan, robot="r2").robot == "r2"
 
 
+def test_a_digest_relays_what_neighbours_use_of_each_plan():
+    """Relayed plans keep the committed reference, footprint, precedence, target and goal
+    bit for bit; one message of n plans instead of n."""
+    plans = [_plan("r1"), _plan("r2", n=20), _plan("r3")]
+    plans[1] = Plan(**{**plans[1].__dict__, "committed": plans[1].committed + 0.5, "priority": 4, "rank": 1})
+    d = decode(Digest.of("tracker", 7, 0.1, 20, plans).encode(), Digest)
+    assert d.ids == ["r1", "r2", "r3"] and d.committed.shape == (3, 20, 2)
+    for sent, got in zip(plans, d.plans(), strict=True):
+        assert got.robot == sent.robot and got.step == sent.step == 7
+        for f in ("committed", "target", "goal"):
+            assert np.array_equal(getattr(got, f), getattr(sent, f)), f
+        assert (got.footprint, got.priority, got.rank, got.phase) == (
+            sent.footprint, sent.priority, sent.rank, sent.phase)  # fmt: skip
+        assert got.t0 == pytest.approx(sent.t0) and got.status == "relayed"
+    empty = decode(Digest.of("tracker", 3, 0.1, 20, []).encode(), Digest)
+    assert empty.ids == [] and empty.plans() == []
+
+
+def test_relayed_plans_pass_the_receivers_fault_plan_like_plans_on_their_own_keys():
+    """An agent's inbox stores each plan of a digest under its robot, and the fault plan
+    drops it as it would drop the plan on ``plan/<id>``."""
+    faults = FaultPlan.parse(
+        '{"seed": 1, "rules": [{"key": "plan/r2", "bursts": [[7, 8]], "to": ["agent r1"]}]}'
+    )
+    inbox = Inbox(Keys("lab"), "agent r1", faults)
+    payload = SAMPLES["digest"].encode()
+    inbox._accept("fleet/lab/digest", payload, Digest, True, 0.0)
+    assert inbox.get(Plan, "r1", 7) is not None and inbox.get(Plan, "r3", 7) is not None
+    assert inbox.get(Plan, "r2", 7) is None and inbox.lost(Plan, "r2", 7) and inbox.injected == 1
+    assert inbox.get(Digest, "tracker").step == 7
+    inbox._accept("fleet/lab/digest", payload[:-3], Digest, True, 0.0)  # truncated: rejected, counted
+    assert inbox.rejects.total == 1
+
+
 def test_keys():
     k = Keys("lab")
     assert k.plan("r1") == "fleet/lab/plan/r1" and k.pose() == "fleet/lab/pose/*"
-    assert k.clock == "fleet/lab/clock"
+    assert k.clock == "fleet/lab/clock" and k.digest == "fleet/lab/digest"
     assert k.robot_of("fleet/lab/cmd/r7") == "r7"
     with pytest.raises(WireError):
         k.robot_of("fleet/lab/cmd/r 7")
