@@ -5,9 +5,11 @@
 Lockstep protocol (docs/runtime-notes.md): at step k the agent waits for the
 tracker's tick k, its own pose and odometry of step k and the plans that the
 live neighbours committed at step k−1 (liveliness says who is live; every
-wait is bounded).  It then steps the controller and publishes its plan and
-its command for step k.  A neighbour whose plan of step k−1 does not arrive in
-time is used with its last known plan, and the event is counted.
+wait is bounded).  The plans come on the neighbours' keys (``--exchange
+mesh``) or together in the tracker's digest of step k−1 (``relay``).  It then
+steps the controller and publishes its plan and its command for step k.  A
+neighbour whose plan of step k−1 does not arrive in time is used with its last
+known plan, and the event is counted.
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ from fleet.runtime import (
     publisher,
 )
 from fleet.scenario import ConfigError, check_point, controlled_point
-from fleet.wire import Command, Goal, Keys, Odom, Plan, Pose, Tick
+from fleet.wire import Command, Digest, Goal, Keys, Odom, Plan, Pose, Tick
 
 REJOIN_GAP = 5
 """Steps missed (0.5 s at Ts = 0.1 s, the link watchdog's time) after which an agent re-initialises."""
@@ -108,6 +110,7 @@ def main(argv: list[str] | None = None) -> int:
     goal_seen: Goal | None = None
     last: dict[str, Plan | None] = {}
     lockstep = args.clock == "lockstep"
+    relay = args.exchange == "relay"
     silent_since = time.monotonic()
     try:
         while True:
@@ -137,6 +140,12 @@ def main(argv: list[str] | None = None) -> int:
                     log(role, f"fell behind the clock: step {k} → {tick.step}")
                 k = tick.step
             inbox.release(k)
+            if k == 0 and lockstep:
+                # The tracker started the clock once every agent was live in its view;
+                # wait (bounded) until they are in this agent's view too.  Otherwise who
+                # counts as live at step 1, a neighbour or a dead robot's static disc,
+                # would depend on how fast the liveliness tokens travelled.
+                inbox.wait(lambda: set(others) <= inbox.live, args.timeout)
             # Own measurement of step k, then the live neighbours' plans of step k − 1.
             # Realtime: neither may hold up this step's deadline; a withheld message
             # (fault plan) is never waited for.  The plans come by callback, not by a
@@ -146,7 +155,8 @@ def main(argv: list[str] | None = None) -> int:
             limit = args.timeout if lockstep else 0.3 * p.Ts
             inbox.wait(partial(_measured, inbox, me, k), limit)
             if k > 0:
-                inbox.wait(partial(_plans_in, inbox, others, k - 1), limit)
+                plans_in = _relayed if relay else _plans_in
+                inbox.wait(partial(plans_in, inbox, others, k - 1), limit)
             with inbox.cond:
                 pose = inbox.get(Pose, me, k)
                 odom = inbox.get(Odom, me, k)
@@ -231,7 +241,11 @@ class _Link:
         self.subs = [
             inbox.subscribe(self.session, keys.pose(me), Pose, keep=True),
             inbox.subscribe(self.session, keys.odom(me), Odom, keep=True),
-            inbox.subscribe(self.session, keys.plan(), Plan, keep=True, remote=True),
+            # The neighbours' plans: each on its own key (mesh), or a step's plans
+            # at once in the tracker's digest (relay: one message a step).
+            inbox.subscribe(self.session, keys.digest, Digest, keep=True)
+            if args.exchange == "relay"
+            else inbox.subscribe(self.session, keys.plan(), Plan, keep=True, remote=True),
             inbox.subscribe(self.session, keys.goal(me), Goal),
             inbox.subscribe(self.session, keys.clock, Tick),
             inbox.watch_liveliness(self.session),
@@ -371,6 +385,12 @@ def _plans_in(inbox: Inbox, others: list[str], step: int) -> bool:
     return all(
         inbox.get(Plan, j, step) is not None or inbox.lost(Plan, j, step) for j in others if j in inbox.live
     )
+
+
+def _relayed(inbox: Inbox, others: list[str], step: int) -> bool:
+    """The tracker's digest of ``step`` has arrived: what it lacks is late or lost."""
+    d = inbox.get(Digest, "tracker")
+    return d is not None and d.step >= step
 
 
 def _tick_at_least(inbox: Inbox, k: int) -> bool:

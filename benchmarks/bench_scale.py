@@ -906,9 +906,11 @@ def capped_scenario(name: str, sim_s: float, tmp: Path) -> Path:
 
 
 def fleet_run(
-    robots: int, clock: str, sim_s: float, out: Path, tmp: Path, log: Callable[[str], None]
-) -> dict[str, Any]:
-    """One ``fleet run`` of the shipped scene for ``robots`` robots, ``sim_s`` simulated seconds."""
+    robots: int, clock: str, sim_s: float, out: Path, tmp: Path, log: Callable[[str], None],
+    exchange: str = "relay",
+) -> dict[str, Any]:  # fmt: skip
+    """One ``fleet run`` of the shipped scene for ``robots`` robots, ``sim_s`` simulated seconds,
+    plans travelling by ``exchange`` (mesh or relay)."""
     from fleet.net import free_port, loopback
 
     name = SCENES[robots]
@@ -922,7 +924,7 @@ def fleet_run(
     load_before = loadavg()
     cmd = [
         sys.executable, "-m", "fleet.cli", "run", str(scn_path), "--out", str(run_dir), "--clock", clock,
-        "--listen", loopback(port),
+        "--listen", loopback(port), "--exchange", exchange,
     ]  # fmt: skip
     t_launch = time.monotonic()
     err_path = run_dir / "fleet.stderr"
@@ -953,6 +955,7 @@ def fleet_run(
         "scenario": name,
         "robots": robots,
         "clock": clock,
+        "exchange": exchange,
         "sim_s_requested": sim_s,
         "exit_code": rc,
         "verdict": verdict or (stderr_lines[-1] if stderr_lines else f"exit {rc}"),
@@ -1161,14 +1164,17 @@ def run(args: argparse.Namespace) -> int:
     if not args.no_fleet:
         with tempfile.TemporaryDirectory(prefix="fleet-bench-") as tmp_s:
             tmp = Path(tmp_s)
-            log(f"\n[4] fleet run (one process per robot, Zenoh on loopback); run directories in {out}")
+            log(
+                f"\n[4] fleet run (one process per robot, Zenoh on loopback, plans by {args.exchange}); "
+                f"run directories in {out}"
+            )
             log(RUN_HEADER)
             for n in lock_sizes:
-                r = fleet_run(n, "lockstep", lock_s, out, tmp, log)
+                r = fleet_run(n, "lockstep", lock_s, out, tmp, log, args.exchange)
                 runs.append(r)
                 print_run(r, log)
             for n in rt_sizes:
-                r = fleet_run(n, "realtime", rt_s, out, tmp, log)
+                r = fleet_run(n, "realtime", rt_s, out, tmp, log, args.exchange)
                 runs.append(r)
                 print_run(r, log)
             log(RUN_LEGEND)

@@ -72,6 +72,10 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
         "--realtime-s", type=float, default=None, metavar="S",
         help="seconds per realtime run at Ts (default 60; quick 3)",
     )  # fmt: skip
+    ap.add_argument(
+        "--exchange", choices=["mesh", "relay"], default="relay",
+        help="how the fleet runs' plans travel (fleet run --exchange; default relay)",
+    )  # fmt: skip
     ap.add_argument("--no-fleet", action="store_true", help="skip the fleet runs (figures [4] and [5])")
 
 

@@ -5,7 +5,7 @@
 * ``fleet simulate SCENARIO.toml [--out DIR] [--seed N]`` runs the in-process
   harness, writes ``DIR/summary.json`` and exits 0 only if the run completed
   with zero collisions and every robot reached its goal.
-* ``fleet run SCENARIO.toml [--out DIR] [--clock C] [--seed N] [--viewer]
+* ``fleet run SCENARIO.toml [--out DIR] [--clock C] [--exchange E] [--seed N] [--viewer]
   [--listen ENDPOINT]`` runs the fleet as processes over Zenoh.
 * ``fleet goal SCENARIO.toml --robot ID X Y --connect ENDPOINT`` gives a
   running agent a new goal.
@@ -164,6 +164,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     code, verdict, summary = run_fleet(
         str(Path(args.scenario).resolve()), [r.id for r in scn.robots], out.resolve(), args.seed,
         viewer=args.viewer, clock=clock, hub=args.listen, links=links, faults=args.faults,
+        exchange=args.exchange,
     )  # fmt: skip
     if summary is not None:
         print(
@@ -313,6 +314,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument(
         "--faults", metavar="JSON",
         help="fault plan for every process (JSON text or file; see fleet/faults.py): drop or delay messages",
+    )  # fmt: skip
+    r.add_argument(
+        "--exchange", choices=["mesh", "relay"], default="mesh",
+        help="how plans travel: mesh (agent to agent, default) or relay (one digest a step from the "
+        "tracker: one message per agent instead of n - 1, for large fleets)",
     )  # fmt: skip
     r.set_defaults(func=cmd_run)
     g = sub.add_parser("goal", help="give a running agent a new goal and wait until it takes it")

@@ -106,11 +106,14 @@ def run_fleet(
     hub: str | None = None,
     links: dict[str, str] | None = None,
     faults: str | None = None,
+    exchange: str = "mesh",
 ) -> tuple[int, str, dict[str, Any] | None]:
     """Run the fleet; returns (exit code, one-line verdict, summary or None).
 
     ``hub`` is the tracker's listening endpoint (default: a free loopback port).
     ``faults`` is a fault plan (:mod:`fleet.faults`) handed to every process.
+    ``exchange`` is how plans travel: ``mesh`` (agent to agent) or ``relay``
+    (the tracker's digest, docs/runtime-notes.md).
     ``links`` maps robot id → link; robots on ``"emulator"`` get an e-puck
     firmware emulator process (advanced sercom on a pseudo-terminal) and an
     ``epuck_link`` process driving it, and the tracker observes the emulators
@@ -127,6 +130,8 @@ def run_fleet(
         fleet,
         "--clock",
         clock,
+        "--exchange",
+        exchange,
         *(["--faults", faults] if faults else []),
     ]
     seed_args = [] if seed is None else ["--seed", str(seed)]

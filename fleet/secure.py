@@ -22,8 +22,9 @@ identity        may publish (put)                                       liveline
 robot ``R``     ``F/plan/R`` ``F/cmd/R`` ``F/odom/R`` ``F/wheels/R``     ``F/alive/R``
                 ``F/emu/R``
 ``tracker``     ``F/pose/*`` ``F/truth/*`` ``F/clock``                  —
-                (and ``F/odom/*`` with ``sim_tracker``: the simulated
-                tracker plays every robot's side)
+                (and ``F/odom/*`` and ``F/digest`` with ``sim_tracker``:
+                the simulated tracker plays every robot's side and
+                relays plans)
 ``supervisor``  —                                                       ``F/alive/supervisor``
 ``operator``    ``F/goal/*``                                            —
 ==============  ======================================================  =====================
@@ -198,7 +199,7 @@ def acl_json(robots: Sequence[str], fleet: str = "lab", sim_tracker: bool = Fals
                 "key_exprs": key_exprs}  # fmt: skip
 
     everything = f"{k.root}/**"
-    tracker_puts = [k.pose(), k.truth(), k.clock] + ([k.odom()] if sim_tracker else [])
+    tracker_puts = [k.pose(), k.truth(), k.clock] + ([k.odom(), k.digest] if sim_tracker else [])
     rules = [
         rule("subscribe", ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
              "ingress", [everything]),

@@ -245,6 +245,36 @@ def test_lockstep_run_with_lost_plans_and_poses_is_safe_and_deterministic(tmp_pa
         assert s[key] == pytest.approx(s2[key], abs=1e-12)
 
 
+def test_relayed_plans_lost_at_the_tracker_or_the_agents_are_handled_safely(tmp_path):
+    """``--exchange relay``: the plans travel in the tracker's digest.  r2's plans lost on the
+    way to the tracker (steps 80–90) reach no agent, so r1 and r3 keep clear of r2 as a
+    growing disc (r2's plans reach the agents no other way); 10 % of r1's and r3's relayed
+    plans are also lost at each agent.  No collision, no reference closer than required,
+    every goal reached."""
+    plan = {"seed": 5, "rules": [
+        {"key": "plan/r2", "bursts": [[80, 90]], "to": ["tracker"]},
+        {"key": "plan/r1", "drop": 0.1, "to": ["agent r2", "agent r3"]},
+        {"key": "plan/r3", "drop": 0.1, "to": ["agent r1", "agent r2"]},
+    ]}  # fmt: skip
+    faults = tmp_path / "faults.json"
+    faults.write_text(json.dumps(plan))
+    out = tmp_path / "run"
+    res = _fleet(
+        "run", str(SCENARIOS / "paper_three_robots.toml"), "--out", str(out), "--faults", str(faults),
+        "--exchange", "relay",
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    s = json.loads((out / "summary.json").read_text())
+    assert s["collisions"] == 0 and s["all_goals_reached"]
+    assert s["min_reference_separation_m"] >= s["required_reference_separation_m"] - 1e-9
+    err = res.stderr
+    for rid in ("r1", "r3"):
+        assert f"[agent {rid}] step 81: r2: its plan is late or lost" in err, err[-3000:]
+    injected = dict(re.findall(r"\[agent (r\d)\] stopped after .*?, (\d+) injected faults", err))
+    assert set(injected) == {"r1", "r2", "r3"} and all(int(n) > 20 for n in injected.values()), injected
+    assert "[agent r1] step 91: r2: coordinating again" in err
+
+
 def _launch(
     scenario: Path, out: Path, hub: str, clock: str
 ) -> tuple[subprocess.Popen[str], queue.Queue[str]]:

@@ -138,6 +138,27 @@ def test_lockstep_runs_are_deterministic(three, tmp_path):
     assert strip(first) == strip(second)
 
 
+def test_relayed_plans_give_the_same_run(three, tmp_path):
+    """``--exchange relay``: each agent takes a step's plans in one digest from the tracker
+    instead of n − 1 messages; in lockstep the run is the mesh run, to the last bit."""
+    _, out = three
+    mesh = json.loads((out / "summary.json").read_text())
+    res = _fleet(
+        "run", str(SCENARIOS / "paper_three_robots.toml"), "--out", str(tmp_path), "--exchange", "relay"
+    )
+    assert res.returncode == 0, res.stderr[-2000:]
+    relay = json.loads((tmp_path / "summary.json").read_text())
+    timing = {"wall_time_s", "processes", "exit_codes", "solve_time_ms"}
+
+    def strip(d):
+        if isinstance(d, dict):
+            return {k: strip(v) for k, v in d.items() if k not in timing}
+        return d
+
+    events = [ln for ln in res.stderr.splitlines() if ln.startswith("[agent") and "step" in ln]
+    assert strip(relay) == strip(mesh), "\n".join(events[-20:])
+
+
 def test_killed_agent_fails_the_run_and_names_the_robot(tmp_path):
     """SIGKILL of one agent mid-run: non-zero exit naming it, and the supervisor still writes a summary."""
     launcher = subprocess.Popen(

@@ -891,6 +891,10 @@ def main(argv: list[str] | None = None) -> int:
 
     source: VideoSource | DeviceSource | None = None
     try:
+        if args.exchange == "relay":
+            raise ConfigError(
+                "--exchange", "relay needs the simulated tracker; the camera tracker relays no plans"
+            )
         if not (math.isfinite(args.rate) and args.rate > 0):
             raise ConfigError("--rate", f"must be > 0, got {args.rate}")
         if args.steps is not None and args.steps < 1:

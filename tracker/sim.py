@@ -12,7 +12,9 @@ and the inner loop's velocity (odometry) of every robot, then the ground truth
 on its own key.  In lockstep it waits until every live agent has answered the
 step (bounded by ``--timeout``).  With ``--clock realtime`` steps start every
 Ts of wall time; a command later than ``--deadline``·Ts after its tick is a
-deadline miss (the previous acceleration is held).
+deadline miss (the previous acceleration is held).  With ``--exchange relay``
+it publishes, before tick k, the digest of the plans of step k−1 that it has
+(the agents then subscribe to it instead of to each other's plans).
 
 ``--source emulator`` (realtime only) is the camera of a lab whose robots are
 e-puck firmware emulators (:mod:`epuck_link.emulator`) driven by
@@ -46,7 +48,7 @@ from fleet.runtime import (
     publisher,
 )
 from fleet.scenario import ConfigError
-from fleet.wire import Command, Keys, Odom, Plan, Pose, Tick, Truth
+from fleet.wire import Command, Digest, Keys, Odom, Plan, Pose, Tick, Truth
 
 SUPERVISOR = "supervisor"
 PROGRESS_EVERY = 50
@@ -165,6 +167,7 @@ def main(argv: list[str] | None = None) -> int:
         for rid in ids
     }
     clock = publisher(session, keys.clock)
+    relay = publisher(session, keys.digest) if args.exchange == "relay" else None
     announce(role, robots=ids, steps=steps)
     code = 0
     try:
@@ -191,8 +194,11 @@ def main(argv: list[str] | None = None) -> int:
             t = k * p.Ts
             if realtime:
                 _until(t_start + t)
-            # The tick first, then each robot's pose and odometry (an agent starts as
-            # soon as its own are in), then the truth, which only the supervisor reads.
+            # Each robot's pose and odometry, the digest of the plans (relay), then the
+            # tick, then the truth, which only the supervisor reads.  The tick comes
+            # after what the agents need: the agents it wakes would otherwise take the
+            # cores from this process before the last robots' poses are out (at 16
+            # robots on 2 cores, the last ones missed their deadlines).
             inbox.drain()
             with inbox.cond:
                 # Who answers this step: the live agents that have been heard since they
@@ -206,7 +212,6 @@ def main(argv: list[str] | None = None) -> int:
                     if r in inbox.live and cmd is not None and cmd.step >= k - 1:
                         heard.add(r)
                 answering = [r for r in ids if r in inbox.live and (k == 0 or r in heard)]
-            clock.put(Tick(robot=role, step=k, t=t, stop=False, misses=misses).encode())
             with inbox.cond:
                 truths = {rid: world.pose(rid).copy() for rid in ids}
             for rid in ids:
@@ -216,6 +221,9 @@ def main(argv: list[str] | None = None) -> int:
                 if world.odometry:
                     state = world.state(rid)
                     pub_odom.put(Odom(robot=rid, seq=k, t=t, vx=float(state[1]), vy=float(state[3])).encode())
+            if relay is not None and k > 0:
+                relay.put(_digest(inbox, ids, role, k - 1, p.Ts, p.horizon).encode())
+            clock.put(Tick(robot=role, step=k, t=t, stop=False, misses=misses).encode())
             for rid in ids:
                 x, y, th = (float(v) for v in truths[rid])
                 pubs[rid][2].put(Truth(robot=rid, seq=k, t=t, x=x, y=y, theta=th).encode())
@@ -281,6 +289,17 @@ def main(argv: list[str] | None = None) -> int:
             s.undeclare()
         session.close()
     return code
+
+
+def _digest(inbox: Inbox, ids: list[str], role: str, step: int, Ts: float, horizon: int) -> Digest:
+    """The plans of ``step`` that arrived, in one message (``--exchange relay``).
+
+    A plan is relayed only as it came on its robot's own key (the subscription
+    checks the id against the key) and only with the design's horizon; a plan
+    not relayed is a late one to its neighbours."""
+    with inbox.cond:
+        plans = [pl for r in ids if (pl := inbox.get(Plan, r, step)) is not None]
+    return Digest.of(role, step, Ts, horizon, [pl for pl in plans if pl.committed.shape[0] == horizon])
 
 
 def _until(when: float) -> None:
