@@ -363,6 +363,7 @@ class Navigator:
     lookahead: float = 0.3
     """Carrot distance along the planned path [m]."""
     replan_steps: int = 10
+    """Steps between grid replans; robot of rank r replans at the steps ≡ −r (mod this) after its first."""
     soft_cost: float = 8.0
     """Extra cost per metre inside the footprint disc of a moving robot."""
     parked_cost: float = 40.0
@@ -422,7 +423,12 @@ class Navigator:
     def waypoint(self, c: Array, goal: Array, neighbours: Sequence[NeighbourInfo] = ()) -> Array:
         """Carrot point on the planned path from ``c`` to ``goal``."""
         if self._pred is None or self._since_plan >= self.replan_steps:
+            first = self._pred is None
             self._plan(c, goal, neighbours)
+            if first:
+                # Robots replan in turn, not all at the same step: a replan costs a few
+                # milliseconds, and 16 at once on 2 cores missed the realtime deadline.
+                self._since_plan = self.rank % self.replan_steps
         self._since_plan += 1
         assert self._grid is not None and self._pred is not None
         if float(np.linalg.norm(goal - c)) <= self.lookahead:
