@@ -10,7 +10,10 @@ Entity paths (2-D, world frame, metres):
   ``.../reference`` (the committed ỹ), ``.../plan`` (nominal x̂);
 * ``separation/true/<a>-<b>`` and ``separation/true/collision`` (2 body radii),
   ``separation/reference/<a>-<b>`` and ``separation/reference/required``
-  (paper Fig. 7 and 9);
+  (paper Fig. 7 and 9).  Above PAIR_SERIES_MAX robots, one series per robot
+  instead of one per pair: ``separation/true/nearest`` and
+  ``separation/reference/nearest``, each robot's distance to its nearest
+  other robot (or appended reference point), named by robot id;
 * ``solve_ms/<id>``; ``events`` (fallbacks, tube exits, stale plans, rejections).
 
 Timelines: ``step`` (sequence) and ``sim_time`` (duration).
@@ -35,6 +38,15 @@ PALETTE = [
     (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207),
 ]  # fmt: skip
 """Robot colours (RGB), in scenario order and cycled: one colour per robot on every entity of it."""
+
+
+PAIR_SERIES_MAX = 8
+"""Most robots whose separations are logged pair by pair [robots]: 28 series.  Beyond, each
+robot's nearest distance (n series in one entity): at 16 robots the 240 pair series cost the
+supervisor a third of a core in ``send_columns`` alone, and no one reads 120 lines."""
+FLUSH_ROBOTS = 8
+"""The recording is flushed every 0.25 s per this many robots: each entity costs a
+``send_columns`` call (≈ 0.2 ms) per flush, whatever its number of rows."""
 
 
 def robot_colour(rank: int) -> tuple[int, int, int]:
@@ -77,7 +89,9 @@ class Recorder:
         self.goals = {r.id: tuple(r.goal) for r in scn.robots}
         self._time(0, 0.0)
         self._log_goals()
-        self.pairs = list(combinations(self.ids, 2))
+        self.pairs = list(combinations(self.ids, 2)) if len(self.ids) <= PAIR_SERIES_MAX else []
+        self.flush_period = 0.25 * max(1.0, len(self.ids) / FLUSH_ROBOTS)
+        """Wall time between flushes [s]: what a live viewer lags by at most."""
 
     def _time(self, step: int, Ts: float) -> None:
         self.rec.set_time("step", sequence=step)
@@ -101,6 +115,10 @@ class Recorder:
             log(f"{base}/reference", rr.LineStrips2D.from_fields(colors=c), static=True)
             log(f"{base}/plan", rr.LineStrips2D.from_fields(colors=c), static=True)
             log(f"solve_ms/{rid}", rr.SeriesLines(colors=c), static=True)
+        if len(self.ids) > PAIR_SERIES_MAX:
+            cs = [self.colour[r] for r in self.ids]
+            for kind in ("true", "reference"):
+                log(f"separation/{kind}/nearest", rr.SeriesLines(colors=cs, names=self.ids), static=True)
 
     def _row(self, entity: str, archetype: Any, step: int, Ts: float, **fields: Any) -> None:
         """Queue one step's value of ``entity``; :meth:`flush` sends each entity's rows as columns."""
@@ -119,14 +137,18 @@ class Recorder:
             rr.send_columns(
                 entity,
                 indexes=[rr.TimeColumn("step", sequence=steps), rr.TimeColumn("sim_time", duration=times)],
-                columns=archetype.columns(**cols).partition(lengths=[1] * len(rows)),
+                columns=archetype.columns(**cols).partition(
+                    lengths=[len(next(iter(r[2].values()))) for r in rows]
+                ),
                 recording=self.rec,
             )
         self.pending.clear()
         self.pending_rows = 0
 
-    def flush_if_due(self, period: float = 0.25) -> None:
-        """Flush when the oldest queued row is ``period`` [s] of wall time old (live viewing)."""
+    def flush_if_due(self, period: float | None = None) -> None:
+        """Flush when the oldest queued row is ``period`` [s] of wall time old (live
+        viewing; default :attr:`flush_period`)."""
+        period = self.flush_period if period is None else period
         now = time.monotonic()
         if not self.pending_rows:
             self.last_flush = now
@@ -148,6 +170,9 @@ class Recorder:
         for a, b in self.pairs:
             d = math.hypot(truth[a].x - truth[b].x, truth[a].y - truth[b].y)
             row(f"separation/true/{a}-{b}", rr.Scalars, step, Ts, scalars=[d])
+        if not self.pairs:
+            pts = np.array([[truth[r].x, truth[r].y] for r in self.ids])
+            row("separation/true/nearest", rr.Scalars, step, Ts, scalars=nearest(pts))
         row("separation/true/collision", rr.Scalars, step, Ts, scalars=[2.0 * self.radius])
 
     def plans(self, step: int, Ts: float, plans: dict[str, Plan]) -> None:
@@ -179,6 +204,9 @@ class Recorder:
                 continue
             d = float(np.linalg.norm(plans[a].committed[-1] - plans[b].committed[-1]))
             row(f"separation/reference/{a}-{b}", rr.Scalars, k, Ts, scalars=[d])
+        if not self.pairs and len(plans) == len(self.ids):  # one row holds every robot's series
+            ends = np.array([plans[r].committed[-1] for r in self.ids])
+            row("separation/reference/nearest", rr.Scalars, k, Ts, scalars=nearest(ends))
         row("separation/reference/required", rr.Scalars, k, Ts, scalars=[2.0 * self.footprint])
 
     def _blueprint(self) -> Any:
@@ -212,3 +240,10 @@ class Recorder:
         self.flush()
         self.rec.flush()
         self.rec.disconnect()
+
+
+def nearest(points: np.ndarray) -> list[float]:
+    """Each point's distance [m] to the nearest other one, for points (n, 2) [m], n ≥ 2."""
+    d = np.linalg.norm(points[:, None, :] - points[None, :, :], axis=-1)
+    np.fill_diagonal(d, np.inf)
+    return [float(v) for v in d.min(axis=1)]
