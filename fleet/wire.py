@@ -382,20 +382,24 @@ class Digest(Message):
 
     The tracker already receives every plan; relaying them lets each agent take
     one message a step instead of n − 1 (docs/runtime-notes.md, "Relayed
-    plans").  Row i is robot ``ids[i]``'s plan of ``step`` as the tracker
-    received it on that robot's own key, with what a neighbour uses of it: the
-    whole committed reference, footprint, precedence and goal.  The nominal
+    plans").  Row i is robot ``ids[i]``'s newest plan, of step ``steps[i]`` ≤
+    ``step``, as the tracker received it on that robot's own key, with what a
+    neighbour uses of it: the whole committed reference, footprint, precedence
+    and goal.  A plan late for one digest is in the next: a neighbour then uses
+    it as it would use a late plan on its own key.  The nominal
     plan, solver status and timing stay on ``fleet/F/plan/R`` for the supervisor.
     ``robot`` is the sender ("tracker")."""
 
     TYPE: ClassVar[str] = "digest"
     MAX_BYTES: ClassVar[int] = 4 * MAX_PAYLOAD
     step: int
-    """Step k at which every relayed plan was committed."""
+    """The step k − 1 whose plans the digest is for (sent before tick k)."""
     Ts: float
     """Sampling period [s]."""
     ids: list[str] = field(compare=False)
     """Robot ids, (n,), distinct, 0 ≤ n ≤ MAX_RELAYED."""
+    steps: list[int] = field(compare=False)
+    """Step at which each plan was committed, (n,), each ≤ ``step``."""
     priority: list[int] = field(compare=False)
     rank: list[int] = field(compare=False)
     phase: list[int] = field(compare=False)
@@ -410,11 +414,11 @@ class Digest(Message):
 
     @classmethod
     def of(cls, sender: str, step: int, Ts: float, horizon: int, plans: list[Plan]) -> Digest:
-        """The digest of ``plans``: all of ``step``, each committing ``horizon``
+        """The digest of ``plans``: each of step ≤ ``step``, committing ``horizon``
         points, at most MAX_RELAYED of them (none is a valid digest)."""
         n = len(plans)
         return cls(
-            robot=sender, step=step, Ts=Ts, ids=[p.robot for p in plans],
+            robot=sender, step=step, Ts=Ts, ids=[p.robot for p in plans], steps=[p.step for p in plans],
             priority=[p.priority for p in plans], rank=[p.rank for p in plans],
             phase=[p.phase for p in plans], footprint=np.array([p.footprint for p in plans], float),
             committed=np.array([p.committed for p in plans], float).reshape(n, horizon, 2),
@@ -426,14 +430,14 @@ class Digest(Message):
         """The relayed plans.  They carry no nominal plan (shape (0, 2)), status
         ``"relayed"``, solve time 0 and ``tube_ok`` True: a neighbour does not use those."""
         empty = np.zeros((0, 2))
-        t0 = (self.step + 1) * self.Ts
         out = []
         for i, rid in enumerate(self.ids):
+            k = self.steps[i]
             plan = Plan(
-                robot=rid, step=self.step, t0=t0, Ts=self.Ts, committed=self.committed[i], nominal=empty,
-                footprint=float(self.footprint[i]), priority=self.priority[i], rank=self.rank[i],
-                phase=self.phase[i], target=self.target[i], goal=self.goal[i], status="relayed",
-                solve_time=0.0, tube_ok=True,
+                robot=rid, step=k, t0=(k + 1) * self.Ts, Ts=self.Ts, committed=self.committed[i],
+                nominal=empty, footprint=float(self.footprint[i]), priority=self.priority[i],
+                rank=self.rank[i], phase=self.phase[i], target=self.target[i], goal=self.goal[i],
+                status="relayed", solve_time=0.0, tube_ok=True,
             )  # fmt: skip
             out.append(plan)
         return out
@@ -450,8 +454,11 @@ class Digest(Message):
         ids = [_str(r, "ids", ROBOT_ID) for r in ids]
         if len(set(ids)) != n:
             raise WireError("ids: a robot appears twice")
+        step = _int(d["step"], "step")
         cols: dict[str, list[int]] = {}
-        for name, lo, hi in (("priority", -(2**31), 2**31), ("rank", 0, 2**31), ("phase", 0, 2)):
+        for name, lo, hi in (
+            ("steps", 0, step), ("priority", -(2**31), 2**31), ("rank", 0, 2**31), ("phase", 0, 2)
+        ):  # fmt: skip
             col = d[name]
             if type(col) is not list or len(col) != n:
                 raise WireError(f"{name}: expected a list of {n} integers")
@@ -460,7 +467,7 @@ class Digest(Message):
         if not (fp > 0).all() or not (fp <= 10).all():
             raise WireError("footprint: outside (0, 10] m")
         return {
-            "step": _int(d["step"], "step"),
+            "step": step,
             "Ts": Ts,
             "ids": ids,
             **cols,

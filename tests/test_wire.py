@@ -122,6 +122,7 @@ BAD = [
     ("digest: bad id", lambda: _mutate(SAMPLES["digest"], ids=["r1", "r 2", "r3"]), Digest, "ids"),
     ("digest: short column", lambda: _mutate(SAMPLES["digest"], rank=[0, 1]), Digest, "rank"),
     ("digest: bad phase", lambda: _mutate(SAMPLES["digest"], phase=[0, 3, 0]), Digest, "phase"),
+    ("digest: a plan newer than it", lambda: _mutate(SAMPLES["digest"], steps=[7, 8, 7]), Digest, "steps"),
     ("digest: rows and ids differ", lambda: _mutate(
         SAMPLES["digest"], committed=encode_array(np.zeros((2, 20, 2)))), Digest, "committed"),
     ("digest: NaN in a reference", lambda: _mutate(SAMPLES["digest"], committed=encode_array(
@@ -155,10 +156,11 @@ def test_a_digest_relays_what_neighbours_use_of_each_plan():
     bit for bit; one message of n plans instead of n."""
     plans = [_plan("r1"), _plan("r2", n=20), _plan("r3")]
     plans[1] = Plan(**{**plans[1].__dict__, "committed": plans[1].committed + 0.5, "priority": 4, "rank": 1})
+    plans[2] = Plan(**{**plans[2].__dict__, "step": 5, "t0": 0.6})  # late: relayed again in a later digest
     d = decode(Digest.of("tracker", 7, 0.1, 20, plans).encode(), Digest)
-    assert d.ids == ["r1", "r2", "r3"] and d.committed.shape == (3, 20, 2)
+    assert d.ids == ["r1", "r2", "r3"] and d.steps == [7, 7, 5] and d.committed.shape == (3, 20, 2)
     for sent, got in zip(plans, d.plans(), strict=True):
-        assert got.robot == sent.robot and got.step == sent.step == 7
+        assert got.robot == sent.robot and got.step == sent.step
         for f in ("committed", "target", "goal"):
             assert np.array_equal(getattr(got, f), getattr(sent, f)), f
         assert (got.footprint, got.priority, got.rank, got.phase) == (

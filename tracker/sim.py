@@ -243,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
             for pub, payload in measured:
                 pub.put(payload)
             if relay is not None and k > 0:
-                if not early or digest is None or _relayable(inbox, ids, k - 1, p.horizon) != len(digest.ids):
+                if not early or digest is None or _relayable(inbox, ids, k - 1, p.horizon) != _rows(digest):
                     digest = _digest(inbox, ids, role, k - 1, p.Ts, p.horizon)  # a plan came since
                 relay.put(digest.encode())  # type: ignore[union-attr]
             clock.put(Tick(robot=role, step=k, t=t, stop=False, misses=misses).encode())
@@ -345,22 +345,29 @@ def _measure(
     return measured, truths
 
 
-def _relayable(inbox: Inbox, ids: list[str], step: int, horizon: int) -> int:
-    """How many plans of ``step`` a digest of them would hold now (see :func:`_digest`)."""
+def _relayed_plans(inbox: Inbox, ids: list[str], step: int, horizon: int) -> list[Plan]:
+    """Each robot's newest plan of a step ≤ ``step`` with the design's horizon."""
     with inbox.cond:
-        plans = [inbox.get(Plan, r, step) for r in ids]
-    return sum(pl is not None and pl.committed.shape[0] == horizon for pl in plans)
+        plans = [inbox.newest(Plan, r, step) for r in ids]
+    return [pl for pl in plans if pl is not None and pl.committed.shape[0] == horizon]
+
+
+def _relayable(inbox: Inbox, ids: list[str], step: int, horizon: int) -> list[tuple[str, int]]:
+    """(robot, step) of the rows a digest would hold now (see :func:`_digest`)."""
+    return [(pl.robot, pl.step) for pl in _relayed_plans(inbox, ids, step, horizon)]
+
+
+def _rows(digest: Digest) -> list[tuple[str, int]]:
+    return list(zip(digest.ids, digest.steps, strict=True))
 
 
 def _digest(inbox: Inbox, ids: list[str], role: str, step: int, Ts: float, horizon: int) -> Digest:
-    """The plans of ``step`` that arrived, in one message (``--exchange relay``).
+    """Each robot's newest plan up to ``step``, in one message (``--exchange relay``).
 
     A plan is relayed only as it came on its robot's own key (the subscription
-    checks the id against the key) and only with the design's horizon; a plan
-    not relayed is a late one to its neighbours."""
-    with inbox.cond:
-        plans = [pl for r in ids if (pl := inbox.get(Plan, r, step)) is not None]
-    return Digest.of(role, step, Ts, horizon, [pl for pl in plans if pl.committed.shape[0] == horizon])
+    checks the id against the key) and only with the design's horizon.  One that
+    missed the digest of its step is in the next: late, as on its own key."""
+    return Digest.of(role, step, Ts, horizon, _relayed_plans(inbox, ids, step, horizon))
 
 
 def _until(when: float) -> None:
