@@ -293,7 +293,9 @@ def test_only_the_tracker_publishes_poses_truth_and_the_clock(
             deliver(tracker, key, [observer])
         deliver(r1, K.plan("r1"), [observer])
         deliver(operator, K.goal("r1"), [observer])
-        forged = (K.pose("r1"), K.pose("r2"), K.truth("r1"), K.clock)
+        # The digest too: the lab router (a camera tracker) grants it to nobody, and a robot's
+        # forged digest would speak for every robot at once.
+        forged = (K.pose("r1"), K.pose("r2"), K.truth("r1"), K.clock, K.digest)
         for attacker, allowed in ((r1, K.plan("r1")), (operator, K.goal("r1"))):
             for key in forged:
                 attacker.send(put=key, payload=f"forged by {attacker.name}")
