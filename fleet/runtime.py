@@ -171,6 +171,8 @@ class Inbox:
         self.latest: dict[tuple[str, str], Any] = {}
         self.history: dict[tuple[str, str], dict[int, Any]] = {}
         self.live: set[str] = set()
+        self.gone: dict[str, float] = {}
+        """When [s, time.monotonic] each robot that is not live lost its liveliness token."""
         self.arrived: dict[tuple[str, str], float] = {}
         """Arrival time [s, time.monotonic] of the latest message per (type, robot)."""
         self.first: dict[str, float] = {}
@@ -290,8 +292,10 @@ class Inbox:
             with self.cond:
                 if sample.kind == zenoh.SampleKind.DELETE:
                     self.live.discard(rid)
+                    self.gone[rid] = time.monotonic()
                 else:
                     self.live.add(rid)
+                    self.gone.pop(rid, None)
                 self.cond.notify_all()
 
         return session.liveliness().declare_subscriber(self.keys.alive(), on_token, history=True)

@@ -35,6 +35,9 @@ from supervisor.recorder import Recorder
 
 STOP_GRACE = 5.0
 """Seconds to wait for the last plans after the stop tick [s]."""
+GONE_GRACE = 1.0
+"""How long after a robot's liveliness token went its plans may still arrive [s]: Zenoh can
+deliver the token's removal before the last plan the agent put (seen at the end of a run)."""
 
 
 class Monitor:
@@ -202,8 +205,8 @@ def _run_wall_time(inbox: Inbox, fallback: float) -> float:
 
 def _plan_step(inbox: Inbox, ids: list[str], k: int) -> dict[str, Plan] | None:
     """The plans of step k once every robot's is in or will never come: a robot
-    whose agent has already sent a later plan (it skipped step k, realtime) or is
-    dead is left out.  None while some plan of step k may still arrive, and once
+    whose agent has already sent a later plan (it skipped step k, realtime) or has
+    been dead for GONE_GRACE is left out.  None while some plan of step k may still arrive, and once
     no robot has reached step k (every agent gone: nothing left to judge).
 
     Only steps the clock has reached count: a plan is committed after its
@@ -224,8 +227,12 @@ def _plan_step(inbox: Inbox, ids: list[str], k: int) -> dict[str, Plan] | None:
         if latest is not None and latest.step > k:
             reached = True
             continue  # skipped, or its plan of step k was lost
-        if r not in inbox.live and latest is not None:
-            continue  # dead: no more plans
+        if (
+            r not in inbox.live
+            and latest is not None
+            and time.monotonic() - inbox.gone.get(r, 0.0) >= GONE_GRACE
+        ):
+            continue  # dead for a while: no more plans
         return None
     return plans if reached else None
 

@@ -64,3 +64,24 @@ def test_a_robot_that_skipped_a_step_is_left_out_once_it_is_past_it() -> None:
     inbox = _inbox(5, {"r1": [0, 1, 2, 3, 4], "r2": [0, 1, 2, 4]})
     got = _plan_step(inbox, IDS, 3)
     assert got is not None and sorted(got) == ["r1"]
+
+
+def test_a_robot_whose_token_just_went_is_waited_for_then_left_out() -> None:
+    """Zenoh may deliver the removal of an exiting agent's liveliness token before its last
+    plan: the step waits GONE_GRACE for that plan, then is judged without the robot."""
+    import time
+
+    from supervisor.monitor import GONE_GRACE
+
+    inbox = _inbox(5, {"r1": [0, 1, 2, 3, 4, 5], "r2": [0, 1, 2, 3, 4]})
+    inbox.live = {"r1"}
+    inbox.gone["r2"] = time.monotonic()  # just now: its plan of step 5 may still be on the way
+    assert _plan_step(inbox, IDS, 5) is None
+    inbox._store(Plan.TYPE, _plan("r2", 5), True)  # and here it is
+    got = _plan_step(inbox, IDS, 5)
+    assert got is not None and sorted(got) == IDS
+    inbox = _inbox(5, {"r1": [0, 1, 2, 3, 4, 5], "r2": [0, 1, 2, 3, 4]})
+    inbox.live = {"r1"}
+    inbox.gone["r2"] = time.monotonic() - GONE_GRACE - 0.1  # gone for longer: dead
+    got = _plan_step(inbox, IDS, 5)
+    assert got is not None and sorted(got) == ["r1"]
