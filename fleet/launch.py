@@ -79,19 +79,22 @@ def _wait_ready(procs: list[Proc], timeout: float) -> list[str]:
     return sorted(pending)
 
 
-def _stop(procs: list[Proc], grace: float = 5.0) -> None:
-    """SIGTERM every running process, the last started first (the link processes
-    zero their wheels before their emulators go), then SIGKILL after ``grace`` [s]."""
-    for p in reversed(procs):
-        if p.popen.poll() is None:
-            p.popen.send_signal(signal.SIGTERM)
-    deadline = time.monotonic() + grace
-    for p in procs:
-        try:
-            p.popen.wait(timeout=max(0.1, deadline - time.monotonic()))
-        except subprocess.TimeoutExpired:
-            p.popen.kill()
-            p.popen.wait(timeout=5)
+def _stop(procs: list[Proc], grace: float = 5.0, robots: tuple[Proc, ...] = ()) -> None:
+    """SIGTERM every running process, the last started first, then SIGKILL after
+    ``grace`` [s]; the ``robots`` (e-puck emulators) only once the others are gone,
+    so that each link process has zeroed its wheels before its robot goes (sent
+    together, an emulator could close its port first: "zero speed NOT sent")."""
+    for group in ([p for p in procs if p not in robots], [p for p in procs if p in robots]):
+        for p in reversed(group):
+            if p.popen.poll() is None:
+                p.popen.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + grace
+        for p in group:
+            try:
+                p.popen.wait(timeout=max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                p.popen.kill()
+                p.popen.wait(timeout=5)
 
 
 def run_fleet(
@@ -136,13 +139,13 @@ def run_fleet(
     ]
     seed_args = [] if seed is None else ["--seed", str(seed)]
     procs: list[Proc] = []
+    emulators: list[Proc] = []
     try:
         source = ["--source", "emulator"] if emulated else []
         procs.append(_start("tracker", "tracker", [*common, "--listen", hub, *seed_args, *source], env))
         if _wait_ready(procs, 60.0):
             return 1, "tracker did not start", None
         # The robot side: one emulator and one epuck_link per emulated robot.
-        emulators = []
         for rid in emulated:
             emu_args = [*common, "--connect", hub, "--robot", rid, "--pty"]
             emulators.append(_start(f"emulator {rid}", "epuck_link.emulator", emu_args, env))
@@ -185,7 +188,7 @@ def run_fleet(
             except subprocess.TimeoutExpired:
                 pass
     finally:
-        _stop(procs)
+        _stop(procs, robots=tuple(emulators))
     codes = {p.role: p.popen.returncode for p in procs}
     summary_path = out / "summary.json"
     summary = json.loads(summary_path.read_text()) if summary_path.exists() else None
