@@ -40,8 +40,6 @@ from fleet.runtime import (
 from fleet.scenario import ConfigError, check_point, controlled_point
 from fleet.wire import Command, Digest, Goal, Keys, Odom, Plan, Pose, Tick
 
-POLL_S = 0.001
-"""Realtime relay: how often a missing drained input is looked for [s]."""
 REJOIN_GAP = 5
 """Steps missed (0.5 s at Ts = 0.1 s, the link watchdog's time) after which an agent re-initialises."""
 
@@ -150,12 +148,14 @@ def main(argv: list[str] | None = None) -> int:
                 inbox.wait(lambda: set(others) <= inbox.live, args.timeout)
             # Own measurement of step k, then the live neighbours' plans of step k − 1.
             # Realtime: neither may hold up this step's deadline; a withheld message
-            # (fault plan) is never waited for.  The plans come by callback, not by a
-            # drain (Inbox.drain): a plan a little late is then still used, where a
-            # drain would count it stale, and under load the growing discs kept
-            # robots from their goals (a 3-robot realtime run across hosts, 60 s).
+            # (fault plan) is never waited for.  In mesh the plans come by callback,
+            # not by a drain at the start of the step: a plan a little late is then
+            # still used, where that drain would count it stale, and under load the
+            # growing discs kept robots from their goals (a 3-robot realtime run
+            # across hosts, 60 s).  In realtime relay, own pose, odometry and the
+            # digest come before the tick on one link and are drained (_Link).
             limit = args.timeout if lockstep else 0.3 * p.Ts
-            wait = partial(_drain_until, inbox) if link.drained else inbox.wait
+            wait = inbox.drain_until if link.drained else inbox.wait
             wait(partial(_measured, inbox, me, k), limit)
             if k > 0:
                 plans_in = _relayed if relay else _plans_in
@@ -394,25 +394,6 @@ def _plans_in(inbox: Inbox, others: list[str], step: int) -> bool:
     return all(
         inbox.get(Plan, j, step) is not None or inbox.lost(Plan, j, step) for j in others if j in inbox.live
     )
-
-
-def _drain_until(inbox: Inbox, predicate: Any, timeout: float) -> bool:
-    """Take the drained subscriptions' queued samples until ``predicate()`` holds
-    (checked under the lock) or ``timeout`` [s] passes; True if it holds.
-
-    Nothing calls back for a drained sample, so what is not in at the first
-    drain (rare: it was sent before the tick) is looked for every millisecond."""
-    deadline = time.monotonic() + timeout
-    for _ in range(int(timeout / POLL_S) + 2):  # bounded; the deadline decides
-        inbox.drain()
-        with inbox.cond:
-            if predicate():
-                return True
-        left = deadline - time.monotonic()
-        if left <= 0:
-            return False
-        threading.Event().wait(min(left, POLL_S))
-    return False
 
 
 def _relayed(inbox: Inbox, others: list[str], step: int) -> bool:

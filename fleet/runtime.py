@@ -26,6 +26,8 @@ _SENDER_KEYS = ("/clock", "/digest")
 """Keys that name no robot: the message's ``robot`` is its sender (the tracker)."""
 DRAIN_CAPACITY = 4096
 """Samples a drained subscription queues between two drains (Zenoh blocks the sender beyond)."""
+DRAIN_POLL = 0.001
+"""How often :meth:`Inbox.drain_until` looks for a sample not yet in [s]."""
 
 
 def add_common_args(ap: argparse.ArgumentParser) -> None:
@@ -195,8 +197,9 @@ class Inbox:
         thread.  Each callback wakes a Python thread of zenoh's and takes the GIL
         from the main loop: for the commands the realtime tracker reads at its
         deadline, draining once is cheaper (docs/runtime-notes.md, "Realtime
-        clock").  Nothing waits on a drained subscription: use it only for
-        messages read at a known time."""
+        clock").  No callback wakes a waiter for a drained sample: use it for
+        messages read at a known time, and :meth:`drain_until` (bounded polls)
+        for one that may be a little late."""
         import zenoh
 
         def on_sample(sample: Any) -> None:
@@ -224,6 +227,22 @@ class Inbox:
                 self._accept(str(sample.key_expr), sample.payload.to_bytes(), typ, keep, time.monotonic())
                 got += 1
         return got
+
+    def drain_until(self, predicate: Callable[[], bool], timeout: float) -> bool:
+        """Drain until ``predicate()`` holds (checked under the lock) or ``timeout`` [s]
+        passes; True if it holds.  Nothing calls back for a drained sample, so what is
+        not in at the first drain is looked for every DRAIN_POLL seconds (bounded)."""
+        deadline = time.monotonic() + timeout
+        for _ in range(int(timeout / DRAIN_POLL) + 2):  # bounded; the deadline decides
+            self.drain()
+            with self.cond:
+                if predicate():
+                    return True
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            threading.Event().wait(min(left, DRAIN_POLL))
+        return False
 
     def _accept(self, k: str, payload: bytes, typ: type[Message], keep: bool, now: float) -> None:
         """Decode, check and store one received payload on key ``k`` (any thread)."""

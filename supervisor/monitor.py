@@ -206,8 +206,9 @@ def _run_wall_time(inbox: Inbox, fallback: float) -> float:
 def _plan_step(inbox: Inbox, ids: list[str], k: int) -> dict[str, Plan] | None:
     """The plans of step k once every robot's is in or will never come: a robot
     whose agent has already sent a later plan (it skipped step k, realtime) or has
-    been dead for GONE_GRACE is left out.  None while some plan of step k may still arrive, and once
-    no robot has reached step k (every agent gone: nothing left to judge).
+    been dead for GONE_GRACE is left out.  None while some plan of step k may
+    still arrive, and once no robot has reached step k (every agent gone: nothing
+    left to judge).
 
     Only steps the clock has reached count: a plan is committed after its
     step's tick, so one that claims a later step (a forged or corrupt far-future

@@ -221,7 +221,9 @@ def main(argv: list[str] | None = None) -> int:
                 with inbox.cond:
                     measured, truths = _measure(world, ids, noise, pubs, k, t)
                 inbox.drain()
-                digest = _digest(inbox, ids, role, k - 1, p.Ts, p.horizon) if relay and k > 0 else None
+                if relay and k > 0:
+                    relayed = _relayed_plans(inbox, ids, k - 1, p.horizon)
+                    digest = Digest.of(role, k - 1, p.Ts, p.horizon, relayed).encode()
             if realtime:
                 _until(t_start + t)
             inbox.drain()
@@ -243,9 +245,15 @@ def main(argv: list[str] | None = None) -> int:
             for pub, payload in measured:
                 pub.put(payload)
             if relay is not None and k > 0:
-                if not early or digest is None or _relayable(inbox, ids, k - 1, p.horizon) != _rows(digest):
-                    digest = _digest(inbox, ids, role, k - 1, p.Ts, p.horizon)  # a plan came since
-                relay.put(digest.encode())  # type: ignore[union-attr]
+                now_relayed = _relayed_plans(inbox, ids, k - 1, p.horizon)
+                if (
+                    not early
+                    or len(now_relayed) != len(relayed)
+                    or any(a is not b for a, b in zip(now_relayed, relayed, strict=True))
+                ):  # a plan came since the digest was made (or nothing was made early)
+                    relayed = now_relayed
+                    digest = Digest.of(role, k - 1, p.Ts, p.horizon, relayed).encode()
+                relay.put(digest)
             clock.put(Tick(robot=role, step=k, t=t, stop=False, misses=misses).encode())
             for pub, payload in truths:
                 pub.put(payload)
@@ -254,12 +262,8 @@ def main(argv: list[str] | None = None) -> int:
             if realtime and k < STARTUP_STEPS:
                 # The first steps are taken in lockstep (STARTUP_STEPS): every answering
                 # agent's command is waited for (bounded), then the wall clock starts
-                # over from this step's deadline.  Bounded polling: the commands are
-                # drained, not called back.
-                limit = time.monotonic() + args.timeout
-                while not _answered(inbox, answering, k) and time.monotonic() < limit:
-                    _until(time.monotonic() + 0.001)
-                    inbox.drain()
+                # over from this step's deadline.
+                inbox.drain_until(partial(_answered, inbox, answering, k), args.timeout)
                 t_start = time.monotonic() - t - args.deadline * p.Ts
             elif realtime:
                 # A command must arrive within the deadline; otherwise the robot side
@@ -346,28 +350,13 @@ def _measure(
 
 
 def _relayed_plans(inbox: Inbox, ids: list[str], step: int, horizon: int) -> list[Plan]:
-    """Each robot's newest plan of a step ≤ ``step`` with the design's horizon."""
+    """What the digest of ``step`` relays (``--exchange relay``): each robot's newest
+    plan of a step ≤ ``step``, as it came on its robot's own key (the subscription
+    checks the id against the key), with the design's horizon.  One that missed the
+    digest of its step is in the next: late, as on its own key."""
     with inbox.cond:
         plans = [inbox.newest(Plan, r, step) for r in ids]
     return [pl for pl in plans if pl is not None and pl.committed.shape[0] == horizon]
-
-
-def _relayable(inbox: Inbox, ids: list[str], step: int, horizon: int) -> list[tuple[str, int]]:
-    """(robot, step) of the rows a digest would hold now (see :func:`_digest`)."""
-    return [(pl.robot, pl.step) for pl in _relayed_plans(inbox, ids, step, horizon)]
-
-
-def _rows(digest: Digest) -> list[tuple[str, int]]:
-    return list(zip(digest.ids, digest.steps, strict=True))
-
-
-def _digest(inbox: Inbox, ids: list[str], role: str, step: int, Ts: float, horizon: int) -> Digest:
-    """Each robot's newest plan up to ``step``, in one message (``--exchange relay``).
-
-    A plan is relayed only as it came on its robot's own key (the subscription
-    checks the id against the key) and only with the design's horizon.  One that
-    missed the digest of its step is in the next: late, as on its own key."""
-    return Digest.of(role, step, Ts, horizon, _relayed_plans(inbox, ids, step, horizon))
 
 
 def _until(when: float) -> None:
