@@ -82,6 +82,11 @@ class StepOutput:
     mode: str
     """Navigator mode: goal, waypoint, yield or escape."""
     iterations: int = 0
+    x_next: Array = field(default_factory=lambda: np.zeros(4))
+    """The shifted candidate for the next step: nominal state x̂_{t+1} (4,) [m, m/s]."""
+    v_next: Array = field(default_factory=lambda: np.zeros((1, 2)))
+    """... and its nominal inputs v̂_{t+1} … v̂_{t+N}, (N, 2) [m/s²]: what the robot side
+    follows if the next commands miss their deadline (:func:`chain_input`)."""
 
 
 @dataclass
@@ -95,6 +100,32 @@ class Counters:
     status_counts: dict[str, int] = field(default_factory=dict)
     holds: int = 0
     """Steps without a usable measurement: braked, nothing new committed (:meth:`TubeMPC.hold`)."""
+    unapplied: int = 0
+    """Steps whose command the robot side did not apply; it followed the shifted
+    candidate instead (:meth:`TubeMPC.rewind`)."""
+
+
+SNAPSHOTS = 8
+"""Controller steps kept for :meth:`TubeMPC.rewind` [steps]."""
+
+
+def chain_input(x_next: Array, v_next: Array, m: int, x: Array, A: Array, B: Array, K: Array) -> Array | None:
+    """The robot side's fallback ``m`` ≥ 0 steps after the step of the last command it
+    applied (m = 0: the very next step), with no command in time.
+
+    ``x_next`` (4,) and ``v_next`` (M, 2) are that command's shifted candidate
+    (:attr:`StepOutput.x_next`); ``x`` (4,) [m, m/s] is the measured state now.
+    Returns u = v̂ + K(x − x̂) (2,) [m/s²] with x̂ propagated m steps by the nominal
+    model x̂⁺ = A x̂ + B v̂, or None once the candidate is used up (m ≥ M).  The
+    agent, told so by the tick, takes the same candidate (:meth:`TubeMPC.rewind`):
+    it is feasible by construction, so x − x̂ stays in Z and the references
+    already committed stay valid."""
+    if not 0 <= m < v_next.shape[0]:
+        return None
+    x_hat = np.asarray(x_next, dtype=float)
+    for i in range(m):
+        x_hat = A @ x_hat + B @ v_next[i]
+    return np.asarray(v_next[m] + K @ (np.asarray(x, dtype=float) - x_hat))
 
 
 class TubeMPC:
@@ -138,6 +169,8 @@ class TubeMPC:
         m = design.body_radius + design.pos_tightening
         self.pos_box = np.array([xmin + m, xmax - m, ymin + m, ymax - m])
         self.counters = Counters()
+        self._history: list[tuple[Array, Array, Array]] = []
+        """States (ξ, ỹ, x̃) before each of the last SNAPSHOTS steps, oldest first."""
         self.reached_once = False
         self.k = 0
         self.reset(np.asarray(start, dtype=float))
@@ -215,6 +248,7 @@ class TubeMPC:
         the previous step are in); ``hazards`` are neighbours known only from an
         older plan, or dead, kept clear of as static discs (:class:`Hazard`)."""
         t0 = time.perf_counter()
+        self._snapshot()
         p, design, qp = self.params, self.design, self.qp
         c_i = self.last_point
         normals, bounds, min_slack = split_halfplanes(
@@ -282,6 +316,7 @@ class TubeMPC:
         self._append(xi[qp.iy])
         plan = (qp.S_pos @ xi).reshape(self.N + 1, 2)
         self.k += 1
+        nxt = self.candidate()
         return StepOutput(
             a=a,
             committed=self.y_ref.copy(),
@@ -297,6 +332,8 @@ class TubeMPC:
             target=np.asarray(self.target, dtype=float).copy(),
             mode=mode,
             iterations=res.iterations,
+            x_next=nxt[0:4].copy(),
+            v_next=nxt[qp.iv].reshape(self.N, 2),
         )
 
     def hold(self, x: Array) -> StepOutput:
@@ -307,19 +344,55 @@ class TubeMPC:
         committed stay valid for the neighbours), and the command brakes the
         predicted velocity to rest at up to ``a_max`` per axis [m/s²]."""
         t0 = time.perf_counter()
+        self._snapshot()
         p, qp = self.params, self.qp
-        cand = self.candidate()
-        self.xi = cand
-        self._append(cand[qp.iy])
+        cand = self._take_candidate()
         a = np.clip(-np.asarray(x)[[1, 3]] / p.Ts, -p.a_max, p.a_max)
         self.counters.holds += 1
         self.k += 1
+        nxt = self.candidate()
         return StepOutput(
             a=a, committed=self.y_ref.copy(), plan=(qp.S_pos @ cand).reshape(self.N + 1, 2),
             x_hat=cand[0:4].copy(), status="HOLD_NO_POSE", fallback=True, solve_time=0.0,
             step_time=time.perf_counter() - t0, candidate_violation=0.0, tube_ok=True, min_slack=math.inf,
-            target=np.asarray(self.target, dtype=float).copy(), mode="hold",
+            target=np.asarray(self.target, dtype=float).copy(), mode="hold", x_next=nxt[0:4].copy(),
+            v_next=nxt[qp.iv].reshape(self.N, 2),
         )  # fmt: skip
+
+    def rewind(self, unapplied: int, coasted: int = 0) -> bool:
+        """The robot side did not apply the commands of the last ``unapplied`` steps of
+        this controller, nor had any for ``coasted`` steps after them: it followed the
+        shifted candidate of the last command it applied (:func:`chain_input`).  Undo
+        those steps and take that candidate ``unapplied + coasted`` times, as it did.
+
+        Afterwards the committed reference is what the robot executed: "stay put"
+        appended at each of those steps, so neighbours that kept clear of the last
+        executed plan (as a stale one) stay clear.  Returns False, changing nothing, if
+        the state before those steps is no longer kept (more than SNAPSHOTS steps)."""
+        if unapplied < 0 or coasted < 0 or unapplied > len(self._history):
+            return False
+        if unapplied:
+            xi, y_ref, x_ref = self._history[-unapplied]
+            del self._history[-unapplied:]
+            self.xi, self.y_ref, self.x_ref = xi, y_ref, x_ref
+        for _ in range(unapplied + coasted):
+            self._snapshot()
+            self._take_candidate()
+        self.counters.unapplied += unapplied + coasted
+        return True
+
+    def _take_candidate(self) -> Array:
+        """Apply the shifted candidate as this step's plan (append "stay put")."""
+        cand = self.candidate()
+        self.xi = cand
+        self._append(cand[self.qp.iy])
+        return cand
+
+    def _snapshot(self) -> None:
+        """Keep the state before this step (for :meth:`rewind`)."""
+        self._history.append((self.xi, self.y_ref, self.x_ref))
+        if len(self._history) > SNAPSHOTS:
+            del self._history[0]
 
     def _repair(self, ybar: Array, data: StepData) -> Array:
         """Pull ȳ towards c_i until every ȳ row holds exactly.

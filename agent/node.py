@@ -112,6 +112,12 @@ def main(argv: list[str] | None = None) -> int:
     lockstep = args.clock == "lockstep"
     relay = args.exchange == "relay"
     silent_since = time.monotonic()
+    synced = -1
+    """The robot side executed this controller's plans up to this step."""
+    ran: list[int] = []
+    """Steps after ``synced`` at which the controller stepped."""
+    behind = False
+    """The last tick said the robot side did not apply this agent's command."""
     try:
         while True:
             if not inbox.wait(partial(_tick_at_least, inbox, k), 1.0):
@@ -128,18 +134,37 @@ def main(argv: list[str] | None = None) -> int:
             silent_since = time.monotonic()
             tick = inbox.get(Tick, "tracker")
             assert tick is not None
-            if tick.stop:
-                break
             if tick.step > k:
                 if joined and tick.step > k + REJOIN_GAP:
                     # Hung for a while (its robot was braked, its neighbours gave up on
                     # it): start again from where the robot is, like a restarted agent.
                     joined = False
                     x_est = None
-                if joined:
+                if joined and not tick.stop:
                     log(role, f"fell behind the clock: step {k} → {tick.step}")
                 k = tick.step
             inbox.release(k)
+            executed = tick.executed(me)
+            if joined and executed is not None:
+                # The robot side did not apply the command of step k − 1.  It followed
+                # the shifted candidate of its last applied command (or braked): do
+                # the same (docs/runtime-notes.md, "Missed deadlines").
+                unapplied = len(ran)
+                coasted = k - 1 - synced - unapplied
+                if me in tick.braked or not ctrl.rewind(unapplied, coasted):
+                    log(
+                        role,
+                        f"step {k}: the robot was braked after step {executed}; starting again from its pose",
+                    )
+                    joined = False
+                elif not behind:
+                    log(role, f"step {k}: commands after step {executed} not applied; on its candidate")
+                behind = True
+            elif executed is None:
+                behind = False
+            synced, ran = k - 1, []
+            if tick.stop:
+                break
             if k == 0 and lockstep:
                 # The tracker started the clock once every agent was live in its view;
                 # wait (bounded) until they are in this agent's view too.  Otherwise who
@@ -163,9 +188,13 @@ def main(argv: list[str] | None = None) -> int:
             with inbox.cond:
                 pose = inbox.get(Pose, me, k)
                 odom = inbox.get(Odom, me, k)
-                fresh = {j: inbox.get(Plan, j, k - 1) for j in others}
+                # Plans of step k − 1, and of no later step than each robot side executed
+                # (Tick.fallback, Tick.braked): a plan whose command missed its deadline
+                # was never executed, and its robot keeps to the plan before.
+                upto = {j: _executed_upto(tick, j, k - 1) for j in others}
+                fresh = {j: inbox.get(Plan, j, k - 1) if upto[j] == k - 1 else None for j in others}
                 for j in others:  # the newest plan of step ≤ k − 1: what arrived later must not count
-                    pl = inbox.newest(Plan, j, k - 1)
+                    pl = inbox.newest(Plan, j, upto[j])
                     if pl is not None and (last.get(j) is None or last[j].step < pl.step):  # type: ignore[union-attr]
                         last[j] = pl
                 live = set(inbox.live)
@@ -202,11 +231,17 @@ def main(argv: list[str] | None = None) -> int:
                     log(role, f"new goal {goal.goal.round(3).tolist()} at step {k}")
             nbs, hazards = guard.classify(k, others, fresh, last, live, starts)
             out = ctrl.hold(x) if blind > args.blind_steps else ctrl.step(x, nbs, hazards)
+            ran.append(k)
             x_est, a_prev = x, out.a
             info = ctrl.info()
             # The command first: the robot side waits on it; the neighbours need the
             # plan only at the next step, which cannot start before the robots move.
-            pub_cmd.put(Command(robot=me, step=k, ax=float(out.a[0]), ay=float(out.a[1])).encode())
+            pub_cmd.put(
+                Command(
+                    robot=me, step=k, ax=float(out.a[0]), ay=float(out.a[1]), fallback=True,
+                    x_next=out.x_next, v_next=out.v_next,
+                ).encode()
+            )  # fmt: skip
             pub_plan.put(
                 Plan(
                     robot=me, step=k, t0=(k + 1) * p.Ts, Ts=p.Ts, committed=out.committed, nominal=out.plan,
@@ -222,7 +257,8 @@ def main(argv: list[str] | None = None) -> int:
         log(
             role,
             f"stopped after {k} steps: {c.solves} solves, {c.fallbacks} fallbacks, "
-            f"{c.tube_exits} tube exits, {c.holds} blind holds, {guard.hazard_steps} neighbour-steps "
+            f"{c.tube_exits} tube exits, {c.holds} blind holds, {c.unapplied} steps on the candidate, "
+            f"{guard.hazard_steps} neighbour-steps "
             f"kept clear of as static discs ({guard.transitions} changes), {inbox.injected} injected faults, "
             f"{inbox.rejects.total} rejected payloads",
         )
@@ -382,6 +418,12 @@ def _wait_matching(pub: Any, timeout: float) -> bool:
         return bool(pub.matching_status) or matched.wait(timeout)
     finally:
         listener.undeclare()
+
+
+def _executed_upto(tick: Tick, robot: str, step: int) -> int:
+    """The newest step ≤ ``step`` whose plan ``robot``'s robot side executed, by ``tick``."""
+    got = tick.executed(robot)
+    return step if got is None else min(step, got)
 
 
 def _measured(inbox: Inbox, me: str, k: int) -> bool:

@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from agent.controller import TubeMPC
+from agent.controller import TUBE_TOL, StepOutput, TubeMPC, chain_input
 from agent.models import DoubleIntegratorPlant, UnicyclePlant, make_inner_loop, measured_state
 from agent.sets import Array
 from agent.tube import TubeDesign, require_admissible, synthesize
@@ -209,6 +209,26 @@ def make_plant(kind: str, start: Array, design: TubeDesign) -> UnicyclePlant | D
     return UnicyclePlant(start, make_inner_loop(p.lookahead, p.v_min), p.wheel)
 
 
+def _unapplied(
+    ctrl: TubeMPC, design: TubeDesign, applied: tuple[int, StepOutput | None], k: int, x: Array,
+    a_prev: Array, policy: str,
+) -> tuple[Array, Array]:  # fmt: skip
+    """The robot side's acceleration (2,) [m/s²] when the command of step k is not
+    applied, and the nominal state x̂ (4,) the tube error is then measured from."""
+    if policy == "hold":
+        return a_prev, ctrl.xi[0:4].copy()
+    j, out = applied
+    a = (
+        None
+        if out is None
+        else chain_input(out.x_next, out.v_next, k - j - 1, x, design.A, design.B, design.K)
+    )
+    if a is None or not ctrl.rewind(1):
+        ctrl.reset(x[[0, 2]])  # nothing to follow: braked; the agent starts again where it is
+        return np.clip(-x[[1, 3]] / design.params.Ts, -design.params.a_max, design.params.a_max), x.copy()
+    return a, ctrl.xi[0:4].copy()
+
+
 def run(
     scenario: Any,
     seed: int | None = None,
@@ -217,12 +237,24 @@ def run(
     stop_when_done: bool = True,
     solver_fault: Callable[[str, int], bool] | None = None,
     extra_disturbance: Callable[[str, int], Array | None] | None = None,
+    late: Callable[[str, int], bool] | None = None,
+    late_policy: str = "candidate",
 ) -> RunResult:
     """Run ``scenario`` (a :class:`fleet.scenario.Scenario`) closed loop.
 
     ``solver_fault(robot_id, step)`` returning True makes that solve count as
     failed (fault injection).  ``extra_disturbance(robot_id, step)`` may return
-    an extra w (4,) that is added on top of the sampled one (to leave W)."""
+    an extra w (4,) that is added on top of the sampled one (to leave W).
+
+    ``late(robot_id, step)`` returning True makes that step's command miss its
+    deadline: the robot side does not apply it.  With ``late_policy="candidate"``
+    it applies the ancillary law on the shifted candidate of the last command it
+    applied (:func:`agent.controller.chain_input`; braking once that is used up)
+    and the controller rewinds to it (:meth:`TubeMPC.rewind`), as the runtime
+    does; ``"hold"`` holds the previous acceleration and tells nobody (the
+    runtime before the candidate fallback, for comparison)."""
+    if late_policy not in ("candidate", "hold"):
+        raise ValueError(f"late_policy: {late_policy!r} is not 'candidate' or 'hold'")
     t_wall = time.perf_counter()
     sim = scenario.simulation
     seed = sim.seed if seed is None else seed
@@ -237,6 +269,9 @@ def run(
     W4 = np.array([p.W[0], p.W[1], p.W[0], p.W[1]])
     robots = list(scenario.robots)
     plants, ctrls, traces, meas = {}, {}, {}, {}
+    applied: dict[str, tuple[int, StepOutput | None]] = {}
+    """Per robot: the step and output of the last command its robot side applied."""
+    last_a: dict[str, Array] = {}
     for rank, rb in enumerate(robots):
         plant = make_plant(sim.plant, np.array(rb.start, dtype=float), design)
         start_pt = plant.state()[[0, 2]]
@@ -255,6 +290,8 @@ def run(
             solver_fault=fault,
         )
         plants[rb.id] = plant
+        applied[rb.id] = (-1, None)
+        last_a[rb.id] = np.zeros(2)
         meas[rb.id] = measure(plant, noise, p.lookahead)
         tr = RobotTrace(rb.id)
         tr.pose.append(plant.pose.copy())
@@ -307,8 +344,14 @@ def run(
         for rid in ids:
             x, out = outs[rid]
             plant = plants[rid]
-            plant.step(out.a, Ts)
-            w = dist.sample(x - out.x_hat)
+            a, x_hat = out.a, out.x_hat
+            if late is not None and late(rid, k):
+                a, x_hat = _unapplied(ctrls[rid], design, applied[rid], k, x, last_a[rid], late_policy)
+            else:
+                applied[rid] = (k, out)
+            last_a[rid] = a
+            plant.step(a, Ts)
+            w = dist.sample(x - x_hat)
             if extra_disturbance is not None:
                 extra = extra_disturbance(rid, k)
                 if extra is not None:
@@ -316,20 +359,22 @@ def run(
             plant.perturb(w)
             xn = plant.state()
             meas[rid] = measure(plant, noise, p.lookahead)
-            w_real = meas[rid] - (design.A @ x + design.B @ out.a)
+            w_real = meas[rid] - (design.A @ x + design.B @ a)
             tr = traces[rid]
             tr.w_ratio.append(float(np.max(np.abs(w_real) / W4)))
             tr.pose.append(plant.pose.copy())
             pt = xn[[0, 2]]
             tr.point.append(pt)
-            tr.committed_last.append(out.committed[-1].copy())
+            tr.committed_last.append(ctrls[rid].y_ref[-1].copy())
             tr.goal_error.append(float(np.linalg.norm(pt - ctrls[rid].goal)))
             tr.step_ms.append(out.step_time * 1e3)
             tr.solve_ms.append(out.solve_time * 1e3)
             tr.modes.append(out.mode)
-            tr.ref_deviation.append(float(np.linalg.norm(pt - out.committed[0])))
+            tr.ref_deviation.append(float(np.linalg.norm(pt - ctrls[rid].y_ref[0])))
             tr.candidate_violation.append(out.candidate_violation)
-            tr.tube_ok.append(out.tube_ok)
+            tr.tube_ok.append(
+                out.tube_ok if x_hat is out.x_hat else design.contains_error(x - x_hat, TUBE_TOL)
+            )
             tr.fallback.append(out.fallback)
         # Reference separation of the points just committed (same time index).
         for i, a in enumerate(ids):

@@ -38,7 +38,8 @@ import msgpack
 import numpy as np
 from numpy.typing import NDArray
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+"""2: :class:`Command` carries the shifted candidate and :class:`Tick` what the robot side applied."""
 MAX_PAYLOAD = 64 * 1024
 """Largest accepted message [bytes]."""
 MAX_HORIZON = 200
@@ -302,21 +303,45 @@ class Plan(Message):
 
 @dataclass(frozen=True)
 class Command(Message):
-    """Agent → robot side: the acceleration to hold for one step.
+    """Agent → robot side: the acceleration to hold for one step, and what to do
+    if the next commands miss their deadline.
 
     The robot side (simulated tracker or ``epuck_link``) runs the inner loop at
     ≥ 50 Hz on it; holding (v, ω) for a whole step instead costs about half of
-    W (docs/runtime-notes.md)."""
+    W (docs/runtime-notes.md).
+
+    ``x_next`` and ``v_next`` are the shifted candidate of the plan just made
+    (DESIGN §4): the nominal state at step ``step + 1`` and the nominal inputs
+    from there.  A robot side with a deadline (the simulated tracker in
+    realtime) that has no command of step ``step + m`` in time applies the
+    ancillary law on it instead, ``u = v̂ + K(x − x̂)`` with ``x̂`` propagated
+    m steps by the nominal model, for as long as ``v_next`` lasts
+    (docs/runtime-notes.md, "Missed deadlines")."""
 
     TYPE: ClassVar[str] = "cmd"
     step: int
     ax: float
     ay: float
     """Acceleration of the controlled point [m/s²], world frame, u = v̂ + K(x − x̂)."""
+    fallback: bool = False
+    """Whether ``x_next`` and ``v_next`` may be followed (False: the agent has no plan yet)."""
+    x_next: NDArray[np.float64] = field(compare=False, default_factory=lambda: np.zeros(4))
+    """Nominal state x̂ at step ``step + 1``, (4,) [px, vx, py, vy] in m, m/s, world frame."""
+    v_next: NDArray[np.float64] = field(compare=False, default_factory=lambda: np.zeros((1, 2)))
+    """Nominal inputs v̂ from step ``step + 1`` on, (m, 2) [m/s²], world frame, 1 ≤ m ≤ MAX_HORIZON."""
 
     @classmethod
     def _check(cls, d: dict[str, Any]) -> dict[str, Any]:
-        return {"step": _int(d["step"], "step"), "ax": _num(d["ax"], "ax"), "ay": _num(d["ay"], "ay")}
+        if not isinstance(d["fallback"], bool):
+            raise WireError("fallback: expected a boolean")
+        return {
+            "step": _int(d["step"], "step"),
+            "ax": _num(d["ax"], "ax"),
+            "ay": _num(d["ay"], "ay"),
+            "fallback": d["fallback"],
+            "x_next": decode_array(d["x_next"], "x_next", (4,)),
+            "v_next": decode_array(d["v_next"], "v_next", (None, 2)),
+        }
 
 
 @dataclass(frozen=True)
@@ -363,17 +388,43 @@ class Tick(Message):
     stop: bool
     misses: int
     """Commands that missed their deadline so far (realtime clock; 0 in lockstep)."""
+    fallback: dict[str, int] = field(default_factory=dict)
+    """Robots whose command of step ``step − 1`` the robot side did not apply, and
+    followed instead the shifted candidate of its last applied command: robot id →
+    the step of that command.  At most 64 robots; empty in lockstep and from the
+    camera tracker (whose robot sides have no deadline)."""
+    braked: dict[str, int] = field(default_factory=dict)
+    """Robots that the robot side braked over step ``step − 1`` instead (dead or silent
+    agent, or nothing left to follow): robot id → the step of its last applied
+    command, −1 if none.  A plan of a later step than the value was never executed."""
 
     @classmethod
     def _check(cls, d: dict[str, Any]) -> dict[str, Any]:
         if not isinstance(d["stop"], bool):
             raise WireError("stop: expected a boolean")
+        step = _int(d["step"], "step")
         return {
-            "step": _int(d["step"], "step"),
+            "step": step,
             "t": _num(d["t"], "t"),
             "stop": d["stop"],
             "misses": _int(d["misses"], "misses"),
+            "fallback": _steps_by_robot(d["fallback"], "fallback", 0, step),
+            "braked": _steps_by_robot(d["braked"], "braked", -1, step),
         }
+
+    def executed(self, robot: str) -> int | None:
+        """The newest step whose plan ``robot`` executed, if the robot side says it
+        did not apply the command of step ``step − 1`` (None: it applied it, or the
+        robot side did not say)."""
+        got = self.fallback.get(robot)
+        return self.braked.get(robot) if got is None else got
+
+
+def _steps_by_robot(v: Any, name: str, lo: int, hi: int) -> dict[str, int]:
+    """A map robot id → step in lo..hi (at most 64 entries: :func:`decode`'s map limit)."""
+    if type(v) is not dict:
+        raise WireError(f"{name}: expected a map of robot ids to steps")
+    return {_str(r, name, ROBOT_ID): _int(s, name, lo, hi) for r, s in v.items()}
 
 
 @dataclass(frozen=True)

@@ -58,7 +58,16 @@ class Monitor:
         self.poses: dict[str, list[tuple[float, float, float]]] = {r: [] for r in self.ids}
         self.refs: dict[str, list[Any]] = {r: [] for r in self.ids}
         self.robot: dict[str, dict[str, Any]] = {
-            r: {"solves": 0, "failures": 0, "tube_exits": 0, "status": {}, "solve_ms": []} for r in self.ids
+            r: {
+                "solves": 0,
+                "failures": 0,
+                "tube_exits": 0,
+                "status": {},
+                "solve_ms": [],
+                "candidate": 0,
+                "braked": 0,
+            }
+            for r in self.ids
         }
         self.skipped_steps = 0
         """Steps whose ground truth was lost on the way, not judged."""
@@ -162,6 +171,8 @@ class Monitor:
                 "qp_failures": st["failures"],
                 "fallbacks": st["failures"],
                 "tube_exits": st["tube_exits"],
+                "steps_on_candidate": st["candidate"],
+                "steps_braked": st["braked"],
                 "status_counts": st["status"],
                 "max_pose_error": {"position_m": self.pose_error[r][0], "heading_rad": self.pose_error[r][1]},
                 "solve_time_ms": {
@@ -295,7 +306,7 @@ def main(argv: list[str] | None = None) -> int:
         inbox.subscribe(session, keys.truth(), Truth, keep=True),
         inbox.subscribe(session, keys.pose(), Pose, keep=True),
         inbox.subscribe(session, keys.plan(), Plan, keep=True),
-        inbox.subscribe(session, keys.clock, Tick),
+        inbox.subscribe(session, keys.clock, Tick, keep=True),
         inbox.watch_liveliness(session),
     ]
     stopping = {"signal": False}
@@ -311,8 +322,10 @@ def main(argv: list[str] | None = None) -> int:
     announce(role)
     t0 = time.monotonic()
     ids = mon.ids
-    k_truth = k_plan = 0
+    k_truth = k_plan = k_tick = 0
     live_seen: set[str] = set()
+    off_plan: set[str] = set()
+    """Robots whose robot side did not apply the last command (to log each episode once)."""
     stop_deadline = 0.0
     completed = False
     try:
@@ -332,6 +345,11 @@ def main(argv: list[str] | None = None) -> int:
                     truths.append(({r: inbox.get(Truth, r, kk) for r in ids}, measured))
                 while (step_plans := _plan_step(inbox, ids, k_plan + len(plan_steps))) is not None:
                     plan_steps.append(step_plans)
+                newest_tick = inbox.get(Tick, "tracker")
+                ticks = [] if newest_tick is None else [
+                    t for kk in range(k_tick, newest_tick.step + 1) if (t := inbox.get(Tick, "tracker", kk))
+                ]  # fmt: skip
+                k_tick = max(k_tick, newest_tick.step + 1) if newest_tick is not None else k_tick
             for item in truths:
                 if item is not None:
                     truth, measured = item
@@ -344,6 +362,23 @@ def main(argv: list[str] | None = None) -> int:
                 mon.plans(plans)  # type: ignore[arg-type]
                 recorder.plans(k_plan, p.Ts, plans)  # type: ignore[arg-type]
                 k_plan += 1
+            for t in ticks:
+                # What the robot side applied over step t.step − 1 (Tick.fallback, .braked).
+                for rid, kind in [
+                    *((r, "candidate") for r in t.fallback),
+                    *((r, "braked") for r in t.braked),
+                ]:
+                    if rid in mon.robot:
+                        mon.robot[rid][kind] += 1
+                        if rid not in off_plan:
+                            what = "on its shifted candidate" if kind == "candidate" else "braked"
+                            recorder.event(
+                                f"{rid}: command of step {t.step - 1} not applied; robot {what}", "WARN"
+                            )
+                now_off = set(t.fallback) | set(t.braked)
+                for rid in sorted(off_plan - now_off):
+                    recorder.event(f"{rid}: commands applied again from step {t.step - 1}")
+                off_plan = now_off
             recorder.flush_if_due()
             if truths or plan_steps:
                 stop_deadline = 0.0  # still making progress: the grace period restarts

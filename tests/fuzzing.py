@@ -65,13 +65,16 @@ INTS: dict[str, dict[str, tuple[int, int]]] = {
     "wheels": {"seq": _SEQ, "left_steps": (-(2**62), 2**62), "right_steps": (-(2**62), 2**62)},
 }
 """Integer fields and their accepted closed ranges."""
-BOOLS: dict[str, tuple[str, ...]] = {"plan": ("tube_ok",), "tick": ("stop",)}
+BOOLS: dict[str, tuple[str, ...]] = {"plan": ("tube_ok",), "tick": ("stop",), "cmd": ("fallback",)}
 ARRAYS: dict[str, dict[str, tuple[int | None, ...]]] = {
     "plan": {"committed": (None, 2), "nominal": (None, 2), "target": (2,), "goal": (2,)},
     "goal": {"goal": (2,)},
+    "cmd": {"x_next": (4,), "v_next": (None, 2)},
 }
 """Array fields and their shapes (None: 1..MAX_HORIZON)."""
 STRINGS: dict[str, dict[str, int]] = {"plan": {"status": 64}}
+MAPS: dict[str, dict[str, int]] = {"tick": {"fallback": 0, "braked": -1}}
+"""Maps robot id → step, and the smallest step each accepts (the largest is the tick's step)."""
 """Free-text fields and their longest accepted length."""
 OPEN_RANGES: dict[str, dict[str, tuple[float, float]]] = {
     "plan": {"Ts": (0.0, 10.0), "footprint": (0.0, 10.0)}
@@ -108,6 +111,7 @@ def table_names(name: str) -> set[str]:
         | set(BOOLS.get(name, ()))
         | set(ARRAYS.get(name, {}))
         | set(STRINGS.get(name, {}))
+        | set(MAPS.get(name, {}))
     )
 
 
@@ -140,11 +144,18 @@ def realistic(name: str, robot: str, rng: np.random.Generator) -> Message:
     if name == "odom":
         return Odom(robot=robot, seq=k, t=t, vx=u(-0.13, 0.13), vy=u(-0.13, 0.13))
     if name == "cmd":
-        return Command(robot=robot, step=k, ax=u(-0.3, 0.3), ay=u(-0.3, 0.3))
+        return Command(
+            robot=robot, step=k, ax=u(-0.3, 0.3), ay=u(-0.3, 0.3), fallback=True,
+            x_next=rng.uniform(-0.7, 0.7, 4), v_next=rng.uniform(-0.3, 0.3, (20, 2)),
+        )  # fmt: skip
     if name == "goal":
         return Goal(robot=robot, goal=rng.uniform(-0.7, 0.7, 2))
     if name == "tick":
-        return Tick(robot=robot, step=k, t=t, stop=False, misses=int(rng.integers(0, 3)))
+        late = {r: max(0, k - int(rng.integers(1, 4))) for r in OTHER_IDS[: int(rng.integers(0, 3))]}
+        return Tick(
+            robot=robot, step=k, t=t, stop=False, misses=int(rng.integers(0, 3)), fallback=late,
+            braked={"r9": -1} if rng.random() < 0.3 else {},
+        )  # fmt: skip
     if name == "wheels":
         return Wheels(
             robot=robot, seq=k, t=t, left_steps=int(rng.integers(-(10**5), 10**5)),
@@ -173,6 +184,7 @@ class Generator:
         self.bools = BOOLS.get(name, ())
         self.arrays = ARRAYS.get(name, {})
         self.strings = STRINGS.get(name, {})
+        self.maps = MAPS.get(name, {})
         kinds: dict[str, float] = {
             "garbage": 2.0,
             "mutate": 2.0,
@@ -194,6 +206,8 @@ class Generator:
             kinds |= {"array_nonfinite": 1.5, "array_shape": 1.5, "array_huge": 1.0, "array_dtype": 1.0}
         if name in OPEN_RANGES:
             kinds["float_range"] = 1.0
+        if self.maps:
+            kinds["map_bad"] = 1.5
         if not self.floats:
             del kinds["nonfinite"]  # Goal: its only numbers are inside the array
         if not self.ints:
@@ -398,6 +412,8 @@ class Generator:
             v = self.choice([*generic, str(d[f])])
         elif f in self.bools:
             v = self.choice([*generic, "true", "True"])
+        elif f in self.maps:
+            v = self.choice([None, "r1", 0, 1.5, True, b"\x00", [["r1", 0]], ["r1"]])
         else:  # robot, status: text fields
             v = self.choice([None, 1, 1.5, True, d[f].encode(), [d[f]], {"id": d[f]}])
         d[f] = v
@@ -424,6 +440,25 @@ class Generator:
         """A valid message with realistic content that claims another robot's id."""
         d = dict(d)
         d["robot"] = self.choice([r for r in OTHER_IDS if r != robot])
+        return d, True
+
+    def _map_bad(self, d: dict[str, Any], robot: str) -> tuple[dict[Any, Any], bool]:
+        """A robot → step map with a bad entry, or not a map at all."""
+        f, lo = self.choice(list(self.maps.items()))
+        step = d["step"]
+        bad_entries: list[tuple[Any, Any]] = [
+            ("r1", lo - 1), ("r1", step + 1), ("r1", 2**63 - 1), ("r1", True), ("r1", 1.0), ("r1", None),
+            ("r1", "3"), ("", 0), ("r/1", 0), ("x" * 33, 0), ("r1\n", 0), (b"r1", 0), (1, 0),
+        ]  # fmt: skip
+        how = int(self.rng.integers(3))
+        d = dict(d)
+        if how == 0:
+            d[f] = self.choice([None, [], ["r1", 0], "r1", 0, [["r1", 0]], b"\x80"])
+        else:
+            m = dict(d[f])
+            key, val = self.choice(bad_entries)
+            m[key] = val
+            d[f] = m
         return d, True
 
     def _array_nonfinite(self, d: dict[str, Any], robot: str) -> tuple[dict[str, Any], bool]:
@@ -455,7 +490,8 @@ class Generator:
                 [[], [*shape, 1], [1, *shape]] + ([[math.prod(shape)]] if len(spec) == 2 else [])
             )
         elif how == 1:  # wrong fixed dimension, same data
-            a["shape"] = [shape[0], self.choice([1, 3, 4])] if len(spec) == 2 else [self.choice([1, 3, 4])]
+            wrong = [n for n in (1, 2, 3, 4, 5) if n != spec[-1]]
+            a["shape"] = [shape[0], self.choice(wrong)] if len(spec) == 2 else [self.choice(wrong)]
         elif how == 2:  # zero or negative dimension
             a["shape"] = [self.choice([0, -1, -shape[0]]), *shape[1:]]
         elif how == 3:  # dimensions that are not integers

@@ -275,6 +275,49 @@ def test_relayed_plans_lost_at_the_tracker_or_the_agents_are_handled_safely(tmp_
     assert "[agent r1] step 91: r2: coordinating again" in err
 
 
+@pytest.mark.parametrize("exchange", ["mesh", "relay"])
+def test_commands_lost_before_the_robot_side_are_followed_on_the_candidate(tmp_path, exchange):
+    """Commands lost on the way to the simulated robot side (the tracker): r2's in two bursts
+    (4 and 3 steps), 10 % of r1's and r3's at random.  Each time the robot side follows the
+    shifted candidate of the last command it applied, the next tick says so, the agent takes
+    the same candidate and its neighbours the plan it executed: no tube exit, no QP fallback,
+    no collision, every goal reached.  The agents, the tick and the supervisor's summary agree
+    on how many steps each robot spent on its candidate."""
+    plan = {"seed": 7, "rules": [
+        {"key": "cmd/r2", "bursts": [[40, 44], [100, 103]], "to": ["tracker"]},
+        {"key": "cmd/*", "drop": 0.1, "to": ["tracker"]},
+    ]}  # fmt: skip
+    faults = tmp_path / "faults.json"
+    faults.write_text(json.dumps(plan))
+    out = tmp_path / "run"
+    res = _fleet(
+        "run", str(SCENARIOS / "paper_three_robots.toml"), "--out", str(out), "--faults", str(faults),
+        "--exchange", exchange,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    s = json.loads((out / "summary.json").read_text())
+    assert s["collisions"] == 0 and s["all_goals_reached"]
+    assert s["min_reference_separation_m"] >= s["required_reference_separation_m"] - 1e-9
+    err = res.stderr
+    counts = {
+        rid: (int(fb), int(te), int(cand))
+        for rid, fb, te, cand in re.findall(
+            r"\[agent (r\d)\] stopped after .*? (\d+) fallbacks, (\d+) tube exits, "
+            r".*? (\d+) steps on the candidate",
+            err,
+        )
+    }
+    assert set(counts) == {"r1", "r2", "r3"}, err[-3000:]
+    for rid, (fallbacks, exits, on_candidate) in counts.items():
+        robot = s["robots"][rid]
+        assert fallbacks == exits == robot["fallbacks"] == robot["tube_exits"] == 0, (rid, counts)
+        assert robot["steps_on_candidate"] == on_candidate, (rid, robot, counts)
+        assert robot["steps_braked"] == 0
+    assert counts["r2"][2] == 7  # its bursts only (the first matching rule decides)
+    assert counts["r1"][2] > 15 and counts["r3"][2] > 15, counts
+    assert "[agent r2] step 41: commands after step 39 not applied; on its candidate" in err
+
+
 def _launch(
     scenario: Path, out: Path, hub: str, clock: str
 ) -> tuple[subprocess.Popen[str], queue.Queue[str]]:

@@ -51,10 +51,20 @@ SAMPLES = {
     "pose": Pose(robot="r1", seq=3, t=0.3, x=0.1, y=-0.2, theta=1.5),
     "truth": Truth(robot="r1", seq=3, t=0.3, x=0.1, y=-0.2, theta=1.5),
     "plan": _plan(),
-    "cmd": Command(robot="r1", step=4, ax=0.05, ay=-0.3),
+    "cmd": Command(
+        robot="r1",
+        step=4,
+        ax=0.05,
+        ay=-0.3,
+        fallback=True,
+        x_next=np.array([0.1, 0.02, -0.2, 0.0]),
+        v_next=np.linspace(-0.1, 0.1, 40).reshape(20, 2),
+    ),
     "odom": Odom(robot="r1", seq=4, t=0.4, vx=0.05, vy=-0.01),
     "goal": Goal(robot="r1", goal=np.array([0.3, 0.4])),
-    "tick": Tick(robot="tracker", step=12, t=1.2, stop=False, misses=0),
+    "tick": Tick(
+        robot="tracker", step=12, t=1.2, stop=False, misses=3, fallback={"r2": 9}, braked={"r3": -1}
+    ),
     "digest": Digest.of("tracker", 7, 0.1, 20, [_plan("r1"), _plan("r2"), _plan("r3")]),
 }
 
@@ -64,7 +74,7 @@ def test_round_trip(name):
     msg = SAMPLES[name]
     back = decode(msg.encode(), type(msg), robot=msg.robot)
     assert back == msg
-    for f in ("committed", "target", "goal"):
+    for f in ("committed", "target", "goal", "x_next", "v_next"):
         if hasattr(msg, f):
             assert np.array_equal(getattr(back, f), getattr(msg, f))
 
@@ -96,6 +106,16 @@ BAD = [
     ("NaN", lambda: _mutate(SAMPLES["pose"], x=float("nan")), Pose, "x"),
     ("infinity", lambda: _mutate(SAMPLES["cmd"], ax=float("inf")), Command, "ax"),
     ("non-bool stop", lambda: _mutate(SAMPLES["tick"], stop=1), Tick, "stop"),
+    ("tick: a step after the tick", lambda: _mutate(SAMPLES["tick"], fallback={"r2": 13}), Tick, "fallback"),
+    ("tick: braked below -1", lambda: _mutate(SAMPLES["tick"], braked={"r3": -2}), Tick, "braked"),
+    ("tick: not a map", lambda: _mutate(SAMPLES["tick"], fallback=[["r2", 9]]), Tick, "fallback"),
+    ("tick: bad robot id", lambda: _mutate(SAMPLES["tick"], braked={"r 3": 1}), Tick, "braked"),
+    ("cmd: non-bool fallback", lambda: _mutate(SAMPLES["cmd"], fallback=1), Command, "fallback"),
+    ("cmd: NaN candidate", lambda: _mutate(
+        SAMPLES["cmd"], x_next=encode_array(np.array([0.0, np.nan, 0.0, 0.0]))
+    ), Command, "x_next"),
+    ("cmd: inputs of 3 columns", lambda: _mutate(SAMPLES["cmd"], v_next=encode_array(np.zeros((20, 3)))),
+     Command, "v_next"),
     ("bool as number", lambda: _mutate(SAMPLES["pose"], y=True), Pose, "y"),
     ("string as number", lambda: _mutate(SAMPLES["pose"], theta="1.0"), Pose, "theta"),
     ("negative seq", lambda: _mutate(SAMPLES["pose"], seq=-1), Pose, "seq"),
@@ -265,3 +285,13 @@ def test_reject_reports_are_capped_escaped_and_short():
     assert len(lines) == 5 and "more than 4 keys" in lines[-1]
     assert all("\n" not in ln and len(ln) < 400 for ln in lines)
     assert "\\nFORGED" in lines[0]
+
+
+def test_tick_says_which_plans_each_robot_side_executed():
+    """``Tick.executed``: None when the command of the previous step was applied (or the
+    clock does not know), else the step of the newest plan the robot executed."""
+    tick = SAMPLES["tick"]
+    assert tick.executed("r1") is None
+    assert tick.executed("r2") == 9  # followed the candidate of its command of step 9
+    assert tick.executed("r3") == -1  # braked, never commanded
+    assert Tick(robot="tracker", step=3, t=0.3, stop=False, misses=0).executed("r2") is None

@@ -37,6 +37,8 @@ from typing import Any
 
 import numpy as np
 
+from agent.controller import chain_input
+from agent.models import measured_state
 from fleet.harness import GOAL_TOLERANCE, Disturbance, PoseNoise, make_plant
 from fleet.runtime import (
     Inbox,
@@ -65,6 +67,8 @@ class SimulatedWorld:
     """The robots as simulated plants, moved here from the agents' commands."""
 
     odometry = True
+    drives = True
+    """This process applies the commands (it is the robot side)."""
     known_ahead = True
     """Where the robots are at the next tick is known once the step is integrated."""
 
@@ -94,6 +98,8 @@ class EmulatedWorld:
     """The robots as e-puck emulators (their own processes), seen on ``fleet/F/emu/R``."""
 
     odometry = False
+    drives = False
+    """``epuck_link`` applies the commands, not this process."""
     known_ahead = False
     """The emulators move in wall time: their poses are read at the tick."""
 
@@ -204,6 +210,13 @@ def main(argv: list[str] | None = None) -> int:
         quiet = dict.fromkeys(ids, 0)
         heard: set[str] = set()
         braking = dict.fromkeys(ids, False)
+        applied: dict[str, Command | None] = dict.fromkeys(ids)
+        """Per robot, the last command this robot side applied."""
+        following = dict.fromkeys(ids, False)
+        """Per robot: not braked since that command (its candidate may be followed)."""
+        on_chain: dict[str, int] = {}
+        braked_map: dict[str, int] = {}
+        """What the next tick says about this step (Tick.fallback, Tick.braked)."""
         realtime = args.clock == "realtime"
         t_start = time.monotonic()
         for k in range(steps):
@@ -219,10 +232,10 @@ def main(argv: list[str] | None = None) -> int:
             early = world.known_ahead
             if early:
                 with inbox.cond:
-                    measured, truths = _measure(world, ids, noise, pubs, k, t)
+                    measured, truths, states = _measure(world, ids, noise, pubs, k, t, p.lookahead)
                 inbox.drain()
                 if relay and k > 0:
-                    relayed = _relayed_plans(inbox, ids, k - 1, p.horizon)
+                    relayed = _relayed_plans(inbox, ids, k - 1, p.horizon, applied)
                     digest = Digest.of(role, k - 1, p.Ts, p.horizon, relayed).encode()
             if realtime:
                 _until(t_start + t)
@@ -241,11 +254,11 @@ def main(argv: list[str] | None = None) -> int:
                 answering = [r for r in ids if r in inbox.live and (k == 0 or r in heard)]
             if not early:
                 with inbox.cond:  # the emulators' poses come by callback
-                    measured, truths = _measure(world, ids, noise, pubs, k, t)
+                    measured, truths, states = _measure(world, ids, noise, pubs, k, t, p.lookahead)
             for pub, payload in measured:
                 pub.put(payload)
             if relay is not None and k > 0:
-                now_relayed = _relayed_plans(inbox, ids, k - 1, p.horizon)
+                now_relayed = _relayed_plans(inbox, ids, k - 1, p.horizon, applied)
                 if (
                     not early
                     or len(now_relayed) != len(relayed)
@@ -254,7 +267,11 @@ def main(argv: list[str] | None = None) -> int:
                     relayed = now_relayed
                     digest = Digest.of(role, k - 1, p.Ts, p.horizon, relayed).encode()
                 relay.put(digest)
-            clock.put(Tick(robot=role, step=k, t=t, stop=False, misses=misses).encode())
+            clock.put(
+                Tick(
+                    robot=role, step=k, t=t, stop=False, misses=misses, fallback=on_chain, braked=braked_map
+                ).encode()
+            )
             for pub, payload in truths:
                 pub.put(payload)
             if k % PROGRESS_EVERY == 0 and k:
@@ -281,21 +298,53 @@ def main(argv: list[str] | None = None) -> int:
                     log(role, f"step {k}: no command from {', '.join(late)} within {args.timeout} s")
             with inbox.cond:
                 live = set(inbox.live)
+            on_chain, braked_map = {}, {}
             for rid in ids:
                 cmd = inbox.get(Command, rid, k)
                 quiet[rid] = 0 if cmd is not None else quiet[rid] + 1
                 # The robot side's watchdog: a dead agent's robot, or one without a
                 # command for --watchdog seconds, is braked to rest and held there.
                 stopped = rid not in live or quiet[rid] * p.Ts > args.watchdog
+                a = None
+                if stopped:
+                    pass
+                elif cmd is not None:
+                    a = np.array([cmd.ax, cmd.ay])
+                    applied[rid] = cmd
+                    following[rid] = True
+                elif world.drives:
+                    # No command in time: the shifted candidate of the last applied one
+                    # (docs/runtime-notes.md, "Missed deadlines"); the next tick says so.
+                    last = applied[rid]
+                    if last is not None and last.fallback and following[rid]:
+                        a = chain_input(
+                            last.x_next,
+                            last.v_next,
+                            k - last.step - 1,
+                            states[rid],
+                            design.A,
+                            design.B,
+                            design.K,
+                        )
+                    if a is not None:
+                        on_chain[rid] = applied_step(applied, rid)
+                else:
+                    a = last_a[rid]  # epuck_link applies the commands: nothing to decide here
+                if a is None and not stopped:
+                    stopped = True
+                    why = "nothing left to follow"
+                else:
+                    why = "its agent is not alive" if rid not in live else f"no command for {args.watchdog} s"
                 if stopped != braking[rid]:
                     braking[rid] = stopped
-                    why = "its agent is not alive" if rid not in live else f"no command for {args.watchdog} s"
                     log(role, f"step {k}: {rid}: " + (f"{why}; braking" if stopped else "commands again"))
                 if stopped:
+                    if world.drives:
+                        braked_map[rid] = applied_step(applied, rid)
+                    following[rid] = False  # braking leaves the plan: nothing to follow after it
                     q = world.state(rid)[[1, 3]]
                     a = np.clip(-q / p.Ts, -p.a_max, p.a_max)
-                else:
-                    a = last_a[rid] if cmd is None else np.array([cmd.ax, cmd.ay])
+                assert a is not None
                 last_a[rid] = a
                 world.advance(rid, a, p.Ts)
             if not live & set(ids):
@@ -318,7 +367,11 @@ def main(argv: list[str] | None = None) -> int:
             with inbox.cond:
                 x, y, th = (float(v) for v in world.pose(rid))
             pubs[rid][2].put(Truth(robot=rid, seq=k, t=k * p.Ts, x=x, y=y, theta=th).encode())
-        clock.put(Tick(robot=role, step=k, t=k * p.Ts, stop=True, misses=misses).encode())
+        clock.put(
+            Tick(
+                robot=role, step=k, t=k * p.Ts, stop=True, misses=misses, fallback=on_chain, braked=braked_map
+            ).encode()
+        )
         log(role, f"run ended at step {k}; {misses} deadline misses, {inbox.rejects.total} rejected payloads")
     finally:
         for s in subs:
@@ -329,12 +382,14 @@ def main(argv: list[str] | None = None) -> int:
 
 def _measure(
     world: SimulatedWorld | EmulatedWorld, ids: list[str], noise: PoseNoise, pubs: dict[str, Any], k: int,
-    t: float,
-) -> tuple[list[tuple[Any, bytes]], list[tuple[Any, bytes]]]:  # fmt: skip
+    t: float, lookahead: float,
+) -> tuple[list[tuple[Any, bytes]], list[tuple[Any, bytes]], dict[str, np.ndarray]]:  # fmt: skip
     """The messages of step k at time t [s]: (publisher, payload) of each robot's camera pose
-    and odometry, and of its true pose.  Draws the camera noise, robot by robot."""
+    and odometry, and of its true pose; and, with odometry, each robot's measured state
+    (4,) [m, m/s], the agent's x from those messages.  Draws the camera noise, robot by robot."""
     measured: list[tuple[Any, bytes]] = []
     truths: list[tuple[Any, bytes]] = []
+    states: dict[str, np.ndarray] = {}
     for rid in ids:
         pub_pose, pub_odom, pub_truth = pubs[rid]
         true = world.pose(rid).copy()
@@ -344,18 +399,29 @@ def _measure(
             state = world.state(rid)
             odom = Odom(robot=rid, seq=k, t=t, vx=float(state[1]), vy=float(state[3]))
             measured.append((pub_odom, odom.encode()))
+            states[rid] = measured_state(np.array([mx, my, mth]), state[[1, 3]], lookahead)
         x, y, th = (float(v) for v in true)
         truths.append((pub_truth, Truth(robot=rid, seq=k, t=t, x=x, y=y, theta=th).encode()))
-    return measured, truths
+    return measured, truths, states
 
 
-def _relayed_plans(inbox: Inbox, ids: list[str], step: int, horizon: int) -> list[Plan]:
+def applied_step(applied: dict[str, Command | None], rid: str) -> int:
+    """The step of the last command applied to ``rid``'s robot, −1 if none."""
+    cmd = applied[rid]
+    return -1 if cmd is None else cmd.step
+
+
+def _relayed_plans(
+    inbox: Inbox, ids: list[str], step: int, horizon: int, applied: dict[str, Command | None]
+) -> list[Plan]:
     """What the digest of ``step`` relays (``--exchange relay``): each robot's newest
-    plan of a step ≤ ``step``, as it came on its robot's own key (the subscription
-    checks the id against the key), with the design's horizon.  One that missed the
-    digest of its step is in the next: late, as on its own key."""
+    plan of a step ≤ ``step`` whose command was applied (a plan whose command missed
+    its deadline was never executed: the robot followed the plan before), as it came
+    on its robot's own key (the subscription checks the id against the key), with the
+    design's horizon.  One that missed the digest of its step is in the next: late,
+    as on its own key."""
     with inbox.cond:
-        plans = [inbox.newest(Plan, r, step) for r in ids]
+        plans = [inbox.newest(Plan, r, min(step, applied_step(applied, r))) for r in ids]
     return [pl for pl in plans if pl is not None and pl.committed.shape[0] == horizon]
 
 
