@@ -100,6 +100,8 @@ class Counters:
     status_counts: dict[str, int] = field(default_factory=dict)
     holds: int = 0
     """Steps without a usable measurement: braked, nothing new committed (:meth:`TubeMPC.hold`)."""
+    row_overflows: int = 0
+    """Steps with more coordination rows than the QP holds (the rest checked after the solve)."""
     unapplied: int = 0
     """Steps whose command the robot side did not apply; it followed the shifted
     candidate instead (:meth:`TubeMPC.rewind`)."""
@@ -271,6 +273,17 @@ class TubeMPC:
             pen = polynomial_penalty(
                 c_i, [nb.last_point for nb in neighbours], p.penalty_dlim, p.penalty_weight
             )
+        rows_n, rows_b = np.array(normals).reshape(-1, 2), np.array(bounds)
+        over: tuple[Array, Array] | None = None
+        if rows_b.size > qp.max_coord_rows:
+            # More rows than the QP was assembled for (a crowd of neighbours and grown
+            # hazard discs): the QP takes the most binding ones, the slack at c_i being
+            # how far each may move ȳ, and its solution must meet the rest too.
+            order = np.argsort(rows_n @ c_i - rows_b, kind="stable")
+            keep, rest = order[: qp.max_coord_rows], order[qp.max_coord_rows :]
+            over = (rows_n[rest], rows_b[rest])
+            rows_n, rows_b = rows_n[keep], rows_b[keep]
+            self.counters.row_overflows += 1
         data = StepData(
             x=x,
             x_ref=self.x_ref,
@@ -278,8 +291,8 @@ class TubeMPC:
             goal=self.target,
             y_box=self.y_box,
             pos_box=self.pos_box,
-            coord_normals=np.array(normals).reshape(-1, 2),
-            coord_bounds=np.array(bounds),
+            coord_normals=rows_n,
+            coord_bounds=rows_b,
             penalty_H=None if pen is None else pen[0],
             penalty_g=None if pen is None else pen[1],
         )
@@ -290,6 +303,10 @@ class TubeMPC:
         status = res.status
         if res.ok and self.solver_fault is not None and self.solver_fault(self.k):
             res.ok, res.xi, status = False, None, "INJECTED_FAULT"
+        if res.ok and res.xi is not None and over is not None:
+            y_sol = self._repair(res.xi[qp.iy].copy(), data)
+            if np.any(over[0] @ y_sol < over[1] - 1e-12):
+                res.ok, res.xi, status = False, None, "ROW_OVERFLOW_VIOLATED"
         ctr = self.counters
         ctr.solves += 1
         ctr.status_counts[status] = ctr.status_counts.get(status, 0) + 1

@@ -139,3 +139,24 @@ def test_holding_the_last_acceleration_instead_breaks_the_tube():
         res = harness.run(scn, late=Late(0.15, 4, seed), late_policy="hold")
         assert sum(not ok for tr in res.traces.values() for ok in tr.tube_ok) > 0, seed
         assert sum(sum(tr.fallback) for tr in res.traces.values()) > 0, seed
+
+
+def test_more_rows_than_the_qp_holds_are_all_met_or_the_candidate_is_taken():
+    """16 neighbours close around (more rows than the 12 the QP is assembled for; a crowd of
+    grown hazard discs does that at 32 robots): no exception, the step counts the overflow,
+    and the new end point meets every neighbour's row, the ones left out of the QP too."""
+    from agent.coordination import NeighbourInfo, split_halfplanes
+
+    ctrl, design = _controller()
+    c = ctrl.last_point.copy()
+    r = design.footprint
+    angles = np.linspace(0, 2 * np.pi, 16, endpoint=False)
+    gaps = 2 * r + 1e-3 * (1 + np.arange(16) % 3)
+    around = c + gaps[:, None] * np.column_stack([np.cos(angles), np.sin(angles)])
+    nbs = [NeighbourInfo(id=f"n{i}", last_point=p, footprint=r, rank=i + 1) for i, p in enumerate(around)]
+    normals, bounds, _ = split_halfplanes(c, r, 0, nbs, design.params.priority_share, design.params.epsilon)
+    assert len(bounds) > ctrl.qp.max_coord_rows
+    out = ctrl.step(ctrl.xi[0:4], nbs)
+    assert ctrl.counters.row_overflows == 1
+    y = ctrl.last_point
+    assert np.all(np.array(normals) @ y >= np.array(bounds) - 1e-12), out.status

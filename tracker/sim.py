@@ -301,9 +301,14 @@ def main(argv: list[str] | None = None) -> int:
             on_chain, braked_map = {}, {}
             for rid in ids:
                 cmd = inbox.get(Command, rid, k)
-                quiet[rid] = 0 if cmd is not None else quiet[rid] + 1
-                # The robot side's watchdog: a dead agent's robot, or one without a
-                # command for --watchdog seconds, is braked to rest and held there.
+                newest = inbox.get(Command, rid)
+                # The robot side's watchdog: a dead agent's robot, or one not heard from
+                # for --watchdog seconds, is braked to rest and held there.  A command
+                # of the last step that came after its deadline counts as heard: its
+                # agent is alive and one step behind, and its robot may stay on the
+                # candidate (a hung agent sends nothing at all).
+                alive = cmd is not None or (newest is not None and newest.step >= k - 1)
+                quiet[rid] = 0 if alive else quiet[rid] + 1
                 stopped = rid not in live or quiet[rid] * p.Ts > args.watchdog
                 a = None
                 if stopped:
