@@ -116,8 +116,9 @@ def main(argv: list[str] | None = None) -> int:
     """The robot side executed this controller's plans up to this step."""
     ran: list[int] = []
     """Steps after ``synced`` at which the controller stepped."""
-    behind = False
-    """The last tick said the robot side did not apply this agent's command."""
+    behind = ""
+    """What the robot side did instead of this agent's last commands: "" (applied them),
+    "candidate" or "braked"; each episode is logged once."""
     try:
         while True:
             if not inbox.wait(partial(_tick_at_least, inbox, k), 1.0):
@@ -152,16 +153,15 @@ def main(argv: list[str] | None = None) -> int:
                 unapplied = len(ran)
                 coasted = k - 1 - synced - unapplied
                 if me in tick.braked or not ctrl.rewind(unapplied, coasted):
-                    log(
-                        role,
-                        f"step {k}: the robot was braked after step {executed}; starting again from its pose",
-                    )
-                    joined = False
-                elif not behind:
-                    log(role, f"step {k}: commands after step {executed} not applied; on its candidate")
-                behind = True
+                    if behind != "braked":  # logged once a braking episode
+                        log(role, f"step {k}: robot braked after step {executed}; starting again where it is")
+                    behind, joined = "braked", False
+                else:
+                    if not behind:
+                        log(role, f"step {k}: commands after step {executed} not applied; on its candidate")
+                    behind = behind or "candidate"
             elif executed is None:
-                behind = False
+                behind = ""
             synced, ran = k - 1, []
             if tick.stop:
                 break

@@ -108,11 +108,16 @@ class Monitor:
                 self.refs[a].append(pt)  # the initial reference stays put at the start
             self.errors[a].append(float(np.linalg.norm(pt - self.goals[a])))
 
-    def plans(self, plans: dict[str, Plan]) -> None:
+    def plans(self, plans: dict[str, Plan], unexecuted: frozenset[str] | set[str] = frozenset()) -> None:
         """One step of plans.  A robot missing from ``plans`` (dead, or it skipped the
-        step) is checked with its last known plan and not counted as a solve."""
+        step) is checked with its last known plan and not counted as a solve.  A robot
+        in ``unexecuted`` made its plan, which counts as a solve, but its robot side did
+        not apply the command (Tick.fallback, Tick.braked): the robot kept to its last
+        executed plan, and that is what is checked."""
         fresh = set(plans)
-        plans = {**self.last_plans, **plans}
+        made = plans
+        executed = {r: pl for r, pl in plans.items() if r not in unexecuted}
+        plans = {**self.last_plans, **executed}
         self.last_plans = plans
         for i, a in enumerate(self.ids):
             if a not in plans:
@@ -128,6 +133,7 @@ class Monitor:
                     self.ref_violations += 1
             if a not in fresh:
                 continue
+            pa = made[a]
             st = self.robot[a]
             st["solves"] += 1
             st["status"][pa.status] = st["status"].get(pa.status, 0) + 1
@@ -135,7 +141,11 @@ class Monitor:
             st["tube_exits"] += not pa.tube_ok
             st["solve_ms"].append(pa.solve_time * 1e3)
             self.goals[a] = pa.goal.copy()  # a goal changed at run time counts from here on
-            self.refs[a].append(pa.committed[0].copy())
+            ex = plans.get(a)
+            if ex is not None:  # the executed reference for the next step ("stay put" past its end)
+                self.refs[a].append(
+                    ex.committed[min(max(self.steps - ex.step, 0), len(ex.committed) - 1)].copy()
+                )
         self.steps += 1
 
     def trace(self, Ts: float, footprint: float) -> Trace:
@@ -225,8 +235,8 @@ def _plan_step(inbox: Inbox, ids: list[str], k: int) -> dict[str, Plan] | None:
     step's tick, so one that claims a later step (a forged or corrupt far-future
     step) neither makes step k judgeable nor marks another step as skipped."""
     tick = inbox.get(Tick, "tracker")
-    if tick is None or k > tick.step:
-        return None
+    if tick is None or k > tick.step or (k == tick.step and not tick.stop):
+        return None  # the tick of step k + 1 says whose plans of step k were executed
     plans: dict[str, Plan] = {}
     reached = False
     for r in ids:
@@ -334,7 +344,7 @@ def main(argv: list[str] | None = None) -> int:
             # Take the complete steps under the lock; log them outside it, so the
             # Zenoh callbacks are never held up by Rerun.
             truths: list[tuple[dict[str, Any], dict[str, Any]] | None] = []
-            plan_steps: list[dict[str, Any]] = []
+            plan_steps: list[tuple[dict[str, Plan], set[str]]] = []
             with inbox.cond:
                 while (state := _step_in(inbox, ids, k_truth + len(truths))) != "wait":
                     kk = k_truth + len(truths)
@@ -343,8 +353,11 @@ def main(argv: list[str] | None = None) -> int:
                         continue
                     measured = {r: inbox.get(Pose, r, kk) for r in ids}
                     truths.append(({r: inbox.get(Truth, r, kk) for r in ids}, measured))
-                while (step_plans := _plan_step(inbox, ids, k_plan + len(plan_steps))) is not None:
-                    plan_steps.append(step_plans)
+                while (step_plans := _plan_step(inbox, ids, kk := k_plan + len(plan_steps))) is not None:
+                    # Tick k + 1 says whose plan of step k was not executed (its command missed).
+                    t_next = inbox.get(Tick, "tracker", kk + 1)
+                    skipped = set() if t_next is None else {*t_next.fallback, *t_next.braked}
+                    plan_steps.append((step_plans, skipped))
                 newest_tick = inbox.get(Tick, "tracker")
                 ticks = [] if newest_tick is None else [
                     t for kk in range(k_tick, newest_tick.step + 1) if (t := inbox.get(Tick, "tracker", kk))
@@ -358,9 +371,9 @@ def main(argv: list[str] | None = None) -> int:
                 else:
                     mon.skipped_steps += 1
                 k_truth += 1
-            for plans in plan_steps:
-                mon.plans(plans)  # type: ignore[arg-type]
-                recorder.plans(k_plan, p.Ts, plans)  # type: ignore[arg-type]
+            for plans, skipped in plan_steps:
+                mon.plans(plans, skipped)
+                recorder.plans(k_plan, p.Ts, plans)
                 k_plan += 1
             for t in ticks:
                 # What the robot side applied over step t.step − 1 (Tick.fallback, .braked).

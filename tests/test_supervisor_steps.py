@@ -41,6 +41,8 @@ def test_a_full_step_within_the_clock_is_judged() -> None:
     inbox = _inbox(5, {"r1": [0, 1, 2, 3, 4, 5], "r2": [0, 1, 2, 3, 4, 5]})
     got = _plan_step(inbox, IDS, 3)
     assert got is not None and sorted(got) == IDS and got["r2"].step == 3
+    # The plans of the clock's own step wait for the next tick: it says whose were executed.
+    assert _plan_step(inbox, IDS, 5) is None
 
 
 def test_a_far_future_plan_neither_skips_a_robot_nor_runs_past_the_clock() -> None:
@@ -73,15 +75,39 @@ def test_a_robot_whose_token_just_went_is_waited_for_then_left_out() -> None:
 
     from supervisor.monitor import GONE_GRACE
 
-    inbox = _inbox(5, {"r1": [0, 1, 2, 3, 4, 5], "r2": [0, 1, 2, 3, 4]})
+    inbox = _inbox(6, {"r1": [0, 1, 2, 3, 4, 5], "r2": [0, 1, 2, 3, 4]})
     inbox.live = {"r1"}
     inbox.gone["r2"] = time.monotonic()  # just now: its plan of step 5 may still be on the way
     assert _plan_step(inbox, IDS, 5) is None
     inbox._store(Plan.TYPE, _plan("r2", 5), True)  # and here it is
     got = _plan_step(inbox, IDS, 5)
     assert got is not None and sorted(got) == IDS
-    inbox = _inbox(5, {"r1": [0, 1, 2, 3, 4, 5], "r2": [0, 1, 2, 3, 4]})
+    inbox = _inbox(6, {"r1": [0, 1, 2, 3, 4, 5], "r2": [0, 1, 2, 3, 4]})
     inbox.live = {"r1"}
     inbox.gone["r2"] = time.monotonic() - GONE_GRACE - 0.1  # gone for longer: dead
     got = _plan_step(inbox, IDS, 5)
     assert got is not None and sorted(got) == ["r1"]
+
+
+def test_a_plan_whose_command_was_not_applied_is_not_what_is_checked() -> None:
+    """Tick.fallback: r2's plan of step 1 was made but its command missed the deadline, so
+    its robot kept to its plan of step 0.  The reference check judges that executed plan:
+    the unexecuted end point, 5 cm from r1's, is no violation; had it been executed, it
+    would be one.  The unexecuted plan still counts as a solve."""
+    from pathlib import Path
+
+    from fleet.scenario import load_scenario
+    from supervisor.monitor import Monitor
+
+    scn = load_scenario(Path(__file__).resolve().parent.parent / "scenarios" / "paper_two_robots.toml")
+
+    def plan(robot: str, step: int, end: tuple[float, float]) -> Plan:
+        pl = _plan(robot, step)
+        return Plan(**{**pl.__dict__, "committed": np.tile(end, (20, 1)), "footprint": 0.1})
+
+    for unexecuted, violations in ((set(), 1), ({"r2"}, 0)):
+        mon = Monitor(scn, 0.1, 0.03, 0.035)
+        mon.plans({"r1": plan("r1", 0, (0.0, 0.0)), "r2": plan("r2", 0, (0.5, 0.0))})
+        mon.plans({"r1": plan("r1", 1, (0.0, 0.0)), "r2": plan("r2", 1, (0.05, 0.0))}, unexecuted)
+        assert mon.ref_violations == violations
+        assert mon.robot["r2"]["solves"] == 2
