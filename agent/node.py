@@ -209,7 +209,8 @@ def main(argv: list[str] | None = None) -> int:
                 if not joined and k > 0:
                     # (Re)joining a running fleet: start at rest where the robot is.
                     ctrl.reset(x[[0, 2]])
-                    log(role, f"joined at step {k} at ({x[0]:.3f}, {x[2]:.3f})")
+                    if behind != "braked":  # a braked robot's agent said so already
+                        log(role, f"joined at step {k} at ({x[0]:.3f}, {x[2]:.3f})")
                 joined = True
             elif x_est is not None:
                 blind += 1
