@@ -215,6 +215,23 @@ def _fleet(*args: str, timeout: float = 400) -> subprocess.CompletedProcess[str]
     )  # fmt: skip
 
 
+def _safe_faulty_run(tmp_path: Path, plan: dict, exchange: str) -> tuple[dict, str]:
+    """``fleet run paper_three_robots`` with the fault plan ``plan``: it succeeds with no
+    collision, every goal reached and no reference closer than required.  (summary, stderr)."""
+    faults = tmp_path / "faults.json"
+    faults.write_text(json.dumps(plan))
+    out = tmp_path / "run"
+    res = _fleet(
+        "run", str(SCENARIOS / "paper_three_robots.toml"), "--out", str(out), "--faults", str(faults),
+        "--exchange", exchange,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    s = json.loads((out / "summary.json").read_text())
+    assert s["collisions"] == 0 and s["all_goals_reached"]
+    assert s["min_reference_separation_m"] >= s["required_reference_separation_m"] - 1e-9
+    return s, res.stderr
+
+
 def test_lockstep_run_with_lost_plans_and_poses_is_safe_and_deterministic(tmp_path):
     """10 % of every plan lost, two 5-step bursts of r2's plans, and a 7-step gap in r1's camera
     poses: the fleet finishes with no collision and no reference closer than required; r1
@@ -256,18 +273,7 @@ def test_relayed_plans_lost_at_the_tracker_or_the_agents_are_handled_safely(tmp_
         {"key": "plan/r1", "drop": 0.1, "to": ["agent r2", "agent r3"]},
         {"key": "plan/r3", "drop": 0.1, "to": ["agent r1", "agent r2"]},
     ]}  # fmt: skip
-    faults = tmp_path / "faults.json"
-    faults.write_text(json.dumps(plan))
-    out = tmp_path / "run"
-    res = _fleet(
-        "run", str(SCENARIOS / "paper_three_robots.toml"), "--out", str(out), "--faults", str(faults),
-        "--exchange", "relay",
-    )  # fmt: skip
-    assert res.returncode == 0, res.stderr[-3000:]
-    s = json.loads((out / "summary.json").read_text())
-    assert s["collisions"] == 0 and s["all_goals_reached"]
-    assert s["min_reference_separation_m"] >= s["required_reference_separation_m"] - 1e-9
-    err = res.stderr
+    _, err = _safe_faulty_run(tmp_path, plan, "relay")
     for rid in ("r1", "r3"):
         assert f"[agent {rid}] step 81: r2: its plan is late or lost" in err, err[-3000:]
     injected = dict(re.findall(r"\[agent (r\d)\] stopped after .*?, (\d+) injected faults", err))
@@ -287,18 +293,7 @@ def test_commands_lost_before_the_robot_side_are_followed_on_the_candidate(tmp_p
         {"key": "cmd/r2", "bursts": [[40, 44], [100, 103]], "to": ["tracker"]},
         {"key": "cmd/*", "drop": 0.1, "to": ["tracker"]},
     ]}  # fmt: skip
-    faults = tmp_path / "faults.json"
-    faults.write_text(json.dumps(plan))
-    out = tmp_path / "run"
-    res = _fleet(
-        "run", str(SCENARIOS / "paper_three_robots.toml"), "--out", str(out), "--faults", str(faults),
-        "--exchange", exchange,
-    )  # fmt: skip
-    assert res.returncode == 0, res.stderr[-3000:]
-    s = json.loads((out / "summary.json").read_text())
-    assert s["collisions"] == 0 and s["all_goals_reached"]
-    assert s["min_reference_separation_m"] >= s["required_reference_separation_m"] - 1e-9
-    err = res.stderr
+    s, err = _safe_faulty_run(tmp_path, plan, exchange)
     counts = {
         rid: (int(fb), int(te), int(cand))
         for rid, fb, te, cand in re.findall(

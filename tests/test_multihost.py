@@ -215,10 +215,10 @@ class Run:
 
 @contextmanager
 def secure_fleet(
-    topo: Any, certs: Path, tmp: Path, clock: str, agent_args: tuple[str, ...] = ()
+    topo: Any, certs: Path, tmp: Path, clock: str, agent_args: tuple[str, ...] = (), exchange: str = "mesh"
 ) -> Iterator[Run]:
     """Router, tracker, supervisor and observer on the router host, agents on theirs
-    (``agent_args``: extra arguments of every agent).
+    (``agent_args``: extra arguments of every agent; ``exchange``: how plans travel).
 
     Every process is ended by its pid on exit (the router by SIGTERM, the
     observer by EOF; the others should have exited by themselves) and its
@@ -228,7 +228,7 @@ def secure_fleet(
     out, logs = tmp / "out", tmp / "logs"
     logs.mkdir()
     run = Run(topo, out, clock)
-    common = ["--scenario", str(SCENARIO), "--clock", clock]
+    common = ["--scenario", str(SCENARIO), "--clock", clock, "--exchange", exchange]
 
     def config(role: str, robot: str | None = None) -> str:
         path = tmp / f"{role}{'-' + robot if robot else ''}.json"
@@ -344,16 +344,21 @@ def _supervisor_events(rrd: Path) -> list[tuple[float, str]]:
 
 
 # ------------------------------------------------------------------ tests
-@pytest.mark.parametrize("clock", ["lockstep", "realtime"])
-def test_three_robots_complete_across_hosts(clock: str, topo: Any, certs: Path, tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    ("clock", "exchange"), [("lockstep", "mesh"), ("realtime", "mesh"), ("realtime", "relay")]
+)
+def test_three_robots_complete_across_hosts(
+    clock: str, exchange: str, topo: Any, certs: Path, tmp_path: Path
+) -> None:
+    """``relay``: the plans reach the agents in the tracker's digest, through the router."""
     t0 = time.monotonic()
-    with secure_fleet(topo, certs, tmp_path, clock) as run:
+    with secure_fleet(topo, certs, tmp_path, clock, exchange=exchange) as run:
         _check_placement(run)
         run.finish()
     s = run.summary() if (run.out / "summary.json").exists() else {}
     ended = [line for line in run.procs["tracker"].lines() if "run ended" in line]
     print(
-        f"multihost {clock} run: {ended[-1:]}, {run.t_end - run.t_ready:.1f} s of wall time "
+        f"multihost {clock} {exchange} run: {ended[-1:]}, {run.t_end - run.t_ready:.1f} s of wall time "
         f"({time.monotonic() - t0:.1f} s with start-up and tear-down); summary: "
         + json.dumps({k: s.get(k) for k in SUMMARY_KEYS})
     )
