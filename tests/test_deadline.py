@@ -160,3 +160,48 @@ def test_more_rows_than_the_qp_holds_are_all_met_or_the_candidate_is_taken():
     assert ctrl.counters.row_overflows == 1
     y = ctrl.last_point
     assert np.all(np.array(normals) @ y >= np.array(bounds) - 1e-12), out.status
+
+
+def test_the_robot_side_follows_the_candidate_then_brakes():
+    """tracker.sim.RobotSide, step by step: a command in time is applied; a missing one is
+    replaced by the candidate of the last applied command until it is used up; a late command
+    keeps the watchdog quiet, silence does not; a dead agent's robot, a braked one and one whose
+    agent has no plan yet are braked; without ``drives`` (epuck_link applies the commands) the
+    last acceleration is held."""
+    from fleet.wire import Command
+    from tracker.sim import BRAKED, CANDIDATE, COMMAND, HELD, RobotSide
+
+    _, design = _controller()
+    Ts = design.params.Ts
+    x = np.array([0.01, 0.0, 0.0, 0.0])
+    v_next = np.array([[0.1, 0.0], [0.2, 0.0], [0.2, 0.1]])
+    cmd = Command(robot="r1", step=4, ax=0.3, ay=0.0, fallback=True, x_next=np.zeros(4), v_next=v_next)
+    side = RobotSide(design, watchdog=2.5 * Ts, drives=True)
+    what, a, _ = side.decide(4, cmd, cmd, True, x)
+    assert what == COMMAND and side.applied_step == 4 and np.array_equal(a, [0.3, 0.0])
+    for k, m in ((5, 0), (6, 1)):
+        what, a, _ = side.decide(k, None, cmd, True, x)
+        assert what == CANDIDATE
+        assert np.array_equal(a, chain_input(cmd.x_next, v_next, m, x, design.A, design.B, design.K))
+    # Silence trips the watchdog (quiet from step 6: 3 steps > 2.5 Ts at step 8).
+    assert side.decide(7, None, cmd, True, x)[0] == CANDIDATE
+    assert side.decide(8, None, cmd, True, x) == (BRAKED, None, f"no command for {2.5 * Ts} s")
+    # A late command of the step before keeps the watchdog quiet: the candidate is used up first.
+    late = RobotSide(design, watchdog=2.5 * Ts, drives=True)
+    late.decide(4, cmd, cmd, True, x)
+    steps = [late.decide(k, None, Command(robot="r1", step=k - 1, ax=0, ay=0), True, x) for k in range(5, 9)]
+    assert [s[0] for s in steps] == [CANDIDATE] * 3 + [BRAKED] and steps[-1][2] == "nothing left to follow"
+    # After braking there is nothing to follow until a command is applied again.
+    assert late.decide(9, None, Command(robot="r1", step=8, ax=0, ay=0), True, x)[0] == BRAKED
+    fresh = Command(robot="r1", step=10, ax=0.0, ay=0.0, fallback=True, v_next=v_next)
+    assert late.decide(10, fresh, fresh, True, x)[0] == COMMAND
+    assert late.decide(11, None, fresh, True, x)[0] == CANDIDATE
+    # A dead agent's robot is braked at once; an agent with no plan yet gives nothing to follow.
+    assert late.decide(12, fresh, fresh, False, x) == (BRAKED, None, "its agent is not alive")
+    rest = Command(robot="r1", step=13, ax=0.0, ay=0.0)  # fallback=False: no plan yet
+    late.decide(13, rest, rest, True, x)
+    assert late.decide(14, None, rest, True, x) == (BRAKED, None, "nothing left to follow")
+    link = RobotSide(design, watchdog=2.5 * Ts, drives=False)
+    link.decide(4, cmd, cmd, True, None)
+    what, a, _ = link.decide(5, None, cmd, True, None)
+    assert what == HELD and np.array_equal(a, [0.3, 0.0])

@@ -206,14 +206,9 @@ def main(argv: list[str] | None = None) -> int:
             return 1
         k = 0
         misses = 0
-        last_a = {rid: np.zeros(2) for rid in ids}
-        quiet = dict.fromkeys(ids, 0)
+        sides = {rid: RobotSide(design, args.watchdog, world.drives) for rid in ids}
         heard: set[str] = set()
         braking = dict.fromkeys(ids, False)
-        applied: dict[str, Command | None] = dict.fromkeys(ids)
-        """Per robot, the last command this robot side applied."""
-        following = dict.fromkeys(ids, False)
-        """Per robot: not braked since that command (its candidate may be followed)."""
         on_chain: dict[str, int] = {}
         braked_map: dict[str, int] = {}
         """What the next tick says about this step (Tick.fallback, Tick.braked)."""
@@ -235,7 +230,7 @@ def main(argv: list[str] | None = None) -> int:
                     measured, truths, states = _measure(world, ids, noise, pubs, k, t, p.lookahead)
                 inbox.drain()
                 if relay and k > 0:
-                    relayed = _relayed_plans(inbox, ids, k - 1, p.horizon, applied)
+                    relayed = _relayed_plans(inbox, ids, k - 1, p.horizon, sides)
                     digest = Digest.of(role, k - 1, p.Ts, p.horizon, relayed).encode()
             if realtime:
                 _until(t_start + t)
@@ -258,7 +253,7 @@ def main(argv: list[str] | None = None) -> int:
             for pub, payload in measured:
                 pub.put(payload)
             if relay is not None and k > 0:
-                now_relayed = _relayed_plans(inbox, ids, k - 1, p.horizon, applied)
+                now_relayed = _relayed_plans(inbox, ids, k - 1, p.horizon, sides)
                 if (
                     not early
                     or len(now_relayed) != len(relayed)
@@ -300,57 +295,23 @@ def main(argv: list[str] | None = None) -> int:
                 live = set(inbox.live)
             on_chain, braked_map = {}, {}
             for rid in ids:
-                cmd = inbox.get(Command, rid, k)
-                newest = inbox.get(Command, rid)
-                # The robot side's watchdog: a dead agent's robot, or one not heard from
-                # for --watchdog seconds, is braked to rest and held there.  A command
-                # of the last step that came after its deadline counts as heard: its
-                # agent is alive and one step behind, and its robot may stay on the
-                # candidate (a hung agent sends nothing at all).
-                alive = cmd is not None or (newest is not None and newest.step >= k - 1)
-                quiet[rid] = 0 if alive else quiet[rid] + 1
-                stopped = rid not in live or quiet[rid] * p.Ts > args.watchdog
-                a = None
-                if stopped:
-                    pass
-                elif cmd is not None:
-                    a = np.array([cmd.ax, cmd.ay])
-                    applied[rid] = cmd
-                    following[rid] = True
-                elif world.drives:
-                    # No command in time: the shifted candidate of the last applied one
-                    # (docs/runtime-notes.md, "Missed deadlines"); the next tick says so.
-                    last = applied[rid]
-                    if last is not None and last.fallback and following[rid]:
-                        a = chain_input(
-                            last.x_next,
-                            last.v_next,
-                            k - last.step - 1,
-                            states[rid],
-                            design.A,
-                            design.B,
-                            design.K,
-                        )
-                    if a is not None:
-                        on_chain[rid] = applied_step(applied, rid)
-                else:
-                    a = last_a[rid]  # epuck_link applies the commands: nothing to decide here
-                if a is None and not stopped:
-                    stopped = True
-                    why = "nothing left to follow"
-                else:
-                    why = "its agent is not alive" if rid not in live else f"no command for {args.watchdog} s"
-                if stopped != braking[rid]:
-                    braking[rid] = stopped
-                    log(role, f"step {k}: {rid}: " + (f"{why}; braking" if stopped else "commands again"))
-                if stopped:
+                side = sides[rid]
+                what, a, why = side.decide(
+                    k, inbox.get(Command, rid, k), inbox.get(Command, rid), rid in live, states.get(rid)
+                )
+                if (what == BRAKED) != braking[rid]:
+                    braking[rid] = what == BRAKED
+                    change = f"{why}; braking" if braking[rid] else "commands again"
+                    log(role, f"step {k}: {rid}: {change}")
+                if what == CANDIDATE:
+                    on_chain[rid] = side.applied_step
+                elif what == BRAKED:
                     if world.drives:
-                        braked_map[rid] = applied_step(applied, rid)
-                    following[rid] = False  # braking leaves the plan: nothing to follow after it
+                        braked_map[rid] = side.applied_step
                     q = world.state(rid)[[1, 3]]
                     a = np.clip(-q / p.Ts, -p.a_max, p.a_max)
                 assert a is not None
-                last_a[rid] = a
+                side.last_a = a
                 world.advance(rid, a, p.Ts)
             if not live & set(ids):
                 log(role, f"step {k}: no agent alive; stopping the run")
@@ -410,14 +371,77 @@ def _measure(
     return measured, truths, states
 
 
-def applied_step(applied: dict[str, Command | None], rid: str) -> int:
-    """The step of the last command applied to ``rid``'s robot, −1 if none."""
-    cmd = applied[rid]
-    return -1 if cmd is None else cmd.step
+COMMAND, CANDIDATE, HELD, BRAKED = "command", "candidate", "held", "braked"
+
+
+class RobotSide:
+    """What the simulated robot side applies to one robot each step (DESIGN §4 and
+    docs/runtime-notes.md, "Missed deadlines"): the agent's command when it came in time;
+    else the ancillary law on the shifted candidate of the last command applied; braking
+    when the agent is dead, has not been heard from for ``watchdog`` [s], or the candidate
+    is used up.  With ``drives`` False (``epuck_link`` applies the commands) a missing
+    command only holds the last acceleration, as the link does."""
+
+    def __init__(self, design: Any, watchdog: float, drives: bool):
+        self.design = design
+        self.watchdog = watchdog
+        self.drives = drives
+        self.applied: Command | None = None
+        """The last command applied."""
+        self.following = False
+        """Not braked since that command: its candidate may be followed."""
+        self.quiet = 0
+        """Steps without a command of this or the previous step [steps]."""
+        self.last_a = np.zeros(2)
+        """The acceleration applied over the last step (2,) [m/s²], world frame."""
+
+    @property
+    def applied_step(self) -> int:
+        """The step of the last command applied, −1 if none: no later plan was executed."""
+        return -1 if self.applied is None else self.applied.step
+
+    def decide(
+        self, k: int, cmd: Command | None, newest: Command | None, alive: bool, x: np.ndarray | None
+    ) -> tuple[str, np.ndarray | None, str]:
+        """What to apply over step k: (COMMAND | CANDIDATE | HELD | BRAKED, the acceleration
+        (2,) [m/s²] or None when BRAKED (the caller brakes the plant), why it is braked).
+
+        ``cmd`` is the agent's command of step k if it came in time, ``newest`` its latest
+        command of any step, ``alive`` whether its liveliness token is up, ``x`` (4,)
+        [m, m/s] the state measured for it at step k (for the candidate).  A command of
+        step k − 1 that came after its deadline counts as heard for the watchdog: its agent
+        is alive and one step behind (a hung agent sends nothing)."""
+        heard = cmd is not None or (newest is not None and newest.step >= k - 1)
+        self.quiet = 0 if heard else self.quiet + 1
+        if not alive or self.quiet * self.design.params.Ts > self.watchdog:
+            self.brake()
+            return (
+                BRAKED,
+                None,
+                "its agent is not alive" if not alive else f"no command for {self.watchdog} s",
+            )
+        if cmd is not None:
+            self.applied, self.following = cmd, True
+            self.last_a = np.array([cmd.ax, cmd.ay])
+            return COMMAND, self.last_a, ""
+        if not self.drives:
+            return HELD, self.last_a, ""
+        last, d = self.applied, self.design
+        a = None
+        if last is not None and last.fallback and self.following and x is not None:
+            a = chain_input(last.x_next, last.v_next, k - last.step - 1, x, d.A, d.B, d.K)
+        if a is None:
+            self.brake()
+            return BRAKED, None, "nothing left to follow"
+        return CANDIDATE, a, ""
+
+    def brake(self) -> None:
+        """Braking leaves the plan: nothing is followed after it until a command is applied."""
+        self.following = False
 
 
 def _relayed_plans(
-    inbox: Inbox, ids: list[str], step: int, horizon: int, applied: dict[str, Command | None]
+    inbox: Inbox, ids: list[str], step: int, horizon: int, sides: dict[str, RobotSide]
 ) -> list[Plan]:
     """What the digest of ``step`` relays (``--exchange relay``): each robot's newest
     plan of a step ≤ ``step`` whose command was applied (a plan whose command missed
@@ -426,7 +450,7 @@ def _relayed_plans(
     design's horizon.  One that missed the digest of its step is in the next: late,
     as on its own key."""
     with inbox.cond:
-        plans = [inbox.newest(Plan, r, min(step, applied_step(applied, r))) for r in ids]
+        plans = [inbox.newest(Plan, r, min(step, sides[r].applied_step)) for r in ids]
     return [pl for pl in plans if pl is not None and pl.committed.shape[0] == horizon]
 
 
