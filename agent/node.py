@@ -42,6 +42,8 @@ from fleet.wire import Command, Digest, Goal, Keys, Odom, Plan, Pose, Tick
 
 REJOIN_GAP = 5
 """Steps missed (0.5 s at Ts = 0.1 s, the link watchdog's time) after which an agent re-initialises."""
+WITHDRAWN_KEPT = 64
+"""Steps back for which a neighbour's unexecuted plans are remembered [steps]."""
 
 
 def _neighbour(plan: Plan) -> NeighbourInfo:
@@ -116,6 +118,10 @@ def main(argv: list[str] | None = None) -> int:
     """The robot side executed this controller's plans up to this step."""
     ran: list[int] = []
     """Steps after ``synced`` at which the controller stepped."""
+    rejoined = False
+    """Joined again in this braking episode (logged once)."""
+    withdrawn: dict[str, set[int]] = {j: set() for j in others}
+    """Per neighbour, recent steps whose plan was never executed (its command was not applied)."""
     behind = ""
     """What the robot side did instead of this agent's last commands: "" (applied them),
     "candidate" or "braked"; each episode is logged once."""
@@ -136,32 +142,41 @@ def main(argv: list[str] | None = None) -> int:
             tick = inbox.get(Tick, "tracker")
             assert tick is not None
             if tick.step > k:
-                if joined and tick.step > k + REJOIN_GAP:
-                    # Hung for a while (its robot was braked, its neighbours gave up on
-                    # it): start again from where the robot is, like a restarted agent.
+                if joined and tick.step > k + REJOIN_GAP and tick.executed(me) is None:
+                    # Hung for a while, and the clock does not say what the robot did
+                    # (camera tracker): start again from where the robot is, like a
+                    # restarted agent.  The simulated robot side says (below).
                     joined = False
                     x_est = None
                 if joined and not tick.stop:
                     log(role, f"fell behind the clock: step {k} → {tick.step}")
                 k = tick.step
             inbox.release(k)
+            for j, done in (*tick.fallback.items(), *tick.braked.items()):
+                if j in withdrawn:  # the plans of steps done + 1 … k − 1 were never executed
+                    gone = withdrawn[j]
+                    gone.update(range(max(done + 1, k - WITHDRAWN_KEPT), k))
+                    gone.difference_update([s for s in gone if s < k - WITHDRAWN_KEPT])
             executed = tick.executed(me)
             if joined and executed is not None:
                 # The robot side did not apply the command of step k − 1.  It followed
                 # the shifted candidate of its last applied command (or braked): do
                 # the same (docs/runtime-notes.md, "Missed deadlines").
-                unapplied = len(ran)
-                coasted = k - 1 - synced - unapplied
+                # Controller steps after the last applied command were not applied; the
+                # steps between the last one known to match and now that it never took
+                # (it fell behind the clock) were followed on the candidate too.
+                unapplied = sum(1 for s in ran if s > executed)
+                coasted = k - 1 - max(synced, executed) - unapplied
                 if me in tick.braked or not ctrl.rewind(unapplied, coasted):
                     if behind != "braked":  # logged once a braking episode
                         log(role, f"step {k}: robot braked after step {executed}; starting again where it is")
-                    behind, joined = "braked", False
+                    behind, joined, x_est = "braked", False, None
                 else:
                     if not behind:
                         log(role, f"step {k}: commands after step {executed} not applied; on its candidate")
                     behind = behind or "candidate"
             elif executed is None:
-                behind = ""
+                behind, rejoined = "", False
             synced, ran = k - 1, []
             if tick.stop:
                 break
@@ -191,10 +206,9 @@ def main(argv: list[str] | None = None) -> int:
                 # Plans of step k − 1, and of no later step than each robot side executed
                 # (Tick.fallback, Tick.braked): a plan whose command missed its deadline
                 # was never executed, and its robot keeps to the plan before.
-                upto = {j: _executed_upto(tick, j, k - 1) for j in others}
-                fresh = {j: inbox.get(Plan, j, k - 1) if upto[j] == k - 1 else None for j in others}
+                fresh = {j: inbox.get(Plan, j, k - 1) if k - 1 not in withdrawn[j] else None for j in others}
                 for j in others:  # the newest plan of step ≤ k − 1: what arrived later must not count
-                    pl = inbox.newest(Plan, j, upto[j])
+                    pl = inbox.newest(Plan, j, k - 1, withdrawn[j])
                     if pl is not None and (last.get(j) is None or last[j].step < pl.step):  # type: ignore[union-attr]
                         last[j] = pl
                 live = set(inbox.live)
@@ -209,8 +223,9 @@ def main(argv: list[str] | None = None) -> int:
                 if not joined and k > 0:
                     # (Re)joining a running fleet: start at rest where the robot is.
                     ctrl.reset(x[[0, 2]])
-                    if behind != "braked":  # a braked robot's agent said so already
+                    if not rejoined:  # once a braking episode: it starts again at each of its steps
                         log(role, f"joined at step {k} at ({x[0]:.3f}, {x[2]:.3f})")
+                    rejoined = behind == "braked"
                 joined = True
             elif x_est is not None:
                 blind += 1
@@ -230,7 +245,7 @@ def main(argv: list[str] | None = None) -> int:
                 elif not np.array_equal(goal.goal, ctrl.goal):
                     ctrl.set_goal(goal.goal)
                     log(role, f"new goal {goal.goal.round(3).tolist()} at step {k}")
-            nbs, hazards = guard.classify(k, others, fresh, last, live, starts)
+            nbs, hazards = guard.classify(k, others, fresh, last, live, starts, set(tick.braked))
             out = ctrl.hold(x) if blind > args.blind_steps else ctrl.step(x, nbs, hazards)
             ran.append(k)
             x_est, a_prev = x, out.a
@@ -239,8 +254,8 @@ def main(argv: list[str] | None = None) -> int:
             # plan only at the next step, which cannot start before the robots move.
             pub_cmd.put(
                 Command(
-                    robot=me, step=k, ax=float(out.a[0]), ay=float(out.a[1]), fallback=True,
-                    x_next=out.x_next, v_next=out.v_next,
+                    robot=me, step=k, ax=float(out.a[0]), ay=float(out.a[1]),
+                    fallback=blind <= args.blind_steps, x_next=out.x_next, v_next=out.v_next,
                 ).encode()
             )  # fmt: skip
             pub_plan.put(
@@ -344,10 +359,11 @@ class Guard:
 
     def classify(
         self, k: int, others: list[str], fresh: dict[str, Plan | None], last: dict[str, Plan | None],
-        live: set[str], starts: dict[str, NeighbourInfo],
+        live: set[str], starts: dict[str, NeighbourInfo], braked: frozenset[str] | set[str] = frozenset(),
     ) -> tuple[list[NeighbourInfo], list[Hazard]]:  # fmt: skip
         """(neighbours, hazards) for step k from the plans of step k − 1 (``fresh``),
-        the latest plans (``last``) and the live set."""
+        the latest plans (``last``), the live set and the robots their robot side braked
+        over step k − 1 (Tick.braked): those have left their plans as a dead robot's has."""
         nbs: list[NeighbourInfo] = []
         hazards: list[Hazard] = []
         for j in others:
@@ -355,7 +371,7 @@ class Guard:
             if k == 0:
                 nbs.append(starts[j])
                 continue
-            if pl is not None and j in live:
+            if pl is not None and j in live and j not in braked:
                 nbs.append(_neighbour(pl))
                 self._note(j, "neighbour", k)
                 continue
@@ -365,14 +381,14 @@ class Guard:
                 else (old.committed[-1], old.step, old.footprint)
             )  # fmt: skip
             m = max(k - 1 - since, 0)
-            if j in live:
+            if j in live and j not in braked:
                 radius = r_j + (m + 1) * self.eps
                 info = _neighbour(old) if old is not None else starts[j]
                 self._note(j, "stale", k)
             else:
                 radius = r_j + max(self.N, m + 1) * self.eps + self.brake
                 info = None
-                self._note(j, "dead", k)
+                self._note(j, "dead" if j not in live else "braked", k)
             hazards.append(Hazard(j, np.array(centre, dtype=float), radius, info))
         self.hazard_steps += len(hazards)
         return nbs, hazards
@@ -380,7 +396,7 @@ class Guard:
     def _note(self, j: str, state: str, k: int) -> None:
         before = self._state.get(j, "neighbour")
         self._state[j] = state
-        if state == before or (state == "stale" and before == "dead"):
+        if state == before or (state == "stale" and before in ("dead", "braked")):
             return
         self.transitions += 1
         if (j, state, before) in self._logged:
@@ -390,6 +406,7 @@ class Guard:
             "neighbour": "coordinating again",
             "stale": "its plan is late or lost; kept clear of as a growing static disc",
             "dead": "not alive; kept clear of as a static obstacle while its robot stops",
+            "braked": "braked by its robot side; kept clear of as a static obstacle while it stops",
         }[state]
         log(f"agent {self.me}", f"step {k}: {j}: {what}")
 
@@ -419,12 +436,6 @@ def _wait_matching(pub: Any, timeout: float) -> bool:
         return bool(pub.matching_status) or matched.wait(timeout)
     finally:
         listener.undeclare()
-
-
-def _executed_upto(tick: Tick, robot: str, step: int) -> int:
-    """The newest step ≤ ``step`` whose plan ``robot``'s robot side executed, by ``tick``."""
-    got = tick.executed(robot)
-    return step if got is None else min(step, got)
 
 
 def _measured(inbox: Inbox, me: str, k: int) -> bool:

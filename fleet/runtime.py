@@ -14,7 +14,7 @@ import os
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Container
 from typing import Any, NoReturn, TypeVar
 
 from fleet.faults import DELIVER, FaultPlan, FaultPlanError
@@ -353,15 +353,17 @@ class Inbox:
             for gone in self.missing.values():
                 gone.difference_update([s for s in gone if s < before])
 
-    def newest(self, typ: type[M], robot: str, at_most: int) -> M | None:
-        """The newest kept message of ``robot`` whose step is ≤ ``at_most`` (lock held):
-        unlike ``get(typ, robot)``, it does not depend on what arrived since."""
+    def newest(self, typ: type[M], robot: str, at_most: int, skip: Container[int] = ()) -> M | None:
+        """The newest kept message of ``robot`` whose step is ≤ ``at_most`` and not in
+        ``skip`` (lock held): unlike ``get(typ, robot)``, it does not depend on what
+        arrived since."""
         hist = self.history.get((typ.TYPE, robot), {})
-        steps = [s for s in hist if s <= at_most]
+        steps = [s for s in hist if s <= at_most and s not in skip]
         if steps:
             return hist[max(steps)]  # type: ignore[no-any-return]
         msg = self.latest.get((typ.TYPE, robot))
-        return msg if msg is not None and (_step_of(msg) or 0) <= at_most else None
+        step = 0 if msg is None else _step_of(msg) or 0
+        return msg if msg is not None and step <= at_most and step not in skip else None
 
     def get(self, typ: type[M], robot: str, step: int | None = None) -> M | None:
         if step is None:

@@ -33,11 +33,16 @@ class Late:
 
     def __init__(self, frac: float, burst: int, seed: int = 0):
         self.frac, self.burst, self.seed = frac, burst, seed
-        self.count = 0
+        self.missed: list[tuple[str, int]] = []
+
+    @property
+    def count(self) -> int:
+        return len(self.missed)
 
     def __call__(self, rid: str, k: int) -> bool:
         late = k > 2 and zlib.crc32(f"{self.seed}/{rid}/{k // self.burst}".encode()) % 1000 < self.frac * 1000
-        self.count += late
+        if late:
+            self.missed.append((rid, k))
         return late
 
 
@@ -129,6 +134,10 @@ def test_missed_commands_on_the_candidate_keep_every_guarantee(scenario, seed):
         assert max(tr.ref_deviation) <= res.design.rho, tr.id
     assert res.collisions == 0 and res.reference_violations == 0
     assert res.all_reached
+    # What the neighbours see is what was executed: a missed step appended "stay put".
+    for rid, k in late.missed:
+        last = res.traces[rid].committed_last
+        assert np.array_equal(last[k], last[k - 1]), (rid, k)
 
 
 def test_holding_the_last_acceleration_instead_breaks_the_tube():

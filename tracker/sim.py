@@ -279,7 +279,7 @@ def main(argv: list[str] | None = None) -> int:
                 t_start = time.monotonic() - t - args.deadline * p.Ts
             elif realtime:
                 # A command must arrive within the deadline; otherwise the robot side
-                # holds the previous acceleration and the miss is counted.
+                # follows the candidate (RobotSide) and the miss is counted.
                 _until(t_start + t + args.deadline * p.Ts)
                 inbox.drain()
                 late = [r for r in ids if inbox.get(Command, r, k) is None and r in inbox.live]
@@ -372,6 +372,8 @@ def _measure(
 
 
 COMMAND, CANDIDATE, HELD, BRAKED = "command", "candidate", "held", "braked"
+UNEXECUTED_KEPT = 64
+"""Steps back for which RobotSide remembers an unapplied command [steps]."""
 
 
 class RobotSide:
@@ -394,6 +396,8 @@ class RobotSide:
         """Steps without a command of this or the previous step [steps]."""
         self.last_a = np.zeros(2)
         """The acceleration applied over the last step (2,) [m/s²], world frame."""
+        self.unexecuted: set[int] = set()
+        """Recent steps whose command was not applied: their plans were never executed."""
 
     @property
     def applied_step(self) -> int:
@@ -413,6 +417,9 @@ class RobotSide:
         is alive and one step behind (a hung agent sends nothing)."""
         heard = cmd is not None or (newest is not None and newest.step >= k - 1)
         self.quiet = 0 if heard else self.quiet + 1
+        if cmd is None and self.drives:
+            self.unexecuted.add(k)
+            self.unexecuted.difference_update([s for s in self.unexecuted if s < k - UNEXECUTED_KEPT])
         if not alive or self.quiet * self.design.params.Ts > self.watchdog:
             self.brake()
             return (
@@ -444,13 +451,13 @@ def _relayed_plans(
     inbox: Inbox, ids: list[str], step: int, horizon: int, sides: dict[str, RobotSide]
 ) -> list[Plan]:
     """What the digest of ``step`` relays (``--exchange relay``): each robot's newest
-    plan of a step ≤ ``step`` whose command was applied (a plan whose command missed
-    its deadline was never executed: the robot followed the plan before), as it came
+    plan of a step ≤ ``step`` whose command was not left unapplied (a plan whose command
+    missed its deadline was never executed: the robot followed the plan before), as it came
     on its robot's own key (the subscription checks the id against the key), with the
     design's horizon.  One that missed the digest of its step is in the next: late,
     as on its own key."""
     with inbox.cond:
-        plans = [inbox.newest(Plan, r, min(step, sides[r].applied_step)) for r in ids]
+        plans = [inbox.newest(Plan, r, step, sides[r].unexecuted) for r in ids]
     return [pl for pl in plans if pl is not None and pl.committed.shape[0] == horizon]
 
 
