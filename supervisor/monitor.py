@@ -66,13 +66,16 @@ class Monitor:
                 "solve_ms": [],
                 "candidate": 0,
                 "braked": 0,
+                "breaks": 0,
             }
             for r in self.ids
         }
         self.skipped_steps = 0
         """Steps whose ground truth was lost on the way, not judged."""
         self.last_plans: dict[str, Plan] = {}
-        """The latest plan of each robot seen so far."""
+        """The latest executed plan of each robot seen so far."""
+        self.unexecuted: dict[str, set[int]] = {r: set() for r in self.ids}
+        """Per robot, recent steps whose plan the ticks reported not executed."""
         self.pose_error: dict[str, list[float]] = {r: [0.0, 0.0] for r in self.ids}
         """Largest camera error per robot: [per-axis position [m], heading [rad]]."""
         self.steps = 0
@@ -117,6 +120,22 @@ class Monitor:
         fresh = set(plans)
         made = plans
         executed = {r: pl for r, pl in plans.items() if r not in unexecuted}
+        k = self.steps
+        for r in unexecuted:
+            if r in self.unexecuted:
+                self.unexecuted[r].add(k)
+                self.unexecuted[r].difference_update([s for s in self.unexecuted[r] if s < k - 64])
+        for r, pl in executed.items():
+            prev = self.last_plans.get(r)
+            # Checked when every step between was reported unexecuted by the ticks (a plan
+            # lost on its way here would look like a break).
+            if (
+                prev is not None
+                and pl.step > prev.step
+                and all(s in self.unexecuted[r] for s in range(prev.step + 1, pl.step))
+                and not continues(prev, pl)
+            ):
+                self.robot[r]["breaks"] += 1
         plans = {**self.last_plans, **executed}
         self.last_plans = plans
         for i, a in enumerate(self.ids):
@@ -183,6 +202,7 @@ class Monitor:
                 "tube_exits": st["tube_exits"],
                 "steps_on_candidate": st["candidate"],
                 "steps_braked": st["braked"],
+                "reference_breaks": st["breaks"],
                 "status_counts": st["status"],
                 "max_pose_error": {"position_m": self.pose_error[r][0], "heading_rad": self.pose_error[r][1]},
                 "solve_time_ms": {
@@ -211,6 +231,24 @@ class Monitor:
             "unjudged_steps": self.skipped_steps,
             "robots": robots,
         }
+
+
+def continues(prev: Plan, plan: Plan) -> bool:
+    """``plan`` keeps what ``prev`` committed (DESIGN §4: a committed reference is never
+    changed, only extended): with d = plan.step − prev.step ≥ 1, its references for
+    the times prev had committed are prev's, exactly; "stay put" (prev's end point) fills
+    the d − 1 steps between whose plans were not executed; only the last point is new.
+    A robot whose agent started again from where it is (restarted, or its robot braked)
+    breaks this, and so would an agent and a robot side that disagree on what was
+    executed."""
+    d = plan.step - prev.step
+    n = prev.committed.shape[0]
+    if plan.committed.shape[0] != n or d < 1:
+        return False
+    kept = max(n - d, 0)
+    if not np.array_equal(plan.committed[:kept], prev.committed[d : d + kept]):
+        return False
+    return bool(np.all(plan.committed[kept : n - 1] == prev.committed[-1]))
 
 
 def _run_wall_time(inbox: Inbox, fallback: float) -> float:

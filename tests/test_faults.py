@@ -217,7 +217,8 @@ def _fleet(*args: str, timeout: float = 400) -> subprocess.CompletedProcess[str]
 
 def _safe_faulty_run(tmp_path: Path, plan: dict, exchange: str) -> tuple[dict, str]:
     """``fleet run paper_three_robots`` with the fault plan ``plan``: it succeeds with no
-    collision, every goal reached and no reference closer than required.  (summary, stderr)."""
+    collision, every goal reached, no reference closer than required and no committed
+    reference changed.  (summary, stderr)."""
     faults = tmp_path / "faults.json"
     faults.write_text(json.dumps(plan))
     out = tmp_path / "run"
@@ -229,6 +230,8 @@ def _safe_faulty_run(tmp_path: Path, plan: dict, exchange: str) -> tuple[dict, s
     s = json.loads((out / "summary.json").read_text())
     assert s["collisions"] == 0 and s["all_goals_reached"]
     assert s["min_reference_separation_m"] >= s["required_reference_separation_m"] - 1e-9
+    # No committed reference was ever changed, only extended (supervisor.monitor.continues).
+    assert all(r["reference_breaks"] == 0 for r in s["robots"].values()), s["robots"]
     return s, res.stderr
 
 

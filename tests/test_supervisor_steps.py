@@ -111,3 +111,41 @@ def test_a_plan_whose_command_was_not_applied_is_not_what_is_checked() -> None:
         mon.plans({"r1": plan("r1", 1, (0.0, 0.0)), "r2": plan("r2", 1, (0.05, 0.0))}, unexecuted)
         assert mon.ref_violations == violations
         assert mon.robot["r2"]["solves"] == 2
+
+
+def test_a_committed_reference_is_only_ever_extended() -> None:
+    """``continues``: the next executed plan keeps every reference point its predecessor
+    committed, with "stay put" over steps that were not executed; ``Monitor`` counts a break
+    (a restart, or an agent and a robot side that disagree on what was executed), but only
+    where the ticks account for every step in between (a plan lost on its way is no break)."""
+    from pathlib import Path
+
+    from fleet.scenario import load_scenario
+    from supervisor.monitor import Monitor, continues
+
+    def plan(step: int, committed: np.ndarray) -> Plan:
+        return Plan(**{**_plan("r1", step).__dict__, "committed": committed})
+
+    path = np.cumsum(np.full((40, 2), 0.01), axis=0)
+    p0 = plan(0, path[1:21])
+    p1 = plan(1, path[2:22])
+    assert continues(p0, p1)
+    stay = np.vstack([path[3:21], path[20], [0.5, 0.5]])  # step 1 not executed: "stay put" at 20
+    assert continues(p0, plan(2, stay))
+    moved = path[2:22].copy()
+    moved[5] += 1e-9  # an earlier commitment changed
+    assert not continues(p0, plan(1, moved))
+    assert not continues(p0, plan(1, np.tile(path[0], (20, 1))))  # started again where it is
+
+    scn = load_scenario(Path(__file__).resolve().parent.parent / "scenarios" / "paper_two_robots.toml")
+    mon = Monitor(scn, 0.1, 0.03, 0.035)
+    other = {"r2": plan(0, np.tile([0.9, 0.9], (20, 1)))}
+    mon.plans({"r1": p0, **other})
+    mon.plans({"r1": plan(1, path[2:22]), **other}, {"r1"})  # made, not executed
+    mon.plans({"r1": plan(2, stay), **other})
+    assert mon.robot["r1"]["breaks"] == 0
+    mon.plans({"r1": plan(3, np.tile(path[0], (20, 1))), **other})  # a restart
+    assert mon.robot["r1"]["breaks"] == 1
+    mon.plans({**other})  # r1's plan of step 4 lost on the way: step 5 is not checked against 3
+    mon.plans({"r1": plan(5, path[6:26]), **other})
+    assert mon.robot["r1"]["breaks"] == 1
