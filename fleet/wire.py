@@ -391,8 +391,9 @@ class Tick(Message):
     fallback: dict[str, int] = field(default_factory=dict)
     """Robots whose command of step ``step − 1`` the robot side did not apply, and
     followed instead the shifted candidate of its last applied command: robot id →
-    the step of that command.  At most 64 robots; empty in lockstep and from the
-    camera tracker (whose robot sides have no deadline)."""
+    the step of that command.  At most 64 robots; in lockstep only for commands lost or
+    not sent within the timeout; always empty from the camera tracker (whose robot sides,
+    the ``epuck_link`` processes, have no deadline)."""
     braked: dict[str, int] = field(default_factory=dict)
     """Robots that the robot side braked over step ``step − 1`` instead (dead or silent
     agent, or nothing left to follow): robot id → the step of its last applied
