@@ -173,6 +173,8 @@ class TubeMPC:
         self.counters = Counters()
         self._history: list[tuple[Array, Array, Array]] = []
         """States (ξ, ỹ, x̃) before each of the last SNAPSHOTS steps, oldest first."""
+        self._candidate: tuple[tuple[Array, Array, Array], Array] | None = None
+        """The candidate of the state (ξ, ỹ, x̃) it was made for (:meth:`candidate`)."""
         self.reached_once = False
         self.k = 0
         self.reset(np.asarray(start, dtype=float))
@@ -229,7 +231,15 @@ class TubeMPC:
         )
 
     def candidate(self) -> Array:
-        """Shifted previous solution with ȳ = ỹ_{t+N−1} (stay put)."""
+        """Shifted previous solution with ȳ = ỹ_{t+N−1} (stay put), (n,), a fresh array.
+
+        Made once per state: a step makes it for the robot side (StepOutput.x_next) and
+        the next step takes it again as its warm start and fallback.  The state arrays are
+        replaced, never changed in place, so their identity tells whether it is current."""
+        state = (self.xi, self.y_ref, self.x_ref)
+        made = self._candidate
+        if made is not None and all(a is b for a, b in zip(made[0], state, strict=True)):
+            return made[1].copy()
         qp, E, K_r = self.qp, self.design.E, self.design.K_r
         prev = self.xi
         c = np.empty(qp.n)
@@ -238,7 +248,8 @@ class TubeMPC:
         u_stay = -K_r @ (self.x_ref[-1] - E @ self.y_ref[-1])
         c[qp.iv] = np.vstack([v[1:], u_stay]).ravel()
         c[qp.iy] = self.y_ref[-1]
-        return c
+        self._candidate = (state, c)
+        return c.copy()
 
     # ---------------------------------------------------------------- step
     def step(
