@@ -27,6 +27,7 @@ from typing import Any
 from agent.params import PRESETS, preset
 from agent.sets import SetComputationError
 from agent.tube import synthesize
+from fleet.runtime import lease_arg
 from fleet.scenario import ConfigError, check_geometry, load_scenario
 
 DEFAULT_ARENA = (-1.0, 1.0, -1.0, 1.0)
@@ -165,6 +166,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         str(Path(args.scenario).resolve()), [r.id for r in scn.robots], out.resolve(), args.seed,
         viewer=args.viewer, clock=clock, hub=args.listen, links=links, faults=args.faults,
         exchange=args.exchange,
+        lease=args.lease,
     )  # fmt: skip
     if summary is not None:
         print(
@@ -319,6 +321,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--exchange", choices=["mesh", "relay"], default="mesh",
         help="how plans travel: mesh (agent to agent, default) or relay (one digest a step from the "
         "tracker: one message per agent instead of n - 1, for large fleets)",
+    )  # fmt: skip
+    r.add_argument(
+        "--lease", metavar="SECONDS", type=lease_arg,
+        help="Zenoh transport lease of every process [s] (default 10): how soon neighbours see a hung "
+        "agent as not alive; at 1 s the keep-alives of a 16-robot fleet take a third of a core "
+        "(docs/design.md §8)",
     )  # fmt: skip
     r.set_defaults(func=cmd_run)
     g = sub.add_parser("goal", help="give a running agent a new goal and wait until it takes it")

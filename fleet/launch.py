@@ -110,6 +110,7 @@ def run_fleet(
     links: dict[str, str] | None = None,
     faults: str | None = None,
     exchange: str = "mesh",
+    lease: float | None = None,
 ) -> tuple[int, str, dict[str, Any] | None]:
     """Run the fleet; returns (exit code, one-line verdict, summary or None).
 
@@ -117,6 +118,7 @@ def run_fleet(
     ``faults`` is a fault plan (:mod:`fleet.faults`) handed to every process.
     ``exchange`` is how plans travel: ``mesh`` (agent to agent) or ``relay``
     (the tracker's digest, docs/runtime-notes.md).
+    ``lease`` is every process's Zenoh transport lease [s] (default 10 s).
     ``links`` maps robot id → link; robots on ``"emulator"`` get an e-puck
     firmware emulator process (advanced sercom on a pseudo-terminal) and an
     ``epuck_link`` process driving it, and the tracker observes the emulators
@@ -136,6 +138,7 @@ def run_fleet(
         "--exchange",
         exchange,
         *(["--faults", faults] if faults else []),
+        *(["--lease", repr(lease)] if lease is not None else []),
     ]
     seed_args = [] if seed is None else ["--seed", str(seed)]
     procs: list[Proc] = []

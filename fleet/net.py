@@ -25,6 +25,22 @@ def free_port(host: str = LOOPBACK) -> int:
         return int(s.getsockname()[1])
 
 
+LEASE_RANGE = (0.5, 60.0)
+"""Accepted Zenoh leases [s]: below 0.5 s a loaded 2-core machine drops live peers."""
+
+
+def lease_seconds(text: str) -> float:
+    """``--lease`` as a float in :data:`LEASE_RANGE` [s]; ValueError names the reason."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"expected seconds, got {text!r}") from None
+    lo, hi = LEASE_RANGE
+    if not lo <= value <= hi:  # also rejects NaN
+        raise ValueError(f"{text} s is outside [{lo:g}, {hi:g}] s")
+    return value
+
+
 def loopback(port: int) -> str:
     """The Zenoh endpoint ``tcp/127.0.0.1:<port>``."""
     return f"tcp/{LOOPBACK}:{port}"
@@ -37,6 +53,10 @@ class NetConfig:
     listen: list[str] = field(default_factory=lambda: [loopback(0)])
     connect: list[str] = field(default_factory=list)
     mode: str = "peer"
+    lease: float = 10.0
+    """Zenoh transport lease [s]: a peer silent this long (a hung process, a cut link)
+    is dropped, and its liveliness tokens with it.  Keep-alives go out every lease/4
+    on every link, so a short lease costs CPU in a full mesh (docs/design.md §8)."""
 
     def zenoh(self) -> Any:
         """A ``zenoh.Config`` for this process (imports zenoh lazily)."""
@@ -47,13 +67,5 @@ class NetConfig:
         conf.insert_json5("listen/endpoints", json.dumps(self.listen))
         conf.insert_json5("connect/endpoints", json.dumps(self.connect))
         conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("transport/link/tx/lease", str(round(self.lease * 1000)))
         return conf
-
-    def args(self) -> list[str]:
-        """Command-line arguments that reproduce this configuration in a child process."""
-        out: list[str] = []
-        for e in self.listen:
-            out += ["--listen", e]
-        for e in self.connect:
-            out += ["--connect", e]
-        return out

@@ -18,7 +18,7 @@ from collections.abc import Callable, Container
 from typing import Any, NoReturn, TypeVar
 
 from fleet.faults import DELIVER, FaultPlan, FaultPlanError
-from fleet.net import NetConfig, loopback
+from fleet.net import NetConfig, lease_seconds, loopback
 from fleet.wire import Digest, Keys, Message, Plan, RejectCounter, WireError, decode
 
 M = TypeVar("M", bound=Message)
@@ -28,6 +28,14 @@ DRAIN_CAPACITY = 4096
 """Samples a drained subscription queues between two drains (Zenoh blocks the sender beyond)."""
 DRAIN_POLL = 0.001
 """How often :meth:`Inbox.drain_until` looks for a sample not yet in [s]."""
+
+
+def lease_arg(text: str) -> float:
+    """argparse type of ``--lease``: seconds in :data:`fleet.net.LEASE_RANGE`."""
+    try:
+        return lease_seconds(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def add_common_args(ap: argparse.ArgumentParser) -> None:
@@ -42,6 +50,11 @@ def add_common_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument(
         "--zenoh-config", default=None, metavar="FILE",
         help="Zenoh JSON5 configuration (secure deployment, deploy/README.md); replaces --listen/--connect",
+    )  # fmt: skip
+    ap.add_argument(
+        "--lease", type=lease_arg, default=NetConfig.lease, metavar="SECONDS",
+        help="Zenoh transport lease [s] (default %(default)g): how soon a hung or cut-off peer is "
+        "dropped and its liveliness token goes; 1 s costs keep-alive CPU (docs/design.md §8)",
     )  # fmt: skip
     ap.add_argument("--timeout", type=float, default=30.0, help="lockstep wait limit [s]")
     ap.add_argument(
@@ -73,7 +86,7 @@ def _step_of(msg: Any) -> int | None:
 
 
 def net_config(args: argparse.Namespace) -> NetConfig:
-    return NetConfig(listen=args.listen or [loopback(0)], connect=list(args.connect))
+    return NetConfig(listen=args.listen or [loopback(0)], connect=list(args.connect), lease=args.lease)
 
 
 def open_session(args: argparse.Namespace) -> Any:

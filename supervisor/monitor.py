@@ -372,6 +372,7 @@ def main(argv: list[str] | None = None) -> int:
     ids = mon.ids
     k_truth = k_plan = k_tick = 0
     live_seen: set[str] = set()
+    ever_live: set[str] = set()
     off_plan: set[str] = set()
     """Robots whose robot side did not apply the last command (to log each episode once)."""
     stop_deadline = 0.0
@@ -434,11 +435,17 @@ def main(argv: list[str] | None = None) -> int:
             if truths or plan_steps:
                 stop_deadline = 0.0  # still making progress: the grace period restarts
             with inbox.cond:
-                for rid in sorted(inbox.live.symmetric_difference(live_seen)):
-                    recorder.event(f"{rid} {'joined' if rid in inbox.live else 'left'} the fleet")
-                live_seen = set(inbox.live)
-                inbox.prune(min(k_truth, k_plan) - 1)
                 tick = inbox.get(Tick, "tracker")
+                for rid in sorted(inbox.live.symmetric_difference(live_seen)):
+                    alive = rid in inbox.live
+                    recorder.event(
+                        f"{rid} {'joined' if alive else 'left'} the fleet", "INFO" if alive else "WARN"
+                    )
+                    if rid in ever_live and (tick is None or not tick.stop):  # not the start, nor the end
+                        log(role, f"step {k_truth}: {rid} " + ("is alive again" if alive else "is not alive"))
+                live_seen = set(inbox.live)
+                ever_live |= live_seen
+                inbox.prune(min(k_truth, k_plan) - 1)
             if stopping["signal"]:
                 break
             if tick is not None and tick.stop:

@@ -406,3 +406,20 @@ def test_bad_input_template_is_valid(tmp_path):
     assert s["scenario"] == "cli_test"
     assert s["collisions"] == 0
     assert all(r["reached_goal"] for r in s["robots"].values())
+
+
+@pytest.mark.parametrize("value", ["0.1", "nan", "inf", "abc", "61"])
+def test_bad_lease_is_refused_naming_the_option(tmp_path, value):
+    proc = fleet("run", SCENARIOS / "paper_two_robots.toml", "--out", tmp_path, "--lease", value)
+    no_traceback(proc)
+    assert proc.returncode == 2, proc.stderr
+    last = proc.stderr.strip().splitlines()[-1]  # argparse's usage, then one error line
+    assert last.startswith("fleet run: error: argument --lease: "), proc.stderr
+    assert not (tmp_path / "summary.json").exists()
+
+
+def test_lease_reaches_the_zenoh_configuration():
+    from fleet.net import NetConfig
+
+    assert json.loads(NetConfig(lease=1.0).zenoh().get_json("transport/link/tx/lease")) == 1000
+    assert json.loads(NetConfig().zenoh().get_json("transport/link/tx/lease")) == 10000

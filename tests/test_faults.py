@@ -317,9 +317,20 @@ def test_commands_lost_before_the_robot_side_are_followed_on_the_candidate(tmp_p
 
 
 def _launch(
-    scenario: Path, out: Path, hub: str, clock: str
+    scenario: Path, out: Path, hub: str, clock: str, extra: list[str] | None = None
 ) -> tuple[subprocess.Popen[str], queue.Queue[str]]:
-    cmd = [sys.executable, "-m", "fleet.cli", "run", str(scenario), "--out", str(out), "--listen", hub]
+    cmd = [
+        sys.executable,
+        "-m",
+        "fleet.cli",
+        "run",
+        str(scenario),
+        "--out",
+        str(out),
+        "--listen",
+        hub,
+        *(extra or []),
+    ]
     launcher = subprocess.Popen(
         [*cmd, "--clock", clock],
         cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
@@ -402,12 +413,19 @@ def test_killed_agent_is_braked_avoided_and_rejoins_when_restarted(tmp_path):
         assert restarted.returncode == 0
 
 
-def test_hung_agent_is_braked_and_resumes(tmp_path):
-    """SIGSTOP r2 for 3 s (realtime): the tracker's watchdog brakes its robot after 0.5 s,
+@pytest.mark.parametrize("lease", [None, 1.0])
+def test_hung_agent_is_braked_and_resumes(tmp_path, lease):
+    """SIGSTOP r2 for about 5 s (realtime): the tracker's watchdog brakes its robot after 0.5 s,
     r1 and r3 keep clear of its growing disc, and after SIGCONT r2 re-initialises where its
-    robot stands and everyone gets home with no collision."""
+    robot stands and everyone gets home with no collision.
+
+    With ``--lease 1`` the neighbours and the supervisor also see r2 as not alive within
+    about a second (Zenoh drops its silent session), and after SIGCONT its session comes
+    back by itself: a rejoin without a restart.  With the default 10 s lease, a 5 s stop
+    never makes it "not alive" (the control)."""
     hub = loopback(free_port())
-    launcher, lines = _launch(SCENARIOS / "paper_three_robots.toml", tmp_path, hub, "realtime")
+    extra = [] if lease is None else ["--lease", str(lease)]
+    launcher, lines = _launch(SCENARIOS / "paper_three_robots.toml", tmp_path, hub, "realtime", extra)
     log: list[str] = []
     try:
         _until(lines, "[tracker] step 50", log)
@@ -416,6 +434,7 @@ def test_hung_agent_is_braked_and_resumes(tmp_path):
         try:
             _until(lines, "r2: no command for 0.5 s; braking", log, timeout=20)
             _until(lines, "[tracker] step 100", log, timeout=20)
+            stopped = len(log)  # lines logged while r2 was stopped
         finally:
             os.kill(victim, signal.SIGCONT)
         launcher.wait(timeout=300)
@@ -432,3 +451,17 @@ def test_hung_agent_is_braked_and_resumes(tmp_path):
     assert s["min_reference_separation_m"] >= s["required_reference_separation_m"] - 1e-9
     assert "r2: its plan is late or lost; kept clear of as a growing static disc" in err
     assert "[agent r2] joined at step" in err
+    gone = re.compile(r"\[agent r1\] step (\d+): r2: not alive;")
+    during = "".join(log[:stopped])
+    if lease is None:
+        assert not gone.search(during) and "r2 is not alive" not in during, during[-3000:]
+        return
+    # The lease: r1 sees r2 go within 1 s (+ keep-alive period and load) of its last command.
+    hit = gone.search(during)
+    assert hit, during[-3000:]
+    last_cmd = int(re.search(r"\[tracker\] step (\d+): deadline missed by r2", during).group(1))  # type: ignore[union-attr]
+    assert int(hit.group(1)) - last_cmd <= 25, during[-3000:]
+    assert re.search(r"\[supervisor\] step \d+: r2 is not alive", during), during[-3000:]
+    # Back without a restart: the same process, coordinating again.
+    assert "r2: commands again" in err and "[agent r1] step" in err and "r2: coordinating again" in err
+    assert re.search(r"\[supervisor\] step \d+: r2 is alive again", err), err[-3000:]
