@@ -192,8 +192,9 @@ def main(argv: list[str] | None = None) -> int:
             # not by a drain at the start of the step: a plan a little late is then
             # still used, where that drain would count it stale, and under load the
             # growing discs kept robots from their goals (a 3-robot realtime run
-            # across hosts, 60 s).  In realtime relay, own pose, odometry and the
-            # digest come before the tick on one link and are drained (_Link).
+            # across hosts, 60 s).  In realtime relay, own pose and odometry come just
+            # before the tick on one link and are drained, and the digest came by
+            # callback in the second half of the last step (_Link).
             limit = args.timeout if lockstep else 0.3 * p.Ts
             wait = inbox.drain_until if link.drained else inbox.wait
             wait(partial(_measured, inbox, me, k), limit)
@@ -294,17 +295,20 @@ class _Link:
         self.session = open_session(args)
         self.inbox = inbox = Inbox(keys, self.role, fault_plan(args))
         # Realtime with relayed plans: the tracker sends this robot's pose and
-        # odometry and the digest just before the tick, batched on one link, so
-        # they are in when the tick is.  They are then taken from Zenoh's queues
-        # after the tick (Inbox.drain) instead of by a callback each: three
-        # wake-ups and GIL hand-overs a step fewer.
+        # odometry just before the tick, batched on one link, so they are in when
+        # the tick is.  They are then taken from Zenoh's queues after the tick
+        # (Inbox.drain) instead of by a callback each: two wake-ups and GIL
+        # hand-overs a step fewer in the race to the deadline.  The digest of
+        # step k − 1 comes half a step before tick k, once the tracker has the
+        # commands of k − 1, and is decoded by callback then, while the cores
+        # are idle (docs/runtime-notes.md, "Relayed plans").
         drained = self.drained = args.clock == "realtime" and args.exchange == "relay"
         self.subs = [
             inbox.subscribe(self.session, keys.pose(me), Pose, keep=True, drained=drained),
             inbox.subscribe(self.session, keys.odom(me), Odom, keep=True, drained=drained),
             # The neighbours' plans: each on its own key (mesh), or a step's plans
             # at once in the tracker's digest (relay: one message a step).
-            inbox.subscribe(self.session, keys.digest, Digest, keep=True, drained=drained)
+            inbox.subscribe(self.session, keys.digest, Digest, keep=True)
             if args.exchange == "relay"
             else inbox.subscribe(self.session, keys.plan(), Plan, keep=True, remote=True),
             inbox.subscribe(self.session, keys.goal(me), Goal),

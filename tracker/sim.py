@@ -232,6 +232,11 @@ def main(argv: list[str] | None = None) -> int:
                 if relay and k > 0:
                     relayed = _relayed_plans(inbox, ids, k - 1, p.horizon, sides)
                     digest = Digest.of(role, k - 1, p.Ts, p.horizon, relayed).encode()
+                    if realtime:
+                        # Out now, in the second half of the step, when the commands are in
+                        # and the cores idle: the agents decode it before the tick, not in
+                        # the race to the next deadline (docs/runtime-notes.md).
+                        relay.put(digest)
             if realtime:
                 _until(t_start + t)
             inbox.drain()
@@ -261,7 +266,9 @@ def main(argv: list[str] | None = None) -> int:
                 ):  # a plan came since the digest was made (or nothing was made early)
                     relayed = now_relayed
                     digest = Digest.of(role, k - 1, p.Ts, p.horizon, relayed).encode()
-                relay.put(digest)
+                    relay.put(digest)
+                elif not realtime:
+                    relay.put(digest)
             clock.put(
                 Tick(
                     robot=role, step=k, t=t, stop=False, misses=misses, fallback=on_chain, braked=braked_map
