@@ -43,7 +43,7 @@ from fleet.wire import Command, Digest, Goal, Keys, Odom, Plan, Pose, Tick
 REJOIN_GAP = 5
 """Steps missed (0.5 s at Ts = 0.1 s, the link watchdog's time) after which an agent re-initialises."""
 WITHDRAWN_KEPT = 64
-"""Steps back for which a neighbour's unexecuted plans are remembered [steps]."""
+"""Steps back for which a neighbour's unexecuted plans are remembered, at least [steps]."""
 
 
 def _neighbour(plan: Plan) -> NeighbourInfo:
@@ -156,7 +156,8 @@ def main(argv: list[str] | None = None) -> int:
                 if j in withdrawn:  # the plans of steps done + 1 … k − 1 were never executed
                     gone = withdrawn[j]
                     gone.update(range(max(done + 1, k - WITHDRAWN_KEPT), k))
-                    gone.difference_update([s for s in gone if s < k - WITHDRAWN_KEPT])
+                    if len(gone) > 2 * WITHDRAWN_KEPT:  # forget the old ones now and then, not each step
+                        gone.difference_update([s for s in gone if s < k - WITHDRAWN_KEPT])
             executed = tick.executed(me)
             if joined and executed is not None:
                 # The robot side did not apply the command of step k − 1.  It followed
@@ -250,7 +251,6 @@ def main(argv: list[str] | None = None) -> int:
             out = ctrl.hold(x) if blind > args.blind_steps else ctrl.step(x, nbs, hazards)
             ran.append(k)
             x_est, a_prev = x, out.a
-            info = ctrl.info()
             # The command first: the robot side waits on it; the neighbours need the
             # plan only at the next step, which cannot start before the robots move.
             pub_cmd.put(
@@ -259,6 +259,7 @@ def main(argv: list[str] | None = None) -> int:
                     fallback=blind <= args.blind_steps, x_next=out.x_next, v_next=out.v_next,
                 ).encode()
             )  # fmt: skip
+            info = ctrl.info()
             pub_plan.put(
                 Plan(
                     robot=me, step=k, t0=(k + 1) * p.Ts, Ts=p.Ts, committed=out.committed, nominal=out.plan,

@@ -436,13 +436,20 @@ def main(argv: list[str] | None = None) -> int:
                 stop_deadline = 0.0  # still making progress: the grace period restarts
             with inbox.cond:
                 tick = inbox.get(Tick, "tracker")
-                for rid in sorted(inbox.live.symmetric_difference(live_seen)):
+                changed = sorted(inbox.live.symmetric_difference(live_seen))
+                for rid in changed:
                     alive = rid in inbox.live
                     recorder.event(
                         f"{rid} {'joined' if alive else 'left'} the fleet", "INFO" if alive else "WARN"
                     )
-                    if rid in ever_live and (tick is None or not tick.stop):  # not the start, nor the end
-                        log(role, f"step {k_truth}: {rid} " + ("is alive again" if alive else "is not alive"))
+                if tick is None or not tick.stop:  # neither the start nor the end of the run
+                    for alive, what in ((False, "not alive"), (True, "alive again")):
+                        who = [r for r in changed if r in ever_live and (r in inbox.live) == alive]
+                        if who:
+                            log(
+                                role,
+                                f"step {k_truth}: {', '.join(who)} {'is' if len(who) == 1 else 'are'} {what}",
+                            )
                 live_seen = set(inbox.live)
                 ever_live |= live_seen
                 inbox.prune(min(k_truth, k_plan) - 1)
