@@ -55,8 +55,8 @@ class NetConfig:
     mode: str = "peer"
     lease: float = 10.0
     """Zenoh transport lease [s]: a peer silent this long (a hung process, a cut link)
-    is dropped, and its liveliness tokens with it.  Keep-alives go out every lease/4
-    on every link, so a short lease costs CPU in a full mesh (docs/design.md §8)."""
+    is dropped, and its liveliness tokens with it.  Keeping the links of the peer mesh
+    alive costs CPU in proportion to 1/lease (docs/design.md §8)."""
 
     def zenoh(self) -> Any:
         """A ``zenoh.Config`` for this process (imports zenoh lazily)."""

@@ -54,7 +54,7 @@ def add_common_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument(
         "--lease", type=lease_arg, default=NetConfig.lease, metavar="SECONDS",
         help="Zenoh transport lease [s] (default %(default)g): how soon a hung or cut-off peer is "
-        "dropped and its liveliness token goes; 1 s costs keep-alive CPU (docs/design.md §8)",
+        "dropped and its liveliness token goes; a short lease costs CPU (docs/design.md §8)",
     )  # fmt: skip
     ap.add_argument("--timeout", type=float, default=30.0, help="lockstep wait limit [s]")
     ap.add_argument(
