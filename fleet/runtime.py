@@ -52,9 +52,10 @@ def add_common_args(ap: argparse.ArgumentParser) -> None:
         help="Zenoh JSON5 configuration (secure deployment, deploy/README.md); replaces --listen/--connect",
     )  # fmt: skip
     ap.add_argument(
-        "--lease", type=lease_arg, default=NetConfig.lease, metavar="SECONDS",
-        help="Zenoh transport lease [s] (default %(default)g): how soon a hung or cut-off peer is "
-        "dropped and its liveliness token goes; a short lease costs CPU (docs/design.md §8)",
+        "--lease", type=lease_arg, default=None, metavar="SECONDS",
+        help=f"Zenoh transport lease [s] (default {NetConfig.lease:g}, or the --zenoh-config file's): how "
+        "soon a hung or cut-off peer is dropped and its liveliness token goes; a short lease costs "
+        "CPU (docs/design.md §8)",
     )  # fmt: skip
     ap.add_argument("--timeout", type=float, default=30.0, help="lockstep wait limit [s]")
     ap.add_argument(
@@ -86,13 +87,16 @@ def _step_of(msg: Any) -> int | None:
 
 
 def net_config(args: argparse.Namespace) -> NetConfig:
-    return NetConfig(listen=args.listen or [loopback(0)], connect=list(args.connect), lease=args.lease)
+    lease = getattr(args, "lease", None)
+    return NetConfig(
+        listen=args.listen or [loopback(0)], connect=list(args.connect),
+        lease=NetConfig.lease if lease is None else lease,
+    )  # fmt: skip
 
 
-def open_session(args: argparse.Namespace) -> Any:
-    """A Zenoh session: the secure deployment's config file if given, else peer-to-peer on loopback."""
-    import zenoh
-
+def session_config(args: argparse.Namespace) -> Any:
+    """The ``zenoh.Config`` of a process: the secure deployment's config file if given, else
+    peer-to-peer on loopback; ``--lease``, when given, overrides the file's lease too."""
     if getattr(args, "zenoh_config", None):
         from fleet.secure import load_config
 
@@ -101,8 +105,17 @@ def open_session(args: argparse.Namespace) -> Any:
         except ValueError as e:  # SecureConfigError: names the file and the problem
             print(f"error: --zenoh-config: {e}", file=sys.stderr)
             raise SystemExit(2) from None
-        return zenoh.open(conf)
-    return zenoh.open(net_config(args).zenoh())
+        if getattr(args, "lease", None) is not None:
+            conf.insert_json5("transport/link/tx/lease", str(round(args.lease * 1000)))
+        return conf
+    return net_config(args).zenoh()
+
+
+def open_session(args: argparse.Namespace) -> Any:
+    """A Zenoh session (:func:`session_config`)."""
+    import zenoh
+
+    return zenoh.open(session_config(args))
 
 
 def publisher(session: Any, key: str, express: bool = True) -> Any:

@@ -436,23 +436,21 @@ def main(argv: list[str] | None = None) -> int:
                 stop_deadline = 0.0  # still making progress: the grace period restarts
             with inbox.cond:
                 tick = inbox.get(Tick, "tracker")
-                changed = sorted(inbox.live.symmetric_difference(live_seen))
-                for rid in changed:
-                    alive = rid in inbox.live
-                    recorder.event(
-                        f"{rid} {'joined' if alive else 'left'} the fleet", "INFO" if alive else "WARN"
-                    )
-                if tick is None or not tick.stop:  # neither the start nor the end of the run
-                    for alive, what in ((False, "not alive"), (True, "alive again")):
-                        who = [r for r in changed if r in ever_live and (r in inbox.live) == alive]
-                        if who:
-                            log(
-                                role,
-                                f"step {k_truth}: {', '.join(who)} {'is' if len(who) == 1 else 'are'} {what}",
-                            )
-                live_seen = set(inbox.live)
-                ever_live |= live_seen
+                live = set(inbox.live)
                 inbox.prune(min(k_truth, k_plan) - 1)
+            # Who left or came back since the last look: logged outside the lock (above).
+            changed = sorted(live ^ live_seen)
+            for rid in changed:
+                what = "joined" if rid in live else "left"
+                recorder.event(f"{rid} {what} the fleet", "INFO" if rid in live else "WARN")
+            if tick is None or not tick.stop:  # neither the start nor the end of the run
+                for alive, what in ((False, "not alive"), (True, "alive again")):
+                    who = [r for r in changed if r in ever_live and (r in live) == alive]
+                    if who:
+                        verb = "is" if len(who) == 1 else "are"
+                        log(role, f"step {k_truth}: {', '.join(who)} {verb} {what}")
+            live_seen = live
+            ever_live |= live
             if stopping["signal"]:
                 break
             if tick is not None and tick.stop:

@@ -418,8 +418,26 @@ def test_bad_lease_is_refused_naming_the_option(tmp_path, value):
     assert not (tmp_path / "summary.json").exists()
 
 
-def test_lease_reaches_the_zenoh_configuration():
+def test_lease_reaches_the_zenoh_configuration(tmp_path):
+    """``--lease`` [s] becomes Zenoh's transport lease [ms], on loopback and over a
+    ``--zenoh-config`` file (whose own lease stands when --lease is not given)."""
+    import argparse
+
     from fleet.net import NetConfig
+    from fleet.runtime import add_common_args, session_config
 
     assert json.loads(NetConfig(lease=1.0).zenoh().get_json("transport/link/tx/lease")) == 1000
-    assert json.loads(NetConfig().zenoh().get_json("transport/link/tx/lease")) == 10000
+    ap = argparse.ArgumentParser()
+    add_common_args(ap)
+    conf = tmp_path / "peer.json5"
+    conf.write_text('{mode: "peer", transport: {link: {tx: {lease: 3000}}}}\n')
+
+    def lease(*argv: str) -> int:
+        return json.loads(
+            session_config(ap.parse_args(["--scenario", "s", *argv])).get_json("transport/link/tx/lease")
+        )
+
+    assert lease() == 10000
+    assert lease("--lease", "1") == 1000
+    assert lease("--zenoh-config", str(conf)) == 3000
+    assert lease("--zenoh-config", str(conf), "--lease", "2.5") == 2500

@@ -340,7 +340,9 @@ def _launch(
     return launcher, lines
 
 
-def _until(lines: queue.Queue[str], text: str, log: list[str], timeout: float = 150) -> None:
+def _until(
+    lines: queue.Queue[str], text: str | re.Pattern[str], log: list[str], timeout: float = 150
+) -> None:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         try:
@@ -348,7 +350,7 @@ def _until(lines: queue.Queue[str], text: str, log: list[str], timeout: float = 
         except queue.Empty:
             continue
         log.append(line)
-        if text in line:
+        if text.search(line) if isinstance(text, re.Pattern) else text in line:
             return
     raise AssertionError(f"no {text!r} within {timeout} s:\n" + "".join(log[-30:]))
 
@@ -431,10 +433,14 @@ def test_hung_agent_is_braked_and_resumes(tmp_path, lease):
         _until(lines, "[tracker] step 50", log)
         victim = _agent_pid(launcher.pid, "r2")
         os.kill(victim, signal.SIGSTOP)
+        since = len(log)  # the lines logged while r2 is stopped: log[since:stopped]
         try:
-            _until(lines, "r2: no command for 0.5 s; braking", log, timeout=20)
+            # The watchdog (0.6 s) brakes r2 before a 1 s lease could drop it, unless the
+            # tracker itself ran late; either reason stops the robot.
+            why = "no command for 0.5 s" if lease is None else "(no command for 0.5 s|its agent is not alive)"
+            _until(lines, re.compile(rf"r2: {why}; braking"), log, timeout=20)
             _until(lines, "[tracker] step 100", log, timeout=20)
-            stopped = len(log)  # lines logged while r2 was stopped
+            stopped = len(log)
         finally:
             os.kill(victim, signal.SIGCONT)
         launcher.wait(timeout=300)
@@ -452,16 +458,17 @@ def test_hung_agent_is_braked_and_resumes(tmp_path, lease):
     assert "r2: its plan is late or lost; kept clear of as a growing static disc" in err
     assert "[agent r2] joined at step" in err
     gone = re.compile(r"\[agent r1\] step (\d+): r2: not alive;")
-    during = "".join(log[:stopped])
+    during, after = "".join(log[since:stopped]), "".join(log[stopped:])
     if lease is None:
         assert not gone.search(during) and "r2 is not alive" not in during, during[-3000:]
         return
-    # The lease: r1 sees r2 go within 1 s (+ keep-alive period and load) of its last command.
+    # The lease: r1 sees r2 go within 1 s (+ keep-alive period and load) of its first miss.
     hit = gone.search(during)
-    assert hit, during[-3000:]
-    last_cmd = int(re.search(r"\[tracker\] step (\d+): deadline missed by r2", during).group(1))  # type: ignore[union-attr]
-    assert int(hit.group(1)) - last_cmd <= 25, during[-3000:]
+    first_miss = re.search(r"\[tracker\] step (\d+): deadline missed by r2", during)
+    assert hit and first_miss, during[-3000:]
+    assert int(hit.group(1)) - int(first_miss.group(1)) <= 25, during[-3000:]
     assert re.search(r"\[supervisor\] step \d+: r2 is not alive", during), during[-3000:]
-    # Back without a restart: the same process, coordinating again.
-    assert "r2: commands again" in err and "[agent r1] step" in err and "r2: coordinating again" in err
-    assert re.search(r"\[supervisor\] step \d+: r2 is alive again", err), err[-3000:]
+    # Back without a restart: the same process joins again, its robot takes its commands
+    # again, and (above) every robot gets home.
+    assert "[agent r2] joined at step" in after and "r2: commands again" in after, after[-3000:]
+    assert re.search(r"\[supervisor\] step \d+: r2 is alive again", after), after[-3000:]

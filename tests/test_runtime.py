@@ -394,6 +394,8 @@ def test_realtime_digest_comes_half_a_step_before_its_tick(tmp_path):
     hub = loopback(free_port())
     keys = Keys("lab")
     seen: dict[str, dict[int, float]] = {"digest": {}, "tick": {}}
+    copies: dict[int, int] = {}
+    """Digests received per step: the early one, and again at the tick if a plan came since."""
     lock = threading.Lock()
 
     def on(kind: str, typ: type) -> object:
@@ -402,6 +404,8 @@ def test_realtime_digest_comes_half_a_step_before_its_tick(tmp_path):
             msg = decode(sample.payload.to_bytes(), typ)  # type: ignore[attr-defined]
             with lock:
                 seen[kind].setdefault(msg.step, now)  # first arrival: a resent digest does not count
+                if kind == "digest":
+                    copies[msg.step] = copies.get(msg.step, 0) + 1
 
         return cb
 
@@ -432,3 +436,7 @@ def test_realtime_digest_comes_half_a_step_before_its_tick(tmp_path):
     assert len(leads) >= 100 and n_digests >= 100, (len(leads), n_digests)
     Ts = 0.1
     assert statistics.median(leads) >= 0.2 * Ts, sorted(leads)[:: max(1, len(leads) // 20)]
+    # Sent again at the tick only when a plan came after the early one: the exception.
+    with lock:
+        again = sum(1 for n in copies.values() if n > 1)
+        assert max(copies.values()) <= 2 and again <= len(copies) // 2, copies
