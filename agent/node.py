@@ -28,6 +28,7 @@ from agent.controller import TubeMPC
 from agent.coordination import Hazard, NeighbourInfo
 from agent.models import measured_state
 from fleet.runtime import (
+    STEPS_KEPT,
     Inbox,
     add_common_args,
     announce,
@@ -36,14 +37,13 @@ from fleet.runtime import (
     log,
     open_session,
     publisher,
+    remember_steps,
 )
 from fleet.scenario import ConfigError, check_point, controlled_point
 from fleet.wire import Command, Digest, Goal, Keys, Odom, Plan, Pose, Tick
 
 REJOIN_GAP = 5
 """Steps missed (0.5 s at Ts = 0.1 s, the link watchdog's time) after which an agent re-initialises."""
-WITHDRAWN_KEPT = 64
-"""Steps back for which a neighbour's unexecuted plans are remembered, at least [steps]."""
 
 
 def _neighbour(plan: Plan) -> NeighbourInfo:
@@ -154,10 +154,7 @@ def main(argv: list[str] | None = None) -> int:
             inbox.release(k)
             for j, done in (*tick.fallback.items(), *tick.braked.items()):
                 if j in withdrawn:  # the plans of steps done + 1 … k − 1 were never executed
-                    gone = withdrawn[j]
-                    gone.update(range(max(done + 1, k - WITHDRAWN_KEPT), k))
-                    if len(gone) > 2 * WITHDRAWN_KEPT:  # forget the old ones now and then, not each step
-                        gone.difference_update([s for s in gone if s < k - WITHDRAWN_KEPT])
+                    remember_steps(withdrawn[j], range(max(done + 1, k - STEPS_KEPT), k), k)
             executed = tick.executed(me)
             if joined and executed is not None:
                 # The robot side did not apply the command of step k − 1.  It followed

@@ -14,7 +14,7 @@ import os
 import sys
 import threading
 import time
-from collections.abc import Callable, Container
+from collections.abc import Callable, Container, Iterable
 from typing import Any, NoReturn, TypeVar
 
 from fleet.faults import DELIVER, FaultPlan, FaultPlanError
@@ -28,6 +28,19 @@ DRAIN_CAPACITY = 4096
 """Samples a drained subscription queues between two drains (Zenoh blocks the sender beyond)."""
 DRAIN_POLL = 0.001
 """How often :meth:`Inbox.drain_until` looks for a sample not yet in [s]."""
+
+
+STEPS_KEPT = 64
+"""How far back [steps] the processes remember which steps' commands were not applied."""
+
+
+def remember_steps(steps: set[int], new: Iterable[int], now: int, kept: int = STEPS_KEPT) -> None:
+    """Add ``new`` to ``steps``, the recent steps a fact holds for (e.g. "its command was not
+    applied"), and forget those before ``now − kept`` once there are twice ``kept``: the
+    set stays bounded without a scan each step.  An old entry is still true, only not needed."""
+    steps.update(s for s in new if s >= now - kept)
+    if len(steps) > 2 * kept:
+        steps.difference_update([s for s in steps if s < now - kept])
 
 
 def lease_arg(text: str) -> float:
@@ -87,10 +100,9 @@ def _step_of(msg: Any) -> int | None:
 
 
 def net_config(args: argparse.Namespace) -> NetConfig:
-    lease = getattr(args, "lease", None)
     return NetConfig(
         listen=args.listen or [loopback(0)], connect=list(args.connect),
-        lease=NetConfig.lease if lease is None else lease,
+        lease=NetConfig.lease if args.lease is None else args.lease,
     )  # fmt: skip
 
 
@@ -105,7 +117,7 @@ def session_config(args: argparse.Namespace) -> Any:
         except ValueError as e:  # SecureConfigError: names the file and the problem
             print(f"error: --zenoh-config: {e}", file=sys.stderr)
             raise SystemExit(2) from None
-        if getattr(args, "lease", None) is not None:
+        if args.lease is not None:
             conf.insert_json5("transport/link/tx/lease", str(round(args.lease * 1000)))
         return conf
     return net_config(args).zenoh()

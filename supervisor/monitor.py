@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from fleet.harness import GOAL_TOLERANCE
-from fleet.runtime import Inbox, add_common_args, announce, load_validated, log, open_session
+from fleet.runtime import Inbox, add_common_args, announce, load_validated, log, open_session, remember_steps
 from fleet.scenario import ConfigError
 from fleet.trace import Trace, outlines
 from fleet.wire import Keys, Plan, Pose, Tick, Truth
@@ -123,8 +123,7 @@ class Monitor:
         k = self.steps
         for r in unexecuted:
             if r in self.unexecuted:
-                self.unexecuted[r].add(k)
-                self.unexecuted[r].difference_update([s for s in self.unexecuted[r] if s < k - 64])
+                remember_steps(self.unexecuted[r], (k,), k)
         for r, pl in executed.items():
             prev = self.last_plans.get(r)
             # Checked when every step between was reported unexecuted by the ticks (a plan

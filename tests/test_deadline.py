@@ -214,3 +214,17 @@ def test_the_robot_side_follows_the_candidate_then_brakes():
     link.decide(4, cmd, cmd, True, None)
     what, a, _ = link.decide(5, None, cmd, True, None)
     assert what == HELD and np.array_equal(a, [0.3, 0.0])
+
+
+def test_remembered_steps_stay_bounded_and_keep_the_recent_ones():
+    """The processes' sets of unapplied steps: every step of the last STEPS_KEPT is kept, the
+    set never holds more than twice that, and a step too old on arrival is not added."""
+    from fleet.runtime import STEPS_KEPT, remember_steps
+
+    steps: set[int] = set()
+    for k in range(1000):
+        remember_steps(steps, (k,), k)
+        assert set(range(max(0, k - STEPS_KEPT), k + 1)) <= steps
+        assert len(steps) <= 2 * STEPS_KEPT + 1
+    remember_steps(steps, range(0, 1000), 1000)  # only the recent part of a long range
+    assert min(steps) >= 1000 - 2 * STEPS_KEPT - 1 and len(steps) <= 2 * STEPS_KEPT + 1

@@ -49,6 +49,7 @@ from fleet.runtime import (
     log,
     open_session,
     publisher,
+    remember_steps,
 )
 from fleet.scenario import ConfigError
 from fleet.wire import Command, Digest, Keys, Odom, Plan, Pose, Tick, Truth
@@ -379,8 +380,6 @@ def _measure(
 
 
 COMMAND, CANDIDATE, HELD, BRAKED = "command", "candidate", "held", "braked"
-UNEXECUTED_KEPT = 64
-"""Steps back for which RobotSide remembers an unapplied command [steps]."""
 
 
 class RobotSide:
@@ -425,8 +424,7 @@ class RobotSide:
         heard = cmd is not None or (newest is not None and newest.step >= k - 1)
         self.quiet = 0 if heard else self.quiet + 1
         if cmd is None and self.drives:
-            self.unexecuted.add(k)
-            self.unexecuted.difference_update([s for s in self.unexecuted if s < k - UNEXECUTED_KEPT])
+            remember_steps(self.unexecuted, (k,), k)
         if not alive or self.quiet * self.design.params.Ts > self.watchdog:
             self.brake()
             return (
