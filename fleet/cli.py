@@ -6,7 +6,7 @@
   harness, writes ``DIR/summary.json`` and exits 0 only if the run completed
   with zero collisions and every robot reached its goal.
 * ``fleet run SCENARIO.toml [--out DIR] [--clock C] [--exchange E] [--seed N] [--viewer]
-  [--listen ENDPOINT]`` runs the fleet as processes over Zenoh.
+  [--listen ENDPOINT] [--lease S] [--topology T]`` runs the fleet as processes over Zenoh.
 * ``fleet goal SCENARIO.toml --robot ID X Y --connect ENDPOINT`` gives a
   running agent a new goal.
 * ``fleet report DIR`` writes the figures of a run.
@@ -165,8 +165,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     code, verdict, summary = run_fleet(
         str(Path(args.scenario).resolve()), [r.id for r in scn.robots], out.resolve(), args.seed,
         viewer=args.viewer, clock=clock, hub=args.listen, links=links, faults=args.faults,
-        exchange=args.exchange,
-        lease=args.lease,
+        exchange=args.exchange, lease=args.lease, topology=args.topology,
     )  # fmt: skip
     if summary is not None:
         print(
@@ -327,6 +326,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="Zenoh transport lease of every process [s] (default 10): how soon neighbours see a hung "
         "agent as not alive; at 1 s the keep-alives of a 16-robot fleet take a third of a core "
         "(docs/design.md §8)",
+    )  # fmt: skip
+    r.add_argument(
+        "--topology", choices=["mesh", "star"], default="mesh",
+        help="how the processes link: mesh (every one a Zenoh peer, default) or star (the tracker a "
+        "router, the others its clients: one link each; with --exchange relay, the lightest for large "
+        "realtime fleets, docs/design.md §8)",
     )  # fmt: skip
     r.set_defaults(func=cmd_run)
     g = sub.add_parser("goal", help="give a running agent a new goal and wait until it takes it")

@@ -2,7 +2,10 @@
 
 Processes are started with ``subprocess`` (fork + exec, so no parent state is
 inherited; never a bare fork after Zenoh is open): the tracker listens on a
-free loopback port, the supervisor and one agent per robot connect to it.
+free loopback port, the supervisor and one agent per robot connect to it.  In
+the mesh topology every process is a Zenoh peer and the peers link to each
+other; in the star topology the tracker's session is a router and every other
+process a client with one link, to it (docs/design.md §8, "Topology").
 Readiness is each process's ``{"event": "ready"}`` line, waited on with a
 timeout.  The run ends when the tracker exits; everything still running is
 then stopped by pid (SIGTERM, then SIGKILL).
@@ -23,6 +26,9 @@ from pathlib import Path
 from typing import IO, Any
 
 from fleet.net import free_port, loopback
+
+TOPOLOGIES = ("mesh", "star")
+"""How ``fleet run`` links its processes: a mesh of Zenoh peers, or a star around the tracker."""
 
 
 @dataclass
@@ -111,6 +117,7 @@ def run_fleet(
     faults: str | None = None,
     exchange: str = "mesh",
     lease: float | None = None,
+    topology: str = "mesh",
 ) -> tuple[int, str, dict[str, Any] | None]:
     """Run the fleet; returns (exit code, one-line verdict, summary or None).
 
@@ -119,6 +126,8 @@ def run_fleet(
     ``exchange`` is how plans travel: ``mesh`` (agent to agent) or ``relay``
     (the tracker's digest, docs/runtime-notes.md).
     ``lease`` is every process's Zenoh transport lease [s] (default 10 s).
+    ``topology``: ``mesh`` (every process a Zenoh peer) or ``star`` (the tracker a
+    router, every other process a client of it).
     ``links`` maps robot id → link; robots on ``"emulator"`` get an e-puck
     firmware emulator process (advanced sercom on a pseudo-terminal) and an
     ``epuck_link`` process driving it, and the tracker observes the emulators
@@ -141,16 +150,22 @@ def run_fleet(
         *(["--lease", repr(lease)] if lease is not None else []),
     ]
     seed_args = [] if seed is None else ["--seed", str(seed)]
+    if topology not in TOPOLOGIES:
+        raise ValueError(f"topology {topology!r} is not one of {', '.join(TOPOLOGIES)}")
+    hub_mode = ["--mode", "router"] if topology == "star" else []
+    spoke = [*common, "--mode", "client"] if topology == "star" else common  # all but the tracker
     procs: list[Proc] = []
     emulators: list[Proc] = []
     try:
         source = ["--source", "emulator"] if emulated else []
-        procs.append(_start("tracker", "tracker", [*common, "--listen", hub, *seed_args, *source], env))
+        procs.append(
+            _start("tracker", "tracker", [*common, *hub_mode, "--listen", hub, *seed_args, *source], env)
+        )
         if _wait_ready(procs, 60.0):
             return 1, "tracker did not start", None
         # The robot side: one emulator and one epuck_link per emulated robot.
         for rid in emulated:
-            emu_args = [*common, "--connect", hub, "--robot", rid, "--pty"]
+            emu_args = [*spoke, "--connect", hub, "--robot", rid, "--pty"]
             emulators.append(_start(f"emulator {rid}", "epuck_link.emulator", emu_args, env))
         procs += emulators
         late = _wait_ready(emulators, 60.0)
@@ -159,17 +174,16 @@ def run_fleet(
         bridges = []
         for e in emulators:
             rid, pty = e.ready["robot"], e.ready["pty"]
-            link_args = [*common, "--connect", hub, "--robot", rid, "--link", f"serial:{pty}"]
+            link_args = [*spoke, "--connect", hub, "--robot", rid, "--link", f"serial:{pty}"]
             bridges.append(_start(f"epuck_link {rid}", "epuck_link", link_args, env))
         procs += bridges
         late = _wait_ready(bridges, 60.0)
         if late:
             return 1, f"not ready: {', '.join(late)}", None
-        sup_args = [*common, "--connect", hub, "--out", str(out), *(["--viewer"] if viewer else [])]
+        sup_args = [*spoke, "--connect", hub, "--out", str(out), *(["--viewer"] if viewer else [])]
         sup = _start("supervisor", "supervisor", sup_args, env)
         agents = [
-            _start(f"agent {rid}", "agent", [*common, "--connect", hub, "--robot", rid], env)
-            for rid in robots
+            _start(f"agent {rid}", "agent", [*spoke, "--connect", hub, "--robot", rid], env) for rid in robots
         ]
         procs += [sup, *agents]
         late = _wait_ready([sup, *agents], 120.0)

@@ -5,7 +5,11 @@ scouting off (its defaults listen on every interface), explicit
 ``tcp/127.0.0.1`` endpoints.  One process (the first started, normally the
 tracker) listens on a known port; every other process connects to it and
 listens on an ephemeral loopback port of its own, and gossip scouting over
-those links lets the peers find each other.
+those links lets the peers find each other: a full mesh, n(n − 1)/2 links.
+
+The star topology (``fleet run --topology star``) makes the hub's session a
+Zenoh router and every other process a client of it: one link per process,
+and no process but the hub listens (docs/design.md §8, "Topology").
 """
 
 from __future__ import annotations
@@ -24,6 +28,9 @@ def free_port(host: str = LOOPBACK) -> int:
         s.bind((host, 0))
         return int(s.getsockname()[1])
 
+
+MODES = ("peer", "client", "router")
+"""Zenoh session modes a process may take (``--mode``)."""
 
 LEASE_RANGE = (0.5, 60.0)
 """Accepted Zenoh leases [s]: below 0.5 s a loaded 2-core machine drops live peers."""
@@ -53,6 +60,8 @@ class NetConfig:
     listen: list[str] = field(default_factory=lambda: [loopback(0)])
     connect: list[str] = field(default_factory=list)
     mode: str = "peer"
+    """Zenoh session mode, one of :data:`MODES`: a client has one link, to what it connects
+    to, and listens on nothing (its ``listen`` is not passed to Zenoh)."""
     lease: float = 10.0
     """Zenoh transport lease [s]: a peer silent this long (a hung process, a cut link)
     is dropped, and its liveliness tokens with it.  Keeping the links of the peer mesh
@@ -62,9 +71,11 @@ class NetConfig:
         """A ``zenoh.Config`` for this process (imports zenoh lazily)."""
         import zenoh
 
+        if self.mode not in MODES:
+            raise ValueError(f"mode {self.mode!r} is not one of {', '.join(MODES)}")
         conf = zenoh.Config()
         conf.insert_json5("mode", json.dumps(self.mode))
-        conf.insert_json5("listen/endpoints", json.dumps(self.listen))
+        conf.insert_json5("listen/endpoints", json.dumps([] if self.mode == "client" else self.listen))
         conf.insert_json5("connect/endpoints", json.dumps(self.connect))
         conf.insert_json5("scouting/multicast/enabled", "false")
         conf.insert_json5("transport/link/tx/lease", str(round(self.lease * 1000)))

@@ -18,7 +18,7 @@ from collections.abc import Callable, Container, Iterable
 from typing import Any, NoReturn, TypeVar
 
 from fleet.faults import DELIVER, FaultPlan, FaultPlanError
-from fleet.net import NetConfig, lease_seconds, loopback
+from fleet.net import MODES, NetConfig, lease_seconds, loopback
 from fleet.wire import Digest, Keys, Message, Plan, RejectCounter, WireError, decode
 
 M = TypeVar("M", bound=Message)
@@ -70,6 +70,11 @@ def add_common_args(ap: argparse.ArgumentParser) -> None:
         "soon a hung or cut-off peer is dropped and its liveliness token goes; a short lease costs "
         "CPU (docs/design.md §8)",
     )  # fmt: skip
+    ap.add_argument(
+        "--mode", choices=MODES, default=None,
+        help="Zenoh session mode (default peer): the star topology makes the hub a router and every "
+        "other process a client of it (docs/design.md §8, \"Topology\")",
+    )  # fmt: skip
     ap.add_argument("--timeout", type=float, default=30.0, help="lockstep wait limit [s]")
     ap.add_argument(
         "--clock", choices=["lockstep", "realtime"], default="lockstep",
@@ -100,15 +105,28 @@ def _step_of(msg: Any) -> int | None:
 
 
 def net_config(args: argparse.Namespace) -> NetConfig:
+    """The loopback configuration of ``--listen``, ``--connect``, ``--mode`` and ``--lease``."""
+    mode = getattr(args, "mode", None) or NetConfig.mode
     return NetConfig(
-        listen=args.listen or [loopback(0)], connect=list(args.connect),
-        lease=NetConfig.lease if args.lease is None else args.lease,
+        listen=args.listen or ([] if mode == "client" else [loopback(0)]), connect=list(args.connect),
+        mode=mode, lease=NetConfig.lease if args.lease is None else args.lease,
     )  # fmt: skip
 
 
 def session_config(args: argparse.Namespace) -> Any:
     """The ``zenoh.Config`` of a process: the secure deployment's config file if given, else
-    peer-to-peer on loopback; ``--lease``, when given, overrides the file's lease too."""
+    peer-to-peer on loopback; ``--lease``, when given, overrides the file's lease too.  A
+    contradiction (``--mode`` with a file, which sets the mode; ``--listen`` on a client) is
+    one line on stderr and exit 2."""
+    mode = getattr(args, "mode", None)
+    if getattr(args, "zenoh_config", None) and mode is not None:
+        print("error: --mode: the --zenoh-config file sets the session mode", file=sys.stderr)
+        raise SystemExit(2)
+    if mode == "client" and args.listen:
+        print(
+            "error: --listen: a Zenoh client listens on nothing (it connects to --connect)", file=sys.stderr
+        )
+        raise SystemExit(2)
     if getattr(args, "zenoh_config", None):
         from fleet.secure import load_config
 

@@ -441,3 +441,59 @@ def test_lease_reaches_the_zenoh_configuration(tmp_path):
     assert lease("--lease", "1") == 1000
     assert lease("--zenoh-config", str(conf)) == 3000
     assert lease("--zenoh-config", str(conf), "--lease", "2.5") == 2500
+
+
+def test_mode_reaches_the_zenoh_configuration_and_contradictions_are_refused(tmp_path):
+    """``--mode`` becomes the session mode; a client listens on nothing.  ``--mode`` with a
+    ``--zenoh-config`` file, or ``--listen`` on a client, is one line naming the option, exit 2."""
+    import argparse
+
+    from fleet.net import NetConfig
+    from fleet.runtime import add_common_args, session_config
+
+    ap = argparse.ArgumentParser()
+    add_common_args(ap)
+
+    def conf(*argv: str):
+        return session_config(ap.parse_args(["--scenario", "s", *argv]))
+
+    assert json.loads(conf().get_json("mode")) == "peer"
+    assert json.loads(conf().get_json("listen/endpoints")) == ["tcp/127.0.0.1:0"]
+    router = conf("--mode", "router", "--listen", "tcp/127.0.0.1:7447")
+    assert json.loads(router.get_json("mode")) == "router"
+    assert json.loads(router.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7447"]
+    client = conf("--mode", "client", "--connect", "tcp/127.0.0.1:7447")
+    assert json.loads(client.get_json("mode")) == "client"
+    assert json.loads(client.get_json("listen/endpoints")) == []
+    assert json.loads(client.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7447"]
+    with pytest.raises(ValueError, match="mode 'hub'"):
+        NetConfig(mode="hub").zenoh()
+    file = tmp_path / "peer.json5"
+    file.write_text('{mode: "peer"}\n')
+    for argv in (
+        ["--mode", "client", "--zenoh-config", str(file)],
+        ["--mode", "client", "--listen", "tcp/127.0.0.1:1"],
+    ):
+        proc = subprocess.run(
+            [sys.executable, "-m", "agent", "--scenario", str(SCENARIOS / "paper_two_robots.toml"),
+             "--robot", "r1", *argv],
+            capture_output=True, text=True, timeout=120, cwd=ROOT,
+        )  # fmt: skip
+        no_traceback(proc)
+        assert proc.returncode == 2, proc.stderr
+        option = argv[2]
+        assert proc.stderr.strip().splitlines() == [proc.stderr.strip()], proc.stderr
+        assert proc.stderr.startswith(f"error: {'--mode' if option == '--zenoh-config' else '--listen'}: "), (
+            proc.stderr
+        )
+
+
+@pytest.mark.parametrize("value", ["ring", ""])
+def test_bad_topology_is_refused_naming_the_option(tmp_path, value):
+    proc = fleet("run", SCENARIOS / "paper_two_robots.toml", "--out", tmp_path, "--topology", value)
+    no_traceback(proc)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().splitlines()[-1].startswith("fleet run: error: argument --topology: "), (
+        proc.stderr
+    )
+    assert not (tmp_path / "summary.json").exists()

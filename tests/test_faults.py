@@ -415,8 +415,8 @@ def test_killed_agent_is_braked_avoided_and_rejoins_when_restarted(tmp_path):
         assert restarted.returncode == 0
 
 
-@pytest.mark.parametrize("lease", [None, 1.0])
-def test_hung_agent_is_braked_and_resumes(tmp_path, lease):
+@pytest.mark.parametrize(("lease", "topology"), [(None, "mesh"), (1.0, "mesh"), (1.0, "star")])
+def test_hung_agent_is_braked_and_resumes(tmp_path, lease, topology):
     """SIGSTOP r2 for about 5 s (realtime): the tracker's watchdog brakes its robot after 0.5 s,
     r1 and r3 keep clear of its growing disc, and after SIGCONT r2 re-initialises where its
     robot stands and everyone gets home with no collision.
@@ -424,9 +424,10 @@ def test_hung_agent_is_braked_and_resumes(tmp_path, lease):
     With ``--lease 1`` the neighbours and the supervisor also see r2 as not alive within
     about a second (Zenoh drops its silent session), and after SIGCONT its session comes
     back by itself: a rejoin without a restart.  With the default 10 s lease, a 5 s stop
-    never makes it "not alive" (the control)."""
+    never makes it "not alive" (the control).  In the star topology the tracker's router
+    drops r2's session and relays its liveliness: the same, with no link between agents."""
     hub = loopback(free_port())
-    extra = [] if lease is None else ["--lease", str(lease)]
+    extra = ["--topology", topology, *([] if lease is None else ["--lease", str(lease)])]
     launcher, lines = _launch(SCENARIOS / "paper_three_robots.toml", tmp_path, hub, "realtime", extra)
     log: list[str] = []
     try:

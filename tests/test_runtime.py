@@ -15,6 +15,8 @@ from pathlib import Path
 import pytest
 from procfs import alive, children, tcp_sockets
 
+from fleet.net import free_port, loopback
+
 ROOT = Path(__file__).resolve().parent.parent
 SCENARIOS = ROOT / "scenarios"
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "RERUN_ANALYTICS": "0"}
@@ -157,6 +159,77 @@ def test_relayed_plans_give_the_same_run(three, tmp_path):
 
     events = [ln for ln in res.stderr.splitlines() if ln.startswith("[agent") and "step" in ln]
     assert strip(relay) == strip(mesh), "\n".join(events[-20:])
+
+
+def _links(pid: int) -> tuple[list[int], list[int]]:
+    """(ports listened on, remote ports of established connections) of ``pid``'s TCP sockets."""
+    socks = tcp_sockets(pid)
+    port = lambda addr: int(addr.rsplit(":", 1)[1], 16)  # noqa: E731
+    return [port(lo) for st, lo, _, _ in socks if st == "0A"], [
+        port(re) for st, _, re, _ in socks if st == "01"
+    ]
+
+
+def test_star_topology_links_every_process_to_the_tracker_only_and_gives_the_same_run(three, tmp_path):
+    """``--topology star``: the tracker's session is a Zenoh router and every other process a
+    client of it.  Seen from outside, while the fleet runs: only the tracker listens, on the
+    hub, and every other process has one link, to the hub; in the default mesh the agents
+    listen and link to each other (the control).  In lockstep the star run is the mesh run."""
+    _, out = three
+    mesh = json.loads((out / "summary.json").read_text())
+
+    def sample(topology: str, run_dir: Path) -> tuple[dict[str, tuple[list[int], list[int]]], int]:
+        """Each process's (listened ports, linked remote ports) while the run goes, and the hub's port."""
+        hub_port = free_port()
+        launcher = subprocess.Popen(
+            [sys.executable, "-m", "fleet.cli", "run", str(SCENARIOS / "paper_three_robots.toml"),
+             "--out", str(run_dir), "--exchange", "relay", "--topology", topology,
+             "--listen", loopback(hub_port)],
+            cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        seen: dict[str, tuple[list[int], list[int]]] = {}
+        try:
+            deadline = time.monotonic() + 120
+            while launcher.poll() is None and time.monotonic() < deadline:
+                kids = {c: _cmdline(c) for c in children(launcher.pid)}
+                if len(kids) == 5:  # tracker, supervisor, 3 agents
+                    for c, cmd in kids.items():
+                        if len(cmd) < 3:  # exited meanwhile
+                            continue
+                        role = cmd[2] + (f" {cmd[cmd.index('--robot') + 1]}" if "--robot" in cmd else "")
+                        listens, remotes = _links(c)
+                        if remotes and (role not in seen or len(remotes) > len(seen[role][1])):
+                            seen[role] = (listens, remotes)  # the most linked sample of each role
+                try:  # pace the sampling by waiting on the launcher itself
+                    launcher.wait(timeout=0.05)
+                except subprocess.TimeoutExpired:
+                    pass
+            _, err = launcher.communicate(timeout=120)
+        finally:
+            if launcher.poll() is None:
+                launcher.kill()
+                launcher.wait(timeout=10)
+        assert launcher.returncode == 0, err[-2000:]
+        assert set(seen) == {"tracker", "supervisor", "agent r1", "agent r2", "agent r3"}, seen
+        return seen, hub_port
+
+    star, hub = sample("star", tmp_path / "star")
+    assert star["tracker"][0] == [hub], star
+    for role in ("supervisor", "agent r1", "agent r2", "agent r3"):
+        listens, remotes = star[role]
+        assert listens == [] and remotes == [hub], (role, star)
+    peers, hub = sample("mesh", tmp_path / "mesh")
+    for role in ("agent r1", "agent r2", "agent r3"):
+        listens, remotes = peers[role]
+        assert len(listens) == 1 and any(r != hub for r in remotes), (role, peers)
+    timing = {"wall_time_s", "processes", "exit_codes", "solve_time_ms"}
+
+    def strip(d):
+        if isinstance(d, dict):
+            return {k: strip(v) for k, v in d.items() if k not in timing}
+        return d
+
+    assert strip(json.loads((tmp_path / "star" / "summary.json").read_text())) == strip(mesh)
 
 
 def test_killed_agent_fails_the_run_and_names_the_robot(tmp_path):
