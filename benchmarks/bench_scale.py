@@ -827,7 +827,7 @@ class Observer:
     """A Zenoh session on the fleet's hub that timestamps, on arrival, every tick,
     pose and command (time.monotonic, the clock all processes share)."""
 
-    def __init__(self, hub: str, fleet: str = "lab"):
+    def __init__(self, hub: str, fleet: str = "lab", mode: str = "peer"):
         import zenoh
 
         from fleet.net import NetConfig
@@ -837,7 +837,7 @@ class Observer:
         self.tick: dict[int, float] = {}
         self.pose: dict[tuple[str, int], float] = {}
         self.cmd: dict[tuple[str, int], float] = {}
-        self.session = zenoh.open(NetConfig(connect=[hub]).zenoh())
+        self.session = zenoh.open(NetConfig(connect=[hub], mode=mode).zenoh())
 
         def on(typ: Any, store: Callable[[Any, float], None]) -> Callable[[Any], None]:
             def cb(sample: Any) -> None:
@@ -907,10 +907,11 @@ def capped_scenario(name: str, sim_s: float, tmp: Path) -> Path:
 
 def fleet_run(
     robots: int, clock: str, sim_s: float, out: Path, tmp: Path, log: Callable[[str], None],
-    exchange: str = "relay",
+    exchange: str = "relay", topology: str = "star",
 ) -> dict[str, Any]:  # fmt: skip
     """One ``fleet run`` of the shipped scene for ``robots`` robots, ``sim_s`` simulated seconds,
-    plans travelling by ``exchange`` (mesh or relay)."""
+    plans travelling by ``exchange`` (mesh or relay), the processes linked by ``topology``
+    (mesh or star)."""
     from fleet.net import free_port, loopback
 
     name = SCENES[robots]
@@ -924,7 +925,7 @@ def fleet_run(
     load_before = loadavg()
     cmd = [
         sys.executable, "-m", "fleet.cli", "run", str(scn_path), "--out", str(run_dir), "--clock", clock,
-        "--listen", loopback(port), "--exchange", exchange,
+        "--listen", loopback(port), "--exchange", exchange, "--topology", topology,
     ]  # fmt: skip
     t_launch = time.monotonic()
     err_path = run_dir / "fleet.stderr"
@@ -936,7 +937,7 @@ def fleet_run(
         with Sampler(proc.pid) as sampler:
             if _wait_port(port, 60.0, proc):
                 with contextlib.suppress(Exception):  # no observer: no latency figures, the run goes on
-                    observer = Observer(loopback(port))
+                    observer = Observer(loopback(port), mode="client" if topology == "star" else "peer")
             try:
                 rc = proc.wait(timeout=timeout)
             except subprocess.TimeoutExpired:
@@ -956,6 +957,7 @@ def fleet_run(
         "robots": robots,
         "clock": clock,
         "exchange": exchange,
+        "topology": topology,
         "sim_s_requested": sim_s,
         "exit_code": rc,
         "verdict": verdict or (stderr_lines[-1] if stderr_lines else f"exit {rc}"),
@@ -1165,16 +1167,17 @@ def run(args: argparse.Namespace) -> int:
         with tempfile.TemporaryDirectory(prefix="fleet-bench-") as tmp_s:
             tmp = Path(tmp_s)
             log(
-                f"\n[4] fleet run (one process per robot, Zenoh on loopback, plans by {args.exchange}); "
+                f"\n[4] fleet run (one process per robot, Zenoh on loopback, plans by {args.exchange}, "
+                f"{args.topology} topology); "
                 f"run directories in {out}"
             )
             log(RUN_HEADER)
             for n in lock_sizes:
-                r = fleet_run(n, "lockstep", lock_s, out, tmp, log, args.exchange)
+                r = fleet_run(n, "lockstep", lock_s, out, tmp, log, args.exchange, args.topology)
                 runs.append(r)
                 print_run(r, log)
             for n in rt_sizes:
-                r = fleet_run(n, "realtime", rt_s, out, tmp, log, args.exchange)
+                r = fleet_run(n, "realtime", rt_s, out, tmp, log, args.exchange, args.topology)
                 runs.append(r)
                 print_run(r, log)
             log(RUN_LEGEND)

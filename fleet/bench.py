@@ -76,6 +76,11 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
         "--exchange", choices=["mesh", "relay"], default="relay",
         help="how the fleet runs' plans travel (fleet run --exchange; default relay)",
     )  # fmt: skip
+    ap.add_argument(
+        "--topology", choices=["mesh", "star"], default="star",
+        help="how the fleet runs' processes link (fleet run --topology; default star: the tracker a "
+        "router, one link per process)",
+    )  # fmt: skip
     ap.add_argument("--no-fleet", action="store_true", help="skip the fleet runs (figures [4] and [5])")
 
 

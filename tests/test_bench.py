@@ -156,6 +156,7 @@ def test_quick_fleet_runs(quick: tuple[subprocess.CompletedProcess[str], dict[st
         count(r["deadline_misses"], f"{what}.deadline_misses")
         assert 0.0 <= r["miss_rate"] <= 1.0
         assert r["collisions"] == 0, what
+        assert (r["exchange"], r["topology"]) == ("relay", "star"), what  # the defaults: large-fleet setup
         for k in ("agent_p50", "agent_max", "agent_peak_max", "tracker", "supervisor"):
             positive(r["rss_mb"][k], f"{what}.rss_mb.{k}")
         assert r["rss_mb"]["agents_sampled"] == r["robots"]
