@@ -323,15 +323,15 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     r.add_argument(
         "--lease", metavar="SECONDS", type=lease_arg,
-        help="Zenoh transport lease of every process [s] (default 10): how soon neighbours see a hung "
-        "agent as not alive; at 1 s the keep-alives of a 16-robot fleet take a third of a core "
-        "(docs/design.md §8)",
+        help="Zenoh transport lease of every process [s] (default 10 in the mesh, 1 in the star): how "
+        "soon neighbours see a hung agent as not alive; at 1 s the keep-alives of a 16-robot mesh "
+        "take a third of a core, of a star nothing measurable (docs/design.md §8)",
     )  # fmt: skip
     r.add_argument(
         "--topology", choices=["mesh", "star"], default="mesh",
         help="how the processes link: mesh (every one a Zenoh peer, default) or star (the tracker a "
-        "router, the others its clients: one link each; with --exchange relay, the lightest for large "
-        "realtime fleets, docs/design.md §8)",
+        "router, the others its clients: one link each, and a 1 s lease; with --exchange relay, the "
+        "lightest for large realtime fleets, docs/design.md §8)",
     )  # fmt: skip
     r.set_defaults(func=cmd_run)
     g = sub.add_parser("goal", help="give a running agent a new goal and wait until it takes it")

@@ -29,6 +29,10 @@ from fleet.net import free_port, loopback
 
 TOPOLOGIES = ("mesh", "star")
 """How ``fleet run`` links its processes: a mesh of Zenoh peers, or a star around the tracker."""
+STAR_LEASE = 1.0
+"""Default Zenoh lease in the star [s]: DESIGN's "about 1 s".  The mesh keeps 10 s, because
+there a 1 s lease costs a third of a core at 16 robots; in the star it costs nothing
+measurable (docs/runtime-notes.md, "Topology")."""
 
 
 @dataclass
@@ -125,7 +129,8 @@ def run_fleet(
     ``faults`` is a fault plan (:mod:`fleet.faults`) handed to every process.
     ``exchange`` is how plans travel: ``mesh`` (agent to agent) or ``relay``
     (the tracker's digest, docs/runtime-notes.md).
-    ``lease`` is every process's Zenoh transport lease [s] (default 10 s).
+    ``lease`` is every process's Zenoh transport lease [s] (default 10 s in the mesh,
+    :data:`STAR_LEASE` in the star).
     ``topology``: ``mesh`` (every process a Zenoh peer) or ``star`` (the tracker a
     router, every other process a client of it).
     ``links`` maps robot id → link; robots on ``"emulator"`` get an e-puck
@@ -137,6 +142,8 @@ def run_fleet(
     hub = hub or loopback(free_port())
     print(f"fleet: hub {hub} (fleet goal --connect {hub} ...)", file=sys.stderr, flush=True)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "RERUN_ANALYTICS": "0"}
+    if lease is None and topology == "star":
+        lease = STAR_LEASE
     common = [
         "--scenario",
         scenario,
