@@ -325,7 +325,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--lease", metavar="SECONDS", type=lease_arg,
         help="Zenoh transport lease of every process [s] (default 10 in the mesh, 1 in the star): how "
         "soon neighbours see a hung agent as not alive; at 1 s the keep-alives of a 16-robot mesh "
-        "take a third of a core, of a star nothing measurable (docs/design.md §8)",
+        "take a third of a core, of a star a few %% (docs/design.md §8)",
     )  # fmt: skip
     r.add_argument(
         "--topology", choices=["mesh", "star"], default="mesh",

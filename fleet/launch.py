@@ -25,14 +25,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
-from fleet.net import free_port, loopback
+from fleet.net import NetConfig, free_port, loopback
 
 TOPOLOGIES = ("mesh", "star")
 """How ``fleet run`` links its processes: a mesh of Zenoh peers, or a star around the tracker."""
 STAR_LEASE = 1.0
 """Default Zenoh lease in the star [s]: DESIGN's "about 1 s".  The mesh keeps 10 s, because
-there a 1 s lease costs a third of a core at 16 robots; in the star it costs nothing
-measurable (docs/runtime-notes.md, "Topology")."""
+there a 1 s lease costs a third of a core at 16 robots; in the star, 4 % of a core more than
+10 s when idle, and no difference beyond the noise of 16-robot realtime runs
+(docs/runtime-notes.md, "Topology")."""
 
 
 @dataclass
@@ -138,6 +139,8 @@ def run_fleet(
     ``epuck_link`` process driving it, and the tracker observes the emulators
     (``--source emulator``, realtime clock).  Every robot is simulated or every
     robot is emulated."""
+    if topology not in TOPOLOGIES:
+        raise ValueError(f"topology {topology!r} is not one of {', '.join(TOPOLOGIES)}")
     emulated = [r for r in robots if (links or {}).get(r, "sim") == "emulator"]
     hub = hub or loopback(free_port())
     print(f"fleet: hub {hub} (fleet goal --connect {hub} ...)", file=sys.stderr, flush=True)
@@ -157,8 +160,6 @@ def run_fleet(
         *(["--lease", repr(lease)] if lease is not None else []),
     ]
     seed_args = [] if seed is None else ["--seed", str(seed)]
-    if topology not in TOPOLOGIES:
-        raise ValueError(f"topology {topology!r} is not one of {', '.join(TOPOLOGIES)}")
     hub_mode = ["--mode", "router"] if topology == "star" else []
     spoke = [*common, "--mode", "client"] if topology == "star" else common  # all but the tracker
     procs: list[Proc] = []
@@ -219,6 +220,8 @@ def run_fleet(
     if summary is not None:
         summary["processes"] = {p.role: p.pid for p in procs}
         summary["exit_codes"] = codes
+        lease_s = NetConfig.lease if lease is None else lease
+        summary["network"] = {"topology": topology, "exchange": exchange, "lease_s": lease_s}
         summary_path.write_text(json.dumps(summary, indent=2) + "\n")
     crashed = [r for r, c in codes.items() if c not in (0, None)]
     if crashed:

@@ -116,8 +116,8 @@ def net_config(args: argparse.Namespace) -> NetConfig:
 def session_config(args: argparse.Namespace) -> Any:
     """The ``zenoh.Config`` of a process: the secure deployment's config file if given, else
     peer-to-peer on loopback; ``--lease``, when given, overrides the file's lease too.  A
-    contradiction (``--mode`` with a file, which sets the mode; ``--listen`` on a client) is
-    one line on stderr and exit 2."""
+    contradiction (``--mode`` with a file, which sets the mode; ``--listen`` on a client, or
+    a client without ``--connect``) is one line on stderr and exit 2."""
     mode = getattr(args, "mode", None)
     if getattr(args, "zenoh_config", None) and mode is not None:
         print("error: --mode: the --zenoh-config file sets the session mode", file=sys.stderr)
@@ -126,6 +126,9 @@ def session_config(args: argparse.Namespace) -> Any:
         print(
             "error: --listen: a Zenoh client listens on nothing (it connects to --connect)", file=sys.stderr
         )
+        raise SystemExit(2)
+    if mode == "client" and not args.connect:
+        print("error: --connect: a Zenoh client needs the router's endpoint", file=sys.stderr)
         raise SystemExit(2)
     if getattr(args, "zenoh_config", None):
         from fleet.secure import load_config
@@ -142,10 +145,18 @@ def session_config(args: argparse.Namespace) -> Any:
 
 
 def open_session(args: argparse.Namespace) -> Any:
-    """A Zenoh session (:func:`session_config`)."""
+    """A Zenoh session (:func:`session_config`).  A session Zenoh cannot open (a client
+    whose router is not there: unlike a peer, it does not wait for it) is one line on
+    stderr and exit 1."""
     import zenoh
 
-    return zenoh.open(session_config(args))
+    conf = session_config(args)
+    try:
+        return zenoh.open(conf)
+    except zenoh.ZError as e:
+        where = ", ".join(args.connect) or getattr(args, "zenoh_config", None) or "loopback"
+        print(f"error: --connect: cannot open a Zenoh session to {where}: {e}", file=sys.stderr)
+        raise SystemExit(1) from None
 
 
 def publisher(session: Any, key: str, express: bool = True) -> Any:

@@ -445,10 +445,11 @@ def test_lease_reaches_the_zenoh_configuration(tmp_path):
 
 def test_mode_reaches_the_zenoh_configuration_and_contradictions_are_refused(tmp_path):
     """``--mode`` becomes the session mode; a client listens on nothing.  ``--mode`` with a
-    ``--zenoh-config`` file, or ``--listen`` on a client, is one line naming the option, exit 2."""
+    ``--zenoh-config`` file, ``--listen`` on a client or a client without ``--connect`` is one
+    line naming the option, exit 2; a client whose router is not there, one line and exit 1."""
     import argparse
 
-    from fleet.net import NetConfig
+    from fleet.net import NetConfig, free_port
     from fleet.runtime import add_common_args, session_config
 
     ap = argparse.ArgumentParser()
@@ -470,9 +471,12 @@ def test_mode_reaches_the_zenoh_configuration_and_contradictions_are_refused(tmp
         NetConfig(mode="hub").zenoh()
     file = tmp_path / "peer.json5"
     file.write_text('{mode: "peer"}\n')
-    for argv in (
-        ["--mode", "client", "--zenoh-config", str(file)],
-        ["--mode", "client", "--listen", "tcp/127.0.0.1:1"],
+    unreachable = f"tcp/127.0.0.1:{free_port()}"  # nobody listens there: a client does not wait
+    for argv, code, option in (
+        (["--mode", "client", "--zenoh-config", str(file)], 2, "--mode"),
+        (["--mode", "client", "--listen", "tcp/127.0.0.1:1"], 2, "--listen"),
+        (["--mode", "client"], 2, "--connect"),
+        (["--mode", "client", "--connect", unreachable], 1, "--connect"),
     ):
         proc = subprocess.run(
             [sys.executable, "-m", "agent", "--scenario", str(SCENARIOS / "paper_two_robots.toml"),
@@ -480,12 +484,9 @@ def test_mode_reaches_the_zenoh_configuration_and_contradictions_are_refused(tmp
             capture_output=True, text=True, timeout=120, cwd=ROOT,
         )  # fmt: skip
         no_traceback(proc)
-        assert proc.returncode == 2, proc.stderr
-        option = argv[2]
+        assert proc.returncode == code, (argv, proc.stderr)
         assert proc.stderr.strip().splitlines() == [proc.stderr.strip()], proc.stderr
-        assert proc.stderr.startswith(f"error: {'--mode' if option == '--zenoh-config' else '--listen'}: "), (
-            proc.stderr
-        )
+        assert proc.stderr.startswith(f"error: {option}: "), proc.stderr
 
 
 @pytest.mark.parametrize("value", ["ring", ""])

@@ -150,7 +150,7 @@ def test_relayed_plans_give_the_same_run(three, tmp_path):
     )
     assert res.returncode == 0, res.stderr[-2000:]
     relay = json.loads((tmp_path / "summary.json").read_text())
-    timing = {"wall_time_s", "processes", "exit_codes", "solve_time_ms"}
+    timing = {"wall_time_s", "processes", "exit_codes", "solve_time_ms", "network"}
 
     def strip(d):
         if isinstance(d, dict):
@@ -219,17 +219,21 @@ def test_star_topology_links_every_process_to_the_tracker_only_and_gives_the_sam
         listens, remotes = star[role]
         assert listens == [] and remotes == [hub], (role, star)
     peers, hub = sample("mesh", tmp_path / "mesh")
-    for role in ("agent r1", "agent r2", "agent r3"):
-        listens, remotes = peers[role]
-        assert len(listens) == 1 and any(r != hub for r in remotes), (role, peers)
-    timing = {"wall_time_s", "processes", "exit_codes", "solve_time_ms"}
+    agents = ("agent r1", "agent r2", "agent r3")
+    assert all(len(peers[a][0]) == 1 for a in agents), peers  # every peer listens
+    # Agents link to each other: one end of such a link has the other's listening port as remote.
+    assert any(set(peers[a][1]) & set(peers[b][0]) for a in agents for b in agents if a != b), peers
+    timing = {"wall_time_s", "processes", "exit_codes", "solve_time_ms", "network"}
 
     def strip(d):
         if isinstance(d, dict):
             return {k: strip(v) for k, v in d.items() if k not in timing}
         return d
 
-    assert strip(json.loads((tmp_path / "star" / "summary.json").read_text())) == strip(mesh)
+    star_summary = json.loads((tmp_path / "star" / "summary.json").read_text())
+    assert star_summary["network"] == {"topology": "star", "exchange": "relay", "lease_s": 1.0}
+    assert mesh["network"] == {"topology": "mesh", "exchange": "mesh", "lease_s": 10.0}
+    assert strip(star_summary) == strip(mesh)
 
 
 def test_killed_agent_fails_the_run_and_names_the_robot(tmp_path):
