@@ -365,11 +365,13 @@ def _agent_pid(launcher_pid: int, rid: str) -> int:
     return next(c for c in children(launcher_pid) if {"agent", rid} <= set(cmd(c)))
 
 
-def test_killed_agent_is_braked_avoided_and_rejoins_when_restarted(tmp_path):
+@pytest.mark.parametrize("topology", ["mesh", "star"])
+def test_killed_agent_is_braked_avoided_and_rejoins_when_restarted(tmp_path, topology):
     """SIGKILL r2 mid-run (lockstep): its robot is braked, r1 and r3 keep it clear as a static
     obstacle and carry on; a new r2 process joins from where the robot stands, and (unless
     Zenoh stalls, see below) all three get home; never a collision.  `fleet run` still fails,
-    naming the killed process."""
+    naming the killed process.  In the star the new process is a client of the tracker's
+    router, as the launcher started the first."""
     hub = loopback(free_port())
     # Time enough after the rejoin, however late the new process comes up (lockstep runs fast).
     text = (SCENARIOS / "paper_three_robots.toml").read_text()
@@ -377,7 +379,7 @@ def test_killed_agent_is_braked_avoided_and_rejoins_when_restarted(tmp_path):
     scenario.write_text(
         "\n".join("duration = 150.0" if ln.startswith("duration") else ln for ln in text.splitlines())
     )
-    launcher, lines = _launch(scenario, tmp_path, hub, "lockstep")
+    launcher, lines = _launch(scenario, tmp_path, hub, "lockstep", ["--topology", topology])
     log: list[str] = []
     restarted = None
     try:
@@ -387,7 +389,7 @@ def test_killed_agent_is_braked_avoided_and_rejoins_when_restarted(tmp_path):
         restarted = subprocess.Popen(
             # --timeout outlasts a Zenoh stall (below), so the new agent does not give up first.
             [sys.executable, "-m", "agent", "--scenario", str(scenario), "--robot", "r2", "--connect", hub,
-             "--timeout", "90"],
+             "--timeout", "90", *(["--mode", "client"] if topology == "star" else [])],
             cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
         )  # fmt: skip
         launcher.wait(timeout=300)
