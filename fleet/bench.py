@@ -18,6 +18,8 @@ import sys
 from pathlib import Path
 from types import ModuleType
 
+from fleet.launch import TOPOLOGIES
+
 HARNESS = Path(__file__).resolve().parent.parent / "benchmarks" / "bench_scale.py"
 """The harness in the source checkout this package is installed from (editable install)."""
 
@@ -77,7 +79,7 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
         help="how the fleet runs' plans travel (fleet run --exchange; default relay)",
     )  # fmt: skip
     ap.add_argument(
-        "--topology", choices=["mesh", "star"], default="star",
+        "--topology", choices=TOPOLOGIES, default="star",
         help="how the fleet runs' processes link (fleet run --topology; default star: the tracker a "
         "router, one link per process)",
     )  # fmt: skip

@@ -27,6 +27,7 @@ from typing import Any
 from agent.params import PRESETS, preset
 from agent.sets import SetComputationError
 from agent.tube import synthesize
+from fleet.launch import TOPOLOGIES
 from fleet.runtime import lease_arg
 from fleet.scenario import ConfigError, check_geometry, load_scenario
 
@@ -328,7 +329,7 @@ def build_parser() -> argparse.ArgumentParser:
         "take a third of a core, of a star a few %% (docs/design.md §8)",
     )  # fmt: skip
     r.add_argument(
-        "--topology", choices=["mesh", "star"], default="mesh",
+        "--topology", choices=TOPOLOGIES, default="mesh",
         help="how the processes link: mesh (every one a Zenoh peer, default) or star (the tracker a "
         "router, the others its clients: one link each, and a 1 s lease; with --exchange relay, the "
         "lightest for large realtime fleets, docs/design.md §8)",

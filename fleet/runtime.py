@@ -108,8 +108,8 @@ def net_config(args: argparse.Namespace) -> NetConfig:
     """The loopback configuration of ``--listen``, ``--connect``, ``--mode`` and ``--lease``."""
     mode = getattr(args, "mode", None) or NetConfig.mode
     return NetConfig(
-        listen=args.listen or ([] if mode == "client" else [loopback(0)]), connect=list(args.connect),
-        mode=mode, lease=NetConfig.lease if args.lease is None else args.lease,
+        listen=args.listen or [loopback(0)], connect=list(args.connect), mode=mode,
+        lease=NetConfig.lease if args.lease is None else args.lease,
     )  # fmt: skip
 
 
