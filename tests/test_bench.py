@@ -193,3 +193,41 @@ def test_swap_32_file_matches_generator() -> None:
     data["controller"] = dict(COMPACT_CONTROLLER)
     generated = parse_scenario(data)
     assert dataclasses.replace(from_file, source="") == dataclasses.replace(generated, source="")
+
+
+def test_solver_variants_run_in_shuffled_order(monkeypatch: pytest.MonkeyPatch) -> None:
+    """[2] times each variant on the same QP one after another.  The one that runs right
+    after a ProxSuite variant finds the QP and ProxSuite's code in the cache, so a fixed
+    order (even rotated) always times the same variant cold: the order is shuffled per QP,
+    and every variant follows every other one."""
+    from fleet.bench import _harness
+
+    bench = _harness()
+    calls: list[tuple[int, str]] = []
+
+    class Fake:
+        def __init__(self, name: str, seq: dict[str, Any]):
+            self.name = name
+
+        def prepare(self, prob: dict[str, Any]) -> None:
+            pass
+
+        def solve(self, prob: dict[str, Any], warm: Any) -> tuple[Any, int]:
+            calls.append((prob["i"], self.name))
+            return np.zeros(6), 1
+
+    names = ["a", "b", "c", "d"]
+    variants = [(n, n, lambda s, n=n: Fake(n, s)) for n in names]
+    monkeypatch.setattr(bench, "solver_variants", lambda full: variants)
+    seq = {"qps": [{"prob": {"i": i}, "warm": None} for i in range(40)]}
+    out = bench.compare_solvers([seq], False, lambda _: None)
+
+    assert out["qps"] == 40
+    orders = [tuple(n for i, n in calls if i == q) for q in range(40)]
+    assert all(sorted(o) == names for o in orders)  # each variant once per QP
+    assert {o[0] for o in orders} == set(names)
+    pairs = {(o[j], o[j + 1]) for o in orders for j in range(len(o) - 1)}
+    assert pairs == {(x, y) for x in names for y in names if x != y}
+    calls.clear()  # seeded: a second run times them in the same orders
+    bench.compare_solvers([seq], False, lambda _: None)
+    assert [tuple(n for i, n in calls if i == q) for q in range(40)] == orders
