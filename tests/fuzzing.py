@@ -2,11 +2,12 @@
 
 ``Generator(name, rng).make(robot)`` returns one :class:`Payload` aimed at the decoder of the
 message type ``name`` (``pose``, ``truth``, ``odom``, ``plan``, ``cmd``, ``goal``, ``tick``,
-``wheels``) on the key of robot ``robot``.  Every *kind* but two builds a payload that the wire
+``wheels``, ``digest``) on the key of robot ``robot``.  Every *kind* but two builds a payload that the wire
 contract (``fleet/wire.py``) rejects by construction (``strict``): garbage that is not msgpack,
 msgpack that is not a map, a wrong schema version or message type, missing or extra fields,
 NaN/±inf in a number or inside an array, a wrong array dtype, shape or byte length, a huge
-declared shape, a bool where an int is expected, an int out of range, a too-long or malformed
+declared shape, a bad list (the digest's columns: wrong length, element type or range, a
+repeated or malformed id), a bool where an int is expected, an int out of range, a too-long or malformed
 string, a payload over ``MAX_PAYLOAD``, a message of another type, and a message (realistic,
 otherwise valid) claiming another robot's id.  The two random kinds (``garbage``: random
 bytes, ``mutate``: byte flips of a valid message) may produce a valid message by chance; the
@@ -27,8 +28,10 @@ import numpy as np
 from fleet.wire import (
     MAX_HORIZON,
     MAX_PAYLOAD,
+    MAX_RELAYED,
     SCHEMA_VERSION,
     Command,
+    Digest,
     Goal,
     Message,
     Odom,
@@ -39,7 +42,9 @@ from fleet.wire import (
     Wheels,
 )
 
-TYPES: dict[str, type[Message]] = {m.TYPE: m for m in (Pose, Truth, Odom, Plan, Command, Goal, Tick, Wheels)}
+TYPES: dict[str, type[Message]] = {
+    m.TYPE: m for m in (Pose, Truth, Odom, Plan, Command, Goal, Tick, Wheels, Digest)
+}
 NAMES = tuple(TYPES)
 
 _SEQ = (0, 2**62)
@@ -52,6 +57,7 @@ FLOATS: dict[str, tuple[str, ...]] = {
     "goal": (),
     "tick": ("t",),
     "wheels": ("t", "v", "omega"),
+    "digest": ("Ts",),
 }
 """Number fields (int or float accepted, finite)."""
 INTS: dict[str, dict[str, tuple[int, int]]] = {
@@ -63,6 +69,7 @@ INTS: dict[str, dict[str, tuple[int, int]]] = {
     "goal": {},
     "tick": {"step": _SEQ, "misses": _SEQ},
     "wheels": {"seq": _SEQ, "left_steps": (-(2**62), 2**62), "right_steps": (-(2**62), 2**62)},
+    "digest": {"step": _SEQ},
 }
 """Integer fields and their accepted closed ranges."""
 BOOLS: dict[str, tuple[str, ...]] = {"plan": ("tube_ok",), "tick": ("stop",), "cmd": ("fallback",)}
@@ -70,14 +77,27 @@ ARRAYS: dict[str, dict[str, tuple[int | None, ...]]] = {
     "plan": {"committed": (None, 2), "nominal": (None, 2), "target": (2,), "goal": (2,)},
     "goal": {"goal": (2,)},
     "cmd": {"x_next": (4,), "v_next": (None, 2)},
+    "digest": {"footprint": ("n",), "committed": ("n", None, 2), "target": ("n", 2), "goal": ("n", 2)},
 }
-"""Array fields and their shapes (None: 1..MAX_HORIZON)."""
+"""Array fields and their shapes (None: 1..MAX_HORIZON; "n": the digest's number of robots)."""
+LISTS: dict[str, dict[str, tuple[int, int] | None]] = {
+    "digest": {
+        "ids": None,
+        "steps": (0, -1),
+        "priority": (-(2**31), 2**31),
+        "rank": (0, 2**31),
+        "phase": (0, 2),
+    },
+}
+"""List fields, one entry per relayed robot: robot ids (None), or integers in a closed range
+(``steps``: 0 … the digest's step, written −1)."""
 STRINGS: dict[str, dict[str, int]] = {"plan": {"status": 64}}
+"""Free-text fields and their longest accepted length."""
 MAPS: dict[str, dict[str, int]] = {"tick": {"fallback": 0, "braked": -1}}
 """Maps robot id → step, and the smallest step each accepts (the largest is the tick's step)."""
-"""Free-text fields and their longest accepted length."""
 OPEN_RANGES: dict[str, dict[str, tuple[float, float]]] = {
-    "plan": {"Ts": (0.0, 10.0), "footprint": (0.0, 10.0)}
+    "plan": {"Ts": (0.0, 10.0), "footprint": (0.0, 10.0)},
+    "digest": {"Ts": (0.0, 10.0)},
 }
 """Number fields that must lie in (lo, hi]."""
 
@@ -112,6 +132,7 @@ def table_names(name: str) -> set[str]:
         | set(ARRAYS.get(name, {}))
         | set(STRINGS.get(name, {}))
         | set(MAPS.get(name, {}))
+        | set(LISTS.get(name, {}))
     )
 
 
@@ -156,6 +177,10 @@ def realistic(name: str, robot: str, rng: np.random.Generator) -> Message:
             robot=robot, step=k, t=t, stop=False, misses=int(rng.integers(0, 3)), fallback=late,
             braked={"r9": -1} if rng.random() < 0.3 else {},
         )  # fmt: skip
+    if name == "digest":
+        plans = [realistic("plan", r, rng) for r in ("r1", "r2", "r3")[: int(rng.integers(1, 4))]]
+        step = max(pl.step for pl in plans) + int(rng.integers(0, 3))
+        return Digest.of(robot, step, 0.1, 20, plans)
     if name == "wheels":
         return Wheels(
             robot=robot, seq=k, t=t, left_steps=int(rng.integers(-(10**5), 10**5)),
@@ -185,6 +210,7 @@ class Generator:
         self.arrays = ARRAYS.get(name, {})
         self.strings = STRINGS.get(name, {})
         self.maps = MAPS.get(name, {})
+        self.lists = LISTS.get(name, {})
         kinds: dict[str, float] = {
             "garbage": 2.0,
             "mutate": 2.0,
@@ -208,6 +234,8 @@ class Generator:
             kinds["float_range"] = 1.0
         if self.maps:
             kinds["map_bad"] = 1.5
+        if self.lists:
+            kinds["list_bad"] = 3.0
         if not self.floats:
             del kinds["nonfinite"]  # Goal: its only numbers are inside the array
         if not self.ints:
@@ -275,7 +303,7 @@ class Generator:
     def _oversize(self, d: dict[str, Any], robot: str) -> tuple[bytes | dict[str, Any], bool]:
         how = int(self.rng.integers(3))
         if how == 0:
-            return self.rng.bytes(MAX_PAYLOAD + 1 + int(self.rng.integers(0, 8192))), True
+            return self.rng.bytes(self.typ.MAX_BYTES + 1 + int(self.rng.integers(0, 8192))), True
         if how == 1 and self.arrays:  # a well-formed array far longer than the horizon, > 64 KiB
             f = self.choice(list(self.arrays))
             rows = MAX_PAYLOAD // 16 + 1 + int(self.rng.integers(0, 512))
@@ -414,6 +442,8 @@ class Generator:
             v = self.choice([*generic, "true", "True"])
         elif f in self.maps:
             v = self.choice([None, "r1", 0, 1.5, True, b"\x00", [["r1", 0]], ["r1"]])
+        elif f in self.lists:
+            v = self.choice([None, "r1", 0, 1.5, True, b"\x00", {"0": d[f][0]}, _arr(np.zeros(len(d[f])))])
         else:  # robot, status: text fields
             v = self.choice([None, 1, 1.5, True, d[f].encode(), [d[f]], {"id": d[f]}])
         d[f] = v
@@ -461,6 +491,45 @@ class Generator:
             d[f] = m
         return d, True
 
+    def _list_bad(self, d: dict[str, Any], robot: str) -> tuple[dict[str, Any], bool]:
+        """A column of the digest (one entry per robot) that is not a list, one entry too many or
+        too few, an entry of the wrong type, out of range or (ids) repeated or malformed; or
+        more robots than a digest may carry, every column consistent."""
+        f, bounds = self.choice(list(self.lists.items()))
+        col = list(d[f])
+        n = len(col)
+        how = int(self.rng.integers(5))
+        d = dict(d)
+        i = int(self.rng.integers(n))
+        if how == 0:
+            d[f] = self.choice([None, 0, 1.5, "r1", b"\x00", {"0": col[0]}])
+        elif how == 1:
+            d[f] = col[:-1] if self.rng.random() < 0.5 else [*col, "r7" if bounds is None else col[-1]]
+        elif how == 2:
+            wrong: list[Any] = (
+                [None, 1, 1.5, True, b"r1", ["r1"], {"id": "r1"}] if bounds is None
+                else [None, 1.5, 2.0, True, False, "1", b"\x01", [1], {"a": 1}]
+            )  # fmt: skip
+            col[i] = self.choice(wrong)
+            d[f] = col
+        elif how == 3:
+            if bounds is None:
+                col[i] = self.choice(["", "r1/x", "r 1", "x" * 33, "r1\n", "*", *col[:i], *col[i + 1 :]])
+            else:
+                lo, hi = bounds[0], d["step"] if bounds[1] == -1 else bounds[1]
+                col[i] = self.choice([lo - 1, hi + 1, hi + 2**40, -(2**63)])
+            d[f] = col
+        else:
+            m = MAX_RELAYED + 1 + int(self.rng.integers(0, 8))
+            reps = [j % n for j in range(m)]
+            d["ids"] = [f"r{j + 1}" for j in range(m)]
+            for name in ("steps", "priority", "rank", "phase"):
+                d[name] = [d[name][j] for j in reps]
+            for name in ("footprint", "committed", "target", "goal"):
+                a = np.frombuffer(d[name]["data"]).reshape(d[name]["shape"])
+                d[name] = _arr(a[reps])
+        return d, True
+
     def _array_nonfinite(self, d: dict[str, Any], robot: str) -> tuple[dict[str, Any], bool]:
         f = self.choice(list(self.arrays))
         a = np.frombuffer(d[f]["data"]).copy()
@@ -487,11 +556,11 @@ class Generator:
         how = int(self.rng.integers(10))
         if how == 0:  # wrong number of dimensions
             a["shape"] = self.choice(
-                [[], [*shape, 1], [1, *shape]] + ([[math.prod(shape)]] if len(spec) == 2 else [])
+                [[], [*shape, 1], [1, *shape]] + ([[math.prod(shape)]] if len(spec) >= 2 else [])
             )
-        elif how == 1:  # wrong fixed dimension, same data
-            wrong = [n for n in (1, 2, 3, 4, 5) if n != spec[-1]]
-            a["shape"] = [shape[0], self.choice(wrong)] if len(spec) == 2 else [self.choice(wrong)]
+        elif how == 1:  # wrong last dimension, same data
+            wrong = [n for n in (1, 2, 3, 4, 5) if n != shape[-1]]
+            a["shape"] = [*shape[:-1], self.choice(wrong)]
         elif how == 2:  # zero or negative dimension
             a["shape"] = [self.choice([0, -1, -shape[0]]), *shape[1:]]
         elif how == 3:  # dimensions that are not integers
@@ -502,9 +571,9 @@ class Generator:
             cut = int(self.rng.integers(1, 9))
             a["data"] = a["data"][:-cut] if self.rng.random() < 0.5 else a["data"] + self.rng.bytes(cut)
         elif how == 6:  # a plausible shape that does not match the data
-            if len(spec) == 2:
+            if len(spec) >= 2:
                 n = self.choice([r for r in (1, 2, 5, 19, 21, 50, MAX_HORIZON) if r != shape[0]])
-                a["shape"] = [n, 2]
+                a["shape"] = [n, *shape[1:]]
             else:
                 a["data"] = a["data"] + a["data"]
         elif how == 7:  # data not bytes
@@ -516,7 +585,7 @@ class Generator:
             else:
                 a["order"] = "C"
         else:  # empty array
-            a = {"dtype": "<f8", "shape": [0, 2] if len(spec) == 2 else [0], "data": b""}
+            a = {"dtype": "<f8", "shape": [0, *shape[1:]], "data": b""}
         d = dict(d)
         d[f] = a
         return d, True
@@ -527,10 +596,11 @@ class Generator:
         a = dict(d[f])
         if self.rng.random() < 0.6:  # a huge declared shape over the few real bytes
             n = self.choice([MAX_HORIZON + 1, 10**6, 2**31, 2**32 + 1, 2**62, 2**63 - 1, 2**64 - 1, -(2**63)])
-            a["shape"] = [n, 2] if len(spec) == 2 else [n]
-        else:  # a real array longer than the horizon allows, under MAX_PAYLOAD
+            a["shape"] = [n, *a["shape"][1:]]
+        else:  # a real array longer than the horizon allows, under MAX_PAYLOAD per robot
             rows = int(self.rng.integers(MAX_HORIZON + 1, 3500))
-            a = _arr(self.rng.uniform(-1, 1, (rows, 2) if len(spec) == 2 else (2 * rows,)))
+            big = {1: (2 * rows,), 2: (rows, 2), 3: (a["shape"][0], rows, 2)}[len(spec)]
+            a = _arr(self.rng.uniform(-1, 1, big))
         d = dict(d)
         d[f] = a
         return d, True

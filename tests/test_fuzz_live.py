@@ -1,10 +1,12 @@
 """Malformed and hostile payloads on every key of a live fleet (issue 5).
 
 A real ``fleet run`` of ``paper_three_robots`` (tracker, supervisor, three agents, each its own
-OS process) is fuzzed from this process over Zenoh: 10,000 generated invalid payloads per
-message type (``tests/fuzzing.py``) are published on the keys where the live processes decode
-that type (and on a few hostile keys: an unknown robot, a bad id, an id with a line break),
-while the run goes on.  Checked from outside: every process stays alive through the fuzz; the
+OS process) is fuzzed from this process over Zenoh, once with the plans exchanged peer to peer
+(``--exchange mesh``) and once relayed by the tracker (``relay``: the agents then decode the
+tracker's digest, and not the plans): 10,000 generated invalid payloads per message type
+(``tests/fuzzing.py``) are published on the keys where the live processes decode that type
+(and on a few hostile keys: an unknown robot, a bad id, an id with a line break), while the
+run goes on.  Checked from outside: every process stays alive through the fuzz; the
 run's own verdict is unchanged (exit 0: completed, no collision, every goal reached); no
 payload reaches a controller (every goal stays the scenario's, no agent even examined a goal);
 every process counts exactly the payloads sent to its keys (the supervisor in summary.json,
@@ -16,7 +18,7 @@ them at once to the stderr they share.
 
 Why the realtime clock: a lockstep run of this scene takes ≈ 3 s of wall time and ends whenever
 the agents are done, so the fuzz could not be spread over it; a realtime run lasts its 39.2 s of
-simulated time on the wall clock, which leaves a fixed window for ≈ 90,000 payloads sent at a
+simulated time on the wall clock, which leaves a fixed window for ≈ 90,000–100,000 payloads sent at a
 measured pace, and its deadlines make a flood that steals the control loops' time visible
 (deadline misses) instead of just slowing the run down.  Rejecting a payload costs a receiving
 process ≈ 60–90 µs of CPU (Zenoh's Python callback, then the strict decode), so the fuzz adds
@@ -92,6 +94,7 @@ TARGETS: dict[str, list[tuple[str, int | None]]] = {
     "cmd": [("cmd/r1", None), ("cmd/r2", None), ("cmd/r3", None), ("cmd/r9", 50), ("cmd/r1.x", 50)],
     "goal": [("goal/r1", None), ("goal/r2", None), ("goal/r3", None)],
     "tick": [("clock", None)],
+    "digest": [("digest", None)],
     "wheels": [("wheels/r1", None), ("wheels/r2", None), ("wheels/r3", None)],
 }
 """Where each type's payloads go.  Nothing decodes Wheels in a fleet (epuck_link publishes
@@ -99,14 +102,20 @@ them, no process subscribes), so the Wheels payloads also go to the agents' odom
 their live decoder closest in meaning: ``MIRROR``."""
 MIRROR = {"wheels": ("odom", Odom)}
 
-RECEIVERS: dict[str, tuple[str, ...]] = {
-    "tracker": ("cmd/*", "plan/*"),
-    "supervisor": ("truth/*", "pose/*", "plan/*", "clock"),
-    **{f"agent {r}": (f"pose/{r}", f"odom/{r}", "plan/*", f"goal/{r}", "clock") for r in ROBOTS},
+RECEIVERS: dict[str, dict[str, tuple[str, ...]]] = {
+    exchange: {
+        "tracker": ("cmd/*", "plan/*"),
+        "supervisor": ("truth/*", "pose/*", "plan/*", "clock"),
+        **{f"agent {r}": (f"pose/{r}", f"odom/{r}", theirs, f"goal/{r}", "clock") for r in ROBOTS},
+    }
+    for exchange, theirs in (("mesh", "plan/*"), ("relay", "digest"))
 }
-"""What each process of a simulated fleet decodes (tracker/sim.py, supervisor/monitor.py,
-agent/node.py; an agent takes the plans of every key but its own publications, and this
-test is remote to it, so plan/<its id> reaches it too)."""
+"""What each process of a simulated fleet decodes, per ``--exchange`` (tracker/sim.py,
+supervisor/monitor.py, agent/node.py).  In the mesh an agent takes the plans of every key but
+its own publications, and this test is remote to it, so plan/<its id> reaches it too; with
+relayed plans it takes the tracker's digest instead, and no plan."""
+NOT_IN = {"mesh": ("digest",), "relay": ()}
+"""Types nobody decodes in a fleet of that exchange (nobody subscribes to the digest in the mesh)."""
 
 
 def _matches(pattern: str, key: str) -> bool:
@@ -115,9 +124,9 @@ def _matches(pattern: str, key: str) -> bool:
     return len(p) == len(k) and all(a == "*" or a == b for a, b in zip(p, k, strict=True))
 
 
-def receivers(key: str) -> list[str]:
-    """Roles that decode payloads published on ``key`` (below fleet/lab/)."""
-    return [role for role, pats in RECEIVERS.items() if any(_matches(p, key) for p in pats)]
+def receivers(key: str, exchange: str) -> list[str]:
+    """Roles that decode payloads published on ``key`` (below fleet/lab/) with ``exchange``."""
+    return [role for role, pats in RECEIVERS[exchange].items() if any(_matches(p, key) for p in pats)]
 
 
 # ------------------------------------------------------------------------------ the corpus
@@ -136,7 +145,7 @@ def verdict(key: str, typ: type[Message], data: bytes) -> str:
     """The receiving side's decision, exactly as fleet.runtime.Inbox's subscriber takes it."""
     full = f"{KEYS.root}/{key}"
     try:
-        rid = None if full.endswith("/clock") else KEYS.robot_of(full)
+        rid = None if full.endswith(("/clock", "/digest")) else KEYS.robot_of(full)
         decode(data, typ, robot=rid)
     except WireError:
         return "rejected"
@@ -146,8 +155,9 @@ def verdict(key: str, typ: type[Message], data: bytes) -> str:
 
 
 def _robot_for(key: str) -> str | None:
-    """The id a payload for ``key`` is built for (None: the clock; r1 on keys with a bad id)."""
-    if key == "clock":
+    """The id a payload for ``key`` is built for (None: the clock and the digest, whose keys name
+    no robot; r1 on keys with a bad id)."""
+    if key in ("clock", "digest"):
         return None
     try:
         return KEYS.robot_of(f"{KEYS.root}/{key}")
@@ -219,7 +229,8 @@ def test_generated_payloads_are_all_rejected_by_the_decoder():
         assert len(items) == PER_TYPE
         kinds = Counter(it.payload.kind for it in items)
         gen = Generator(name, np.random.default_rng(0))
-        assert set(kinds) == set(gen.kinds) - ({"claims"} if name == "tick" else set()), (name, kinds)
+        nobody = name in ("tick", "digest")  # their keys name no robot: nothing to claim
+        assert set(kinds) == set(gen.kinds) - ({"claims"} if nobody else set()), (name, kinds)
         assert min(kinds.values()) >= 30, (name, kinds)
         sizes = [len(it.payload.data) for it in items]
         assert min(sizes) == 0 and max(sizes) > MAX_PAYLOAD, name
@@ -395,26 +406,33 @@ def _interleave(lists: list[list[Item]]) -> list[Item]:
 
 @pytest.mark.slow
 @pytest.mark.timeout(400)
-def test_live_fleet_rejects_fuzzed_payloads_on_every_key(tmp_path):
+@pytest.mark.parametrize("exchange", ["mesh", "relay"])
+def test_live_fleet_rejects_fuzzed_payloads_on_every_key(tmp_path, exchange):
     import zenoh
 
     corpus = build_corpus()
-    sendable = [it for items in corpus.items.values() for it in items]
-    sendable += [it for items in corpus.mirrored.values() for it in items]
+    names = [n for n in NAMES if n not in NOT_IN[exchange]]
+    roles = RECEIVERS[exchange]
+
+    def takers(key: str) -> list[str]:
+        return receivers(key, exchange)
+
+    sendable = [it for n in names for it in corpus.items[n]]
+    sendable += [it for n, items in corpus.mirrored.items() if n in names for it in items]
     per_key = {}
     for it in sendable:
         per_key.setdefault(it.key, []).append(it)
     # One probe per key that somebody decodes: the first of its payloads.
-    probes = {key: its[0] for key, its in per_key.items() if receivers(key)}
+    probes = {key: its[0] for key, its in per_key.items() if takers(key)}
     probe_ids = {id(it) for it in probes.values()}
-    lists = [corpus.items[n] for n in NAMES] + list(corpus.mirrored.values())
+    lists = [corpus.items[n] for n in names] + [v for n, v in corpus.mirrored.items() if n in names]
     order = [it for it in _interleave(lists) if id(it) not in probe_ids]
 
     port = free_port()
     hub = loopback(port)
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "fleet.cli", "run", str(SCENARIO), "--out", str(out),
-           "--clock", "realtime", "--listen", hub]  # fmt: skip
+           "--clock", "realtime", "--exchange", exchange, "--listen", hub]  # fmt: skip
     t_launch = time.monotonic()
     launcher = subprocess.Popen(
         cmd, cwd=ROOT, env=ENV, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
@@ -458,7 +476,7 @@ def test_live_fleet_rejects_fuzzed_payloads_on_every_key(tmp_path):
             role = _role_of(c)
             if role is not None:
                 pids[role] = c
-        assert set(pids) == set(RECEIVERS), pids
+        assert set(pids) == set(roles), pids
 
         pubs = {
             key: session.declare_publisher(
@@ -473,7 +491,7 @@ def test_live_fleet_rejects_fuzzed_payloads_on_every_key(tmp_path):
 
         # Probe: one payload per key, again every 2 s on the keys some receiver has not logged,
         # until every receiving process has logged its first rejection from every key.
-        awaited = {(role, key) for key in probes for role in receivers(key)}
+        awaited = {(role, key) for key in probes for role in takers(key)}
         pending = dict(probes)
         extra = {key: iter(per_key[key][1:]) for key in probes}
         deadline = time.monotonic() + 30
@@ -547,17 +565,18 @@ def test_live_fleet_rejects_fuzzed_payloads_on_every_key(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
 
     # What each process should have counted: every payload sent on a key it decodes.
-    expected = {role: sum(n for key, n in sent.items() if role in receivers(key)) for role in RECEIVERS}
-    slack = {role: sum(probe_sends[k] - 1 for k in probe_sends if role in receivers(k)) for role in RECEIVERS}
+    expected = {role: sum(n for key, n in sent.items() if role in takers(key)) for role in roles}
+    slack = {role: sum(probe_sends[k] - 1 for k in probe_sends if role in takers(k)) for role in roles}
     counted: dict[str, int | None] = {"supervisor": summary.get("rejected_payloads")}
-    for role in RECEIVERS:
+    for role in roles:
         if role != "supervisor":
             counted[role] = final_count(text, role)
     logged = reject_lines(lines)
-    want_lines = Counter({(role, key): 1 for key in sent for role in receivers(key)})
+    want_lines = Counter({(role, key): 1 for key in sent for role in takers(key)})
     misses = summary.get("deadline_misses")
     report = {
-        "sent_per_type": {n: len(corpus.items[n]) for n in NAMES},
+        "exchange": exchange,
+        "sent_per_type": {n: len(corpus.items[n]) for n in names},
         "mirrored": {n: len(v) for n, v in corpus.mirrored.items()},
         "sent_total": sum(sent.values()),
         "expected_rejections": expected,
@@ -621,7 +640,7 @@ def test_live_fleet_rejects_fuzzed_payloads_on_every_key(tmp_path):
         )
 
     # Every rejection counted, by every process.
-    for role in RECEIVERS:
+    for role in roles:
         lo, hi = expected[role] - slack[role], expected[role]
         if counted[role] is None:
             problems.append(f"{role} does not report its count of rejected payloads ({hi} sent to it)")
