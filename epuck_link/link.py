@@ -20,6 +20,19 @@ Out:
 * with every encoder read, :class:`~fleet.wire.Wheels` on ``fleet/F/wheels/R``:
   the unwrapped counts and (v, ω) from their deltas.
 
+Deadline (docs/runtime-notes.md, "Missed deadlines"): step k starts when the
+link receives tick k on ``fleet/F/clock``, and its command must come within
+``--deadline``·Ts (0.5 by default, as for simulated robots).  Without it, the
+link follows the shifted candidate of the last command it applied, with the
+ancillary law ``u = v̂ + K(x − x̂)`` on the state it measured at the tick, or
+stops the wheels when there is nothing left to follow or the agent is silent or
+dead (:class:`fleet.robot_side.LinkDeadline`).  A command that comes after its
+deadline is not applied.  At each decision the link publishes an
+:class:`~fleet.wire.Applied` report on ``fleet/F/applied/R``; the tracker puts it
+in the next tick, so the agent takes the same candidate and its neighbours skip
+the plan that was never executed.  Until the first tick (no clock on the
+network) commands are applied as they come.
+
 Watchdog: without a command fresher than ``--watchdog`` seconds, or once the
 agent's liveliness token ``fleet/F/alive/R`` is gone, the wheels get zero speed
 (and ``q`` is reset to zero) until a new command arrives from a live agent.
@@ -47,7 +60,14 @@ from typing import Any
 
 import numpy as np
 
-from agent.models import InnerLoop, integrate_unicycle, make_inner_loop, unicycle_from_wheels, wrap_angle
+from agent.models import (
+    InnerLoop,
+    integrate_unicycle,
+    make_inner_loop,
+    measured_state,
+    unicycle_from_wheels,
+    wrap_angle,
+)
 from agent.params import WheelGeometry
 from agent.sets import Array
 from epuck_link import protocol as P
@@ -62,7 +82,8 @@ from epuck_link.transport import (
     make_transport,
     parse_link,
 )
-from fleet.wire import Command, Keys, Odom, Pose, Wheels
+from fleet.robot_side import BRAKED, CANDIDATE, LinkDeadline
+from fleet.wire import Command, Keys, Odom, Pose, Tick, Wheels
 
 MIN_RATE = 50.0
 """Slowest inner loop allowed [Hz] (docs/runtime-notes.md: the prediction error grows below)."""
@@ -184,6 +205,13 @@ class WheelOdometry:
 
 
 # ------------------------------------------------------------------- shell
+_OFF = {
+    CANDIDATE: "following the shifted candidate of the last command applied",
+    BRAKED: "nothing to follow; zero speed",
+}
+"""How each kind of step without a command in time is logged, at the start of its episode."""
+
+
 def _emulated(robot: str, start: tuple[float, float, float], pub: Any) -> tuple[Transport, Codec, Any]:
     """The ``emulator`` link: an in-process emulator behind a loop transport, publishing its truth."""
     from epuck_link.emulator import EpuckEmulator, TruthPublisher
@@ -194,7 +222,16 @@ def _emulated(robot: str, start: tuple[float, float, float], pub: Any) -> tuple[
 
 
 def main(argv: list[str] | None = None) -> int:
-    from fleet.runtime import Inbox, add_common_args, announce, load_validated, log, open_session, publisher
+    from fleet.runtime import (
+        Inbox,
+        add_common_args,
+        announce,
+        fault_plan,
+        load_validated,
+        log,
+        open_session,
+        publisher,
+    )
     from fleet.scenario import ConfigError
 
     ap = argparse.ArgumentParser(prog="python -m epuck_link", description=__doc__.splitlines()[0])
@@ -207,6 +244,10 @@ def main(argv: list[str] | None = None) -> int:
         "--watchdog", type=float, default=0.5, help="stop without a fresh command for this long [s]"
     )
     ap.add_argument("--rate", type=float, default=MIN_RATE, help=f"inner-loop rate [Hz], ≥ {MIN_RATE:.0f}")
+    ap.add_argument(
+        "--deadline", type=float, default=0.5,
+        help="a step's command is due this long after its tick, as a fraction of Ts (as the tracker's)",
+    )  # fmt: skip
     args = ap.parse_args(argv)
     me = args.robot
     role = f"epuck_link {me}"
@@ -229,6 +270,8 @@ def main(argv: list[str] | None = None) -> int:
         return fail("--watchdog", f"{args.watchdog} s outside (0, 10]")
     if not (math.isfinite(args.rate) and MIN_RATE <= args.rate <= 1000):
         return fail("--rate", f"{args.rate} Hz outside [{MIN_RATE:.0f}, 1000]")
+    if not (math.isfinite(args.deadline) and 0 < args.deadline < 1):
+        return fail("--deadline", f"{args.deadline} outside (0, 1)")
     try:
         link: LinkSpec = parse_link(args.link if args.link is not None else spec.link)
     except ValueError as e:
@@ -242,16 +285,19 @@ def main(argv: list[str] | None = None) -> int:
     geom = p.wheel
     drive = Drive(make_inner_loop(p.lookahead, p.v_min), geom, np.array(spec.start, dtype=float))
     watchdog = Watchdog(args.watchdog)
+    judge = LinkDeadline(me, design, args.watchdog, args.deadline * p.Ts)
     keys = Keys(args.fleet)
     session = open_session(args)
-    inbox = Inbox(keys, role)
+    inbox = Inbox(keys, role, fault_plan(args))
     subs = [
         inbox.subscribe(session, keys.cmd(me), Command),
         inbox.subscribe(session, keys.pose(me), Pose, keep=True),  # each pose is answered
+        inbox.subscribe(session, keys.clock, Tick),
         inbox.watch_liveliness(session),
     ]
     pub_odom = publisher(session, keys.odom(me))
     pub_wheels = publisher(session, keys.wheels(me))
+    pub_applied = publisher(session, keys.applied(me))
     truth = None
     if link.kind == "emulator":
         transport, codec, truth = _emulated(me, spec.start, publisher(session, keys.emu(me)))
@@ -279,33 +325,70 @@ def main(argv: list[str] | None = None) -> int:
     announce("epuck_link", robot=me, link=str(link), rate=args.rate, watchdog=args.watchdog)
     period = 1.0 / args.rate
     seen_cmd: Command | None = None
+    seen_tick: Tick | None = None
     last_cmd_at: float | None = None
     a = np.zeros(2)
+    braked = False
+    """Stopped by the deadline's rule (nothing to follow) until a command is applied."""
+    episode = ""
+    """What the robot did instead of the last commands: "", CANDIDATE or BRAKED (logged once)."""
     odoms = 0
+    off_steps = {CANDIDATE: 0, BRAKED: 0}
     now = time.monotonic()
     due = last = now
 
     poses = (Pose.TYPE, me)
 
     def news() -> bool:
-        return stopping.is_set() or inbox.get(Command, me) is not seen_cmd or bool(inbox.history.get(poses))
+        return (
+            stopping.is_set()
+            or inbox.get(Command, me) is not seen_cmd
+            or inbox.get(Tick, "tracker") is not seen_tick
+            or bool(inbox.history.get(poses))
+        )
 
     try:
         while not stopping.is_set():
-            inbox.wait(news, max(0.0, due - time.monotonic()))
+            inbox.wait(news, max(0.0, min(due, judge.wake_at) - time.monotonic()))
             now = time.monotonic()
             with inbox.cond:
                 cmd = inbox.get(Command, me)
+                tick = inbox.get(Tick, "tracker")
                 fresh_poses = list(inbox.history.pop(poses, {}).values())  # in order of arrival
                 live = me in inbox.live
-            if cmd is not seen_cmd and cmd is not None:
-                seen_cmd, last_cmd_at = cmd, now
-                a = np.array([cmd.ax, cmd.ay])
             for pose in fresh_poses:
                 drive.on_pose(pose.x, pose.y, pose.theta)
                 vx, vy = drive.velocity()
                 pub_odom.put(Odom(robot=me, seq=pose.seq, t=pose.t, vx=vx, vy=vy).encode())
                 odoms += 1
+            decisions = []
+            if tick is not seen_tick and tick is not None:
+                seen_tick = tick
+                if not tick.stop:  # the state at the tick: the camera pose of this step, and q
+                    x_k = measured_state(drive.pose, np.array(drive.velocity()), p.lookahead)
+                    decisions += judge.tick(tick.step, now, x_k, cmd, live)
+            if cmd is not seen_cmd and cmd is not None:
+                seen_cmd, last_cmd_at = cmd, now
+                if judge.step is None:  # no clock yet: applied as it comes
+                    a, braked = np.array([cmd.ax, cmd.ay]), False
+                elif (taken := judge.command(cmd, now, live)) is not None:
+                    decisions.append(taken)
+            if (expired := judge.expire(now, cmd, live)) is not None:
+                decisions.append(expired)
+            for what, acc, report in decisions:
+                pub_applied.put(report.encode())
+                braked = what == BRAKED
+                if acc is not None:
+                    a = np.asarray(acc, dtype=float)
+                if what in off_steps:
+                    off_steps[what] += 1
+                    if what != episode:
+                        log(
+                            role, f"step {report.step}: no command in time; {_OFF[what]} (step {report.last})"
+                        )
+                elif episode:
+                    log(role, f"step {report.step}: commands in time again")
+                episode = what if what in off_steps else ""
             if now < due:
                 continue
             ok, event = watchdog.check(now, last_cmd_at, live)
@@ -313,7 +396,7 @@ def main(argv: list[str] | None = None) -> int:
                 log(role, event)
             dt = min(now - last, MAX_DT)
             last = now
-            if ok:
+            if ok and not braked:
                 left, right = drive.step(a, dt)
             else:
                 drive.halt()
@@ -330,7 +413,8 @@ def main(argv: list[str] | None = None) -> int:
             role,
             f"stopped: zero speed {'sent' if sent else 'NOT sent'}; {port.reads} encoder reads, "
             f"{port.lost} link losses, {watchdog.events} watchdog stops, {odoms} odometry messages, "
-            f"{drive.saturated_steps} saturated steps, {inbox.rejects.total} rejected payloads",
+            f"{drive.saturated_steps} saturated steps, {off_steps[CANDIDATE]} steps on the candidate, "
+            f"{off_steps[BRAKED]} braked by the deadline's rule, {inbox.rejects.total} rejected payloads",
         )
         for s in subs:
             s.undeclare()

@@ -20,7 +20,7 @@ default-deny and grants, for fleet ``F`` (keys of :mod:`fleet.wire`):
 identity        may publish (put)                                       liveliness token
 ==============  ======================================================  =====================
 robot ``R``     ``F/plan/R`` ``F/cmd/R`` ``F/odom/R`` ``F/wheels/R``     ``F/alive/R``
-                ``F/emu/R``
+                ``F/emu/R`` ``F/applied/R``
 ``tracker``     ``F/pose/*`` ``F/truth/*`` ``F/clock``                  —
                 (and ``F/odom/*`` and ``F/digest`` with ``sim_tracker``:
                 the simulated tracker plays every robot's side and
@@ -219,7 +219,12 @@ def acl_json(robots: Sequence[str], fleet: str = "lab", sim_tracker: bool = Fals
     ]
     for r in robots:
         rules += [
-            rule(f"publish-{r}", ["put"], "ingress", [k.plan(r), k.cmd(r), k.odom(r), k.wheels(r), k.emu(r)]),
+            rule(
+                f"publish-{r}",
+                ["put"],
+                "ingress",
+                [k.plan(r), k.cmd(r), k.odom(r), k.wheels(r), k.emu(r), k.applied(r)],
+            ),
             rule(f"token-{r}", ["liveliness_token"], "ingress", [k.alive(r)]),
         ]
         subjects.append({"id": f"robot-{r}", "cert_common_names": [r]})

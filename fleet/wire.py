@@ -21,6 +21,7 @@ Keys, for a fleet named ``F`` and a robot id ``R``:
 ``fleet/F/digest``         tracker → agents: one step's plans, relayed (:class:`Digest`)
 ``fleet/F/alive/R``        liveliness token of agent R
 ``fleet/F/wheels/R``       ``epuck_link`` → all: wheel odometry (:class:`Wheels`)
+``fleet/F/applied/R``      ``epuck_link`` → tracker: what the robot did over a step (:class:`Applied`)
 ``fleet/F/emu/R``          e-puck emulator → tests: its true pose (:class:`Truth`)
 =========================  ==============================================
 
@@ -95,6 +96,9 @@ class Keys:
 
     def emu(self, robot: str = "*") -> str:
         return f"{self.root}/emu/{robot}"
+
+    def applied(self, robot: str = "*") -> str:
+        return f"{self.root}/applied/{robot}"
 
     @property
     def clock(self) -> str:
@@ -392,8 +396,8 @@ class Tick(Message):
     """Robots whose command of step ``step − 1`` the robot side did not apply, and
     followed instead the shifted candidate of its last applied command: robot id →
     the step of that command.  At most 64 robots; in lockstep only for commands lost or
-    not sent within the timeout; always empty from the camera tracker (whose robot sides,
-    the ``epuck_link`` processes, have no deadline)."""
+    not sent within the timeout.  From the camera tracker, and for emulated robots, it is
+    what the ``epuck_link`` processes reported (:class:`Applied`)."""
     braked: dict[str, int] = field(default_factory=dict)
     """Robots that the robot side braked over step ``step − 1`` instead (dead or silent
     agent, or nothing left to follow): robot id → the step of its last applied
@@ -563,8 +567,45 @@ class Wheels(Message):
         }
 
 
+@dataclass(frozen=True)
+class Applied(Message):
+    """``epuck_link`` → tracker: what the robot side applied over step ``step``, decided at
+    that step's deadline (``--deadline``·Ts after the link received tick ``step``).
+
+    The camera tracker, and the tracker of emulated robots, put it in the next tick
+    (:attr:`Tick.fallback`, :attr:`Tick.braked`), so that the agent takes the same
+    candidate and its neighbours skip the plan that was never executed, as with
+    simulated robots (docs/runtime-notes.md, "Missed deadlines")."""
+
+    TYPE: ClassVar[str] = "applied"
+    step: int
+    last: int
+    """The step of the last command applied, −1 if none, ≤ ``step``: ``step`` itself when the
+    command of this step came in time; otherwise the robot followed that command's candidate
+    over this step, or braked."""
+    braked: bool
+    """The robot was braked over this step instead (dead or silent agent, nothing to follow)."""
+
+    @classmethod
+    def _check(cls, d: dict[str, Any]) -> dict[str, Any]:
+        if not isinstance(d["braked"], bool):
+            raise WireError("braked: expected a boolean")
+        step = _int(d["step"], "step")
+        last = _int(d["last"], "last", -1, step)
+        if last == step and d["braked"]:
+            raise WireError("braked: a step whose command was applied")
+        if last < 0 and not d["braked"]:
+            raise WireError("last: no command applied, so nothing to follow: braked must be true")
+        return {"step": step, "last": last, "braked": d["braked"]}
+
+    @property
+    def on_time(self) -> bool:
+        """The command of this step was applied."""
+        return self.last == self.step
+
+
 MESSAGES: dict[str, type[Message]] = {
-    m.TYPE: m for m in (Pose, Truth, Odom, Plan, Command, Goal, Tick, Digest, Wheels)
+    m.TYPE: m for m in (Pose, Truth, Odom, Plan, Command, Goal, Tick, Digest, Wheels, Applied)
 }
 
 

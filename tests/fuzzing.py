@@ -1,19 +1,19 @@
 """Hostile-payload generators for the fuzz tests (``tests/test_fuzz_live.py``).
 
-``Generator(name, rng).make(robot)`` returns one :class:`Payload` aimed at the decoder of the
-message type ``name`` (``pose``, ``truth``, ``odom``, ``plan``, ``cmd``, ``goal``, ``tick``,
-``wheels``, ``digest``) on the key of robot ``robot``.  Every *kind* but two builds a payload that the wire
-contract (``fleet/wire.py``) rejects by construction (``strict``): garbage that is not msgpack,
-msgpack that is not a map, a wrong schema version or message type, missing or extra fields,
-NaN/±inf in a number or inside an array, a wrong array dtype, shape or byte length, a huge
-declared shape, a bad list (the digest's columns: wrong length, element type or range, a
-repeated or malformed id), a bool where an int is expected, an int out of range, a too-long or malformed
-string, a payload over ``MAX_PAYLOAD``, a message of another type, and a message (realistic,
-otherwise valid) claiming another robot's id.  The two random kinds (``garbage``: random
-bytes, ``mutate``: byte flips of a valid message) may produce a valid message by chance; the
-caller drops those (a valid message is not a malformed one: hostile *valid* messages are a
-matter for access control, not for the decoders).
-"""
+``Generator(name, rng).make(robot)`` returns one :class:`Payload` aimed at the decoder of
+the message type ``name`` (``pose``, ``truth``, ``odom``, ``plan``, ``cmd``, ``goal``,
+``tick``, ``wheels``, ``digest``, ``applied``) on the key of robot ``robot``. Every *kind*
+but two builds a payload that the wire contract (``fleet/wire.py``) rejects by construction
+(``strict``): garbage that is not msgpack, msgpack that is not a map, a wrong schema version
+or message type, missing or extra fields, NaN/±inf in a number or inside an array, a wrong
+array dtype, shape or byte length, a huge declared shape, a bad list (the digest's columns:
+wrong length, element type or range, a repeated or malformed id), a bool where an int is
+expected, an int out of range, a too-long or malformed string, a payload over
+``MAX_PAYLOAD``, a message of another type, and a message (realistic, otherwise valid)
+claiming another robot's id. The two random kinds (``garbage``: random bytes, ``mutate``:
+byte flips of a valid message) may produce a valid message by chance; the caller drops those
+(a valid message is not a malformed one: hostile *valid* messages are a matter for access
+control, not for the decoders)."""
 
 from __future__ import annotations
 
@@ -30,6 +30,7 @@ from fleet.wire import (
     MAX_PAYLOAD,
     MAX_RELAYED,
     SCHEMA_VERSION,
+    Applied,
     Command,
     Digest,
     Goal,
@@ -43,7 +44,7 @@ from fleet.wire import (
 )
 
 TYPES: dict[str, type[Message]] = {
-    m.TYPE: m for m in (Pose, Truth, Odom, Plan, Command, Goal, Tick, Wheels, Digest)
+    m.TYPE: m for m in (Pose, Truth, Odom, Plan, Command, Goal, Tick, Wheels, Digest, Applied)
 }
 NAMES = tuple(TYPES)
 
@@ -58,6 +59,7 @@ FLOATS: dict[str, tuple[str, ...]] = {
     "tick": ("t",),
     "wheels": ("t", "v", "omega"),
     "digest": ("Ts",),
+    "applied": (),
 }
 """Number fields (int or float accepted, finite)."""
 INTS: dict[str, dict[str, tuple[int, int]]] = {
@@ -70,9 +72,12 @@ INTS: dict[str, dict[str, tuple[int, int]]] = {
     "tick": {"step": _SEQ, "misses": _SEQ},
     "wheels": {"seq": _SEQ, "left_steps": (-(2**62), 2**62), "right_steps": (-(2**62), 2**62)},
     "digest": {"step": _SEQ},
+    "applied": {"step": _SEQ, "last": (-1, 2**62)},
 }
 """Integer fields and their accepted closed ranges."""
-BOOLS: dict[str, tuple[str, ...]] = {"plan": ("tube_ok",), "tick": ("stop",), "cmd": ("fallback",)}
+BOOLS: dict[str, tuple[str, ...]] = {
+    "plan": ("tube_ok",), "tick": ("stop",), "cmd": ("fallback",), "applied": ("braked",),
+}  # fmt: skip
 ARRAYS: dict[str, dict[str, tuple[int | None, ...]]] = {
     "plan": {"committed": (None, 2), "nominal": (None, 2), "target": (2,), "goal": (2,)},
     "goal": {"goal": (2,)},
@@ -177,6 +182,11 @@ def realistic(name: str, robot: str, rng: np.random.Generator) -> Message:
             robot=robot, step=k, t=t, stop=False, misses=int(rng.integers(0, 3)), fallback=late,
             braked={"r9": -1} if rng.random() < 0.3 else {},
         )  # fmt: skip
+    if name == "applied":
+        last = k - int(rng.integers(0, 4))
+        return Applied(
+            robot=robot, step=k, last=max(last, -1), braked=last < 0 or (last < k and rng.random() < 0.3)
+        )
     if name == "digest":
         plans = [realistic("plan", r, rng) for r in ("r1", "r2", "r3")[: int(rng.integers(1, 4))]]
         step = max(pl.step for pl in plans) + int(rng.integers(0, 3))

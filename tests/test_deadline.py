@@ -13,6 +13,7 @@ breaks all three; the last test shows it, so the others can fail.
 
 from __future__ import annotations
 
+import math
 import zlib
 from pathlib import Path
 
@@ -172,13 +173,13 @@ def test_more_rows_than_the_qp_holds_are_all_met_or_the_candidate_is_taken():
 
 
 def test_the_robot_side_follows_the_candidate_then_brakes():
-    """tracker.sim.RobotSide, step by step: a command in time is applied; a missing one is
+    """fleet.robot_side.RobotSide, step by step: a command in time is applied; a missing one is
     replaced by the candidate of the last applied command until it is used up; a late command
     keeps the watchdog quiet, silence does not; a dead agent's robot, a braked one and one whose
     agent has no plan yet are braked; without ``drives`` (epuck_link applies the commands) the
     last acceleration is held."""
+    from fleet.robot_side import BRAKED, CANDIDATE, COMMAND, HELD, RobotSide
     from fleet.wire import Command
-    from tracker.sim import BRAKED, CANDIDATE, COMMAND, HELD, RobotSide
 
     _, design = _controller()
     Ts = design.params.Ts
@@ -228,3 +229,57 @@ def test_remembered_steps_stay_bounded_and_keep_the_recent_ones():
         assert len(steps) <= 2 * STEPS_KEPT + 1
     remember_steps(steps, range(0, 1000), 1000)  # only the recent part of a long range
     assert min(steps) >= 1000 - 2 * STEPS_KEPT - 1 and len(steps) <= 2 * STEPS_KEPT + 1
+
+
+def test_epuck_link_takes_the_command_only_by_its_deadline():
+    """fleet.robot_side.LinkDeadline, the rule epuck_link applies at its own clock: step k
+    starts when tick k is received, its command is taken until ``deadline`` after that and
+    ignored later; without it the candidate of the last command applied is followed, with
+    the state measured at the tick, then the robot is braked; every decision is reported
+    (fleet.wire.Applied) once, as the tracker will put it in the next tick."""
+    from fleet.robot_side import BRAKED, CANDIDATE, COMMAND, LinkDeadline, tick_maps
+    from fleet.wire import Command
+
+    _, design = _controller()
+    A, B, K = design.A, design.B, design.K
+    v_next = np.array([[0.1, 0.0], [0.2, 0.0]])
+    x4, x5 = np.array([0.01, 0.0, 0.0, 0.0]), np.array([0.02, 0.01, 0.0, 0.0])
+
+    def cmd(k: int) -> Command:
+        return Command(
+            robot="r1", step=k, ax=k / 10, ay=0.0, fallback=True, x_next=np.zeros(4), v_next=v_next
+        )
+
+    judge = LinkDeadline("r1", design, watchdog=0.5, deadline=0.05)
+    assert judge.tick(4, 10.0, x4, None, True) == [] and judge.wake_at == 10.05
+    assert judge.expire(10.049, None, True) is None  # not due yet
+    what, a, rep = judge.command(cmd(4), 10.02, True)
+    assert what == COMMAND and np.array_equal(a, [0.4, 0.0])
+    assert (rep.robot, rep.step, rep.last, rep.braked, rep.on_time) == ("r1", 4, 4, False, True)
+    assert judge.wake_at == math.inf and judge.command(cmd(4), 10.03, True) is None  # decided once
+    # Step 5: no command by 10.15, so the candidate of step 4's command, from the state at tick 5.
+    assert judge.tick(5, 10.1, x5, cmd(4), True) == []
+    assert judge.expire(10.149, cmd(4), True) is None
+    what, a, rep = judge.expire(10.151, cmd(4), True)
+    assert what == CANDIDATE and np.array_equal(a, chain_input(np.zeros(4), v_next, 0, x5, A, B, K))
+    assert (rep.step, rep.last, rep.braked) == (5, 4, False)
+    assert judge.command(cmd(5), 10.16, True) is None  # late: not applied
+    # A command that comes before its tick is taken when the tick comes.
+    assert judge.command(cmd(6), 10.19, True) is None
+    [(what, a, rep)] = judge.tick(6, 10.2, x5, cmd(6), True)
+    assert what == COMMAND and rep.on_time and np.array_equal(a, [0.6, 0.0])
+    # A tick that comes before the last step's deadline decides that step first, without a command.
+    assert judge.tick(7, 10.3, x5, cmd(6), True) == []
+    [(w7, _, r7)] = judge.tick(8, 10.33, x5, cmd(6), True)
+    assert (w7, r7.step, r7.last) == (CANDIDATE, 7, 6)
+    w8, _, r8 = judge.expire(10.4, cmd(6), True)
+    assert (w8, r8.step, r8.last, r8.braked) == (CANDIDATE, 8, 6, False)
+    judge.tick(9, 10.43, x5, cmd(6), True)
+    w9, _, r9 = judge.expire(10.5, cmd(6), True)
+    assert (w9, r9.step, r9.last, r9.braked) == (BRAKED, 9, 6, True)  # v_next (2 steps) is used up
+    assert tick_maps({"r1": r7, "r2": r9, "r3": rep, "r4": None}) == ({"r1": 6}, {"r2": 6})
+    # A dead agent's robot is braked at once.
+    judge.tick(10, 10.6, x5, None, True)
+    assert judge.command(cmd(10), 10.61, True)[0] == COMMAND
+    judge.tick(11, 10.7, x5, cmd(10), False)
+    assert judge.expire(10.8, cmd(10), False)[0] == BRAKED

@@ -95,6 +95,7 @@ TARGETS: dict[str, list[tuple[str, int | None]]] = {
     "goal": [("goal/r1", None), ("goal/r2", None), ("goal/r3", None)],
     "tick": [("clock", None)],
     "digest": [("digest", None)],
+    "applied": [("applied/r1", None), ("applied/r2", None), ("applied/r3", None), ("applied/r9", 50)],
     "wheels": [("wheels/r1", None), ("wheels/r2", None), ("wheels/r3", None)],
 }
 """Where each type's payloads go.  Nothing decodes Wheels in a fleet (epuck_link publishes
@@ -104,14 +105,15 @@ MIRROR = {"wheels": ("odom", Odom)}
 
 RECEIVERS: dict[str, dict[str, tuple[str, ...]]] = {
     exchange: {
-        "tracker": ("cmd/*", "plan/*"),
+        "tracker": ("cmd/*", "plan/*", "applied/*"),
         "supervisor": ("truth/*", "pose/*", "plan/*", "clock"),
         **{f"agent {r}": (f"pose/{r}", f"odom/{r}", theirs, f"goal/{r}", "clock") for r in ROBOTS},
     }
     for exchange, theirs in (("mesh", "plan/*"), ("relay", "digest"))
 }
 """What each process of a simulated fleet decodes, per ``--exchange`` (tracker/sim.py,
-supervisor/monitor.py, agent/node.py).  In the mesh an agent takes the plans of every key but
+supervisor/monitor.py, agent/node.py; the tracker takes epuck_link's reports in every fleet,
+and ignores them for simulated robots).  In the mesh an agent takes the plans of every key but
 its own publications, and this test is remote to it, so plan/<its id> reaches it too; with
 relayed plans it takes the tracker's digest instead, and no plan."""
 NOT_IN = {"mesh": ("digest",), "relay": ()}

@@ -14,6 +14,7 @@ from fleet.wire import (
     MAX_PAYLOAD,
     MAX_RELAYED,
     SCHEMA_VERSION,
+    Applied,
     Command,
     Digest,
     Goal,
@@ -66,6 +67,7 @@ SAMPLES = {
         robot="tracker", step=12, t=1.2, stop=False, misses=3, fallback={"r2": 9}, braked={"r3": -1}
     ),
     "digest": Digest.of("tracker", 7, 0.1, 20, [_plan("r1"), _plan("r2"), _plan("r3")]),
+    "applied": Applied(robot="r1", step=9, last=7, braked=False),
 }
 
 
@@ -154,6 +156,12 @@ BAD = [
     ("digest: too many robots", lambda: _mutate(
         SAMPLES["digest"], ids=[f"r{i}" for i in range(MAX_RELAYED + 1)]), Digest, "payload"),
     ("digest: oversize", lambda: b"\x00" * (Digest.MAX_BYTES + 1), Digest, "payload"),
+    ("applied: a step after it", lambda: _mutate(SAMPLES["applied"], last=10), Applied, "last"),
+    ("applied: below -1", lambda: _mutate(SAMPLES["applied"], last=-2), Applied, "last"),
+    ("applied: braked on a command applied", lambda: _mutate(SAMPLES["applied"], last=9, braked=True),
+     Applied, "braked"),
+    ("applied: followed with nothing applied", lambda: _mutate(SAMPLES["applied"], last=-1), Applied, "last"),
+    ("applied: non-bool braked", lambda: _mutate(SAMPLES["applied"], braked=0), Applied, "braked"),
 ]  # fmt: skip
 
 

@@ -28,13 +28,14 @@ Accuracy on synthetic frames (``tests/test_camera.py``: 1600×1200 px, 30°
 oblique view, 5 cm markers of 18–28 px, Gaussian blur σ 0.8 px, noise σ 2
 grey levels, fitted homography): position error ≤ 0.4 mm, heading ≤ 0.7°.
 
-Process.  It publishes, every Ts = ``controller.Ts`` (step k, time k·Ts), one
-:class:`fleet.wire.Pose` per robot whose marker was found, ``seq = k`` and
-``t`` = the capture time [s] of the frame used, then ``Tick(robot="tracker",
-step=k, t=k·Ts, stop=False, misses=0)``: the simulated tracker's messages
-and keys, without Odom (on hardware ``epuck_link`` publishes the
-odometry); the same pose goes on the truth key too, as the supervisor's best
-ground truth on real robots.  Clocks:
+Process. It publishes, every Ts = ``controller.Ts`` (step k, time k·Ts), one
+:class:`fleet.wire.Pose` per robot whose marker was found, ``seq = k`` and ``t`` = the
+capture time [s] of the frame used, then ``Tick(robot="tracker", step=k, t=k·Ts,
+stop=False)``: the simulated tracker's messages and keys, without Odom (on hardware
+``epuck_link`` publishes the odometry). The tick's ``fallback`` and ``braked`` come from
+the links' :class:`fleet.wire.Applied` reports of step k − 1 (``misses`` counts them);
+the same pose goes on the truth key too, as the supervisor's best ground truth on real
+robots. Clocks:
 
 * ``--video FILE``: frame i was captured at t = i / fps [s]; step k uses the
   last frame with t ≤ k·Ts and is published at wall time k·Ts / ``--rate``
@@ -986,8 +987,9 @@ def _run(
     announce: Any,
 ) -> int:
     """Open Zenoh, announce, step until the end of the video, ``--steps`` or a signal."""
+    from fleet.robot_side import tick_maps
     from fleet.runtime import Inbox, open_session, publisher
-    from fleet.wire import Keys, Pose, Tick, Truth
+    from fleet.wire import Applied, Keys, Pose, Tick, Truth
 
     ids = [r.id for r in scn.robots]
     keys = Keys(args.fleet)
@@ -996,7 +998,10 @@ def _run(
         signal.signal(sig, lambda *_: stopping.set())
     session = open_session(args)
     inbox = Inbox(keys, ROLE)
-    subs = [inbox.watch_liveliness(session)]
+    # What each robot's epuck_link applied over a step (its command, its candidate, or the
+    # brake), for the next tick: the agents and their neighbours then agree on which plans
+    # were executed (docs/runtime-notes.md, "Missed deadlines").
+    subs = [inbox.watch_liveliness(session), inbox.subscribe(session, keys.applied(), Applied, keep=True)]
     pubs = {rid: publisher(session, keys.pose(rid)) for rid in ids}
     # On hardware the camera is the best ground truth there is: the supervisor's
     # safety monitor reads it on the truth key (not express: nobody waits on it).
@@ -1009,6 +1014,7 @@ def _run(
     announce(ROLE, robots=ids, source="camera", steps=limit)
     k = 0
     late = 0
+    misses = 0
     code = 0
     try:
         if args.wait_agents:
@@ -1054,11 +1060,19 @@ def _run(
                 for rid, (x, y, th) in found.items():
                     pubs[rid].put(Pose(robot=rid, seq=k, t=frame.t, x=x, y=y, theta=_wrap(th)).encode())
                     truths[rid].put(Truth(robot=rid, seq=k, t=frame.t, x=x, y=y, theta=_wrap(th)).encode())
-            clock.put(Tick(robot=ROLE, step=k, t=t_k, stop=False, misses=0).encode())
+            with inbox.cond:
+                fallback, braked = tick_maps({r: inbox.get(Applied, r, k - 1) for r in ids})
+                misses += len(fallback) + sum(1 for r in braked if r in inbox.live)
+                inbox.prune(k - 1)
+            clock.put(
+                Tick(
+                    robot=ROLE, step=k, t=t_k, stop=False, misses=misses, fallback=fallback, braked=braked
+                ).encode()
+            )
             if k % PROGRESS_EVERY == 0 and k:
                 report(f"step {k}")
             k += 1
-        clock.put(Tick(robot=ROLE, step=k, t=k * Ts, stop=True, misses=0).encode())
+        clock.put(Tick(robot=ROLE, step=k, t=k * Ts, stop=True, misses=misses).encode())
         why = "step limit" if limit is not None and k >= limit else "end of video"
         if stopping.is_set():
             why = "signal"

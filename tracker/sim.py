@@ -37,9 +37,9 @@ from typing import Any
 
 import numpy as np
 
-from agent.controller import chain_input
 from agent.models import measured_state
 from fleet.harness import GOAL_TOLERANCE, Disturbance, PoseNoise, make_plant
+from fleet.robot_side import BRAKED, CANDIDATE, RobotSide, tick_maps
 from fleet.runtime import (
     Inbox,
     add_common_args,
@@ -52,7 +52,7 @@ from fleet.runtime import (
     remember_steps,
 )
 from fleet.scenario import ConfigError
-from fleet.wire import Command, Digest, Keys, Odom, Plan, Pose, Tick, Truth
+from fleet.wire import Applied, Command, Digest, Keys, Odom, Plan, Pose, Tick, Truth
 
 SUPERVISOR = "supervisor"
 STARTUP_STEPS = 3
@@ -167,6 +167,10 @@ def main(argv: list[str] | None = None) -> int:
         # Realtime: commands are read once, at the deadline; plans once a step.
         inbox.subscribe(session, keys.cmd(), Command, keep=True, drained=args.clock == "realtime"),
         inbox.subscribe(session, keys.plan(), Plan, keep=True, drained=args.clock == "realtime"),
+        # What each epuck_link applied over a step (emulated robots: the link has the
+        # deadline, not this process); a simulated robot's robot side is this process, and
+        # a report for it is ignored.
+        inbox.subscribe(session, keys.applied(), Applied, keep=True),
         inbox.watch_liveliness(session),
     ]
     world: SimulatedWorld | EmulatedWorld
@@ -256,6 +260,17 @@ def main(argv: list[str] | None = None) -> int:
             if not early:
                 with inbox.cond:  # the emulators' poses come by callback
                     measured, truths, states = _measure(world, ids, noise, pubs, k, t, p.lookahead)
+            if not world.drives and k > 0:
+                # The links decided step k − 1 at their own deadlines: the tick says what they
+                # did, and the digest leaves out the plans they did not execute.
+                with inbox.cond:
+                    on_chain, braked_map = tick_maps({r: inbox.get(Applied, r, k - 1) for r in ids})
+                    late = [*on_chain, *(r for r in braked_map if r in inbox.live)]
+                for r in [*on_chain, *braked_map]:
+                    remember_steps(sides[r].unexecuted, (k - 1,), k)
+                if late:
+                    misses += len(late)
+                    log(role, f"step {k - 1}: deadline missed by {', '.join(late)} (seen by epuck_link)")
             for pub, payload in measured:
                 pub.put(payload)
             if relay is not None and k > 0:
@@ -291,7 +306,7 @@ def main(argv: list[str] | None = None) -> int:
                 _until(t_start + t + args.deadline * p.Ts)
                 inbox.drain()
                 late = [r for r in ids if inbox.get(Command, r, k) is None and r in inbox.live]
-                if late:
+                if late and world.drives:  # emulated robots: their links judge (Applied)
                     misses += len(late)
                     log(role, f"step {k}: deadline missed by {', '.join(late)}")
             else:
@@ -377,79 +392,6 @@ def _measure(
         x, y, th = (float(v) for v in true)
         truths.append((pub_truth, Truth(robot=rid, seq=k, t=t, x=x, y=y, theta=th).encode()))
     return measured, truths, states
-
-
-COMMAND, CANDIDATE, HELD, BRAKED = "command", "candidate", "held", "braked"
-
-
-class RobotSide:
-    """What the simulated robot side applies to one robot each step (DESIGN §4 and
-    docs/runtime-notes.md, "Missed deadlines"): the agent's command when it came in time;
-    else the ancillary law on the shifted candidate of the last command applied; braking
-    when the agent is dead, has not been heard from for ``watchdog`` [s], or the candidate
-    is used up.  With ``drives`` False (``epuck_link`` applies the commands) a missing
-    command only holds the last acceleration, as the link does."""
-
-    def __init__(self, design: Any, watchdog: float, drives: bool):
-        self.design = design
-        self.watchdog = watchdog
-        self.drives = drives
-        self.applied: Command | None = None
-        """The last command applied."""
-        self.following = False
-        """Not braked since that command: its candidate may be followed."""
-        self.quiet = 0
-        """Steps without a command of this or the previous step [steps]."""
-        self.last_a = np.zeros(2)
-        """The acceleration applied over the last step (2,) [m/s²], world frame."""
-        self.unexecuted: set[int] = set()
-        """Recent steps whose command was not applied: their plans were never executed."""
-
-    @property
-    def applied_step(self) -> int:
-        """The step of the last command applied, −1 if none: no later plan was executed."""
-        return -1 if self.applied is None else self.applied.step
-
-    def decide(
-        self, k: int, cmd: Command | None, newest: Command | None, alive: bool, x: np.ndarray | None
-    ) -> tuple[str, np.ndarray | None, str]:
-        """What to apply over step k: (COMMAND | CANDIDATE | HELD | BRAKED, the acceleration
-        (2,) [m/s²] or None when BRAKED (the caller brakes the plant), why it is braked).
-
-        ``cmd`` is the agent's command of step k if it came in time, ``newest`` its latest
-        command of any step, ``alive`` whether its liveliness token is up, ``x`` (4,)
-        [m, m/s] the state measured for it at step k (for the candidate).  A command of
-        step k − 1 that came after its deadline counts as heard for the watchdog: its agent
-        is alive and one step behind (a hung agent sends nothing)."""
-        heard = cmd is not None or (newest is not None and newest.step >= k - 1)
-        self.quiet = 0 if heard else self.quiet + 1
-        if cmd is None and self.drives:
-            remember_steps(self.unexecuted, (k,), k)
-        if not alive or self.quiet * self.design.params.Ts > self.watchdog:
-            self.brake()
-            return (
-                BRAKED,
-                None,
-                "its agent is not alive" if not alive else f"no command for {self.watchdog} s",
-            )
-        if cmd is not None:
-            self.applied, self.following = cmd, True
-            self.last_a = np.array([cmd.ax, cmd.ay])
-            return COMMAND, self.last_a, ""
-        if not self.drives:
-            return HELD, self.last_a, ""
-        last, d = self.applied, self.design
-        a = None
-        if last is not None and last.fallback and self.following and x is not None:
-            a = chain_input(last.x_next, last.v_next, k - last.step - 1, x, d.A, d.B, d.K)
-        if a is None:
-            self.brake()
-            return BRAKED, None, "nothing left to follow"
-        return CANDIDATE, a, ""
-
-    def brake(self) -> None:
-        """Braking leaves the plan: nothing is followed after it until a command is applied."""
-        self.following = False
 
 
 def _relayed_plans(
