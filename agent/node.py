@@ -144,8 +144,8 @@ def main(argv: list[str] | None = None) -> int:
             if tick.step > k:
                 if joined and tick.step > k + REJOIN_GAP and tick.executed(me) is None:
                     # Hung for a while, and the clock does not say what the robot did
-                    # (camera tracker): start again from where the robot is, like a
-                    # restarted agent.  The simulated robot side says (below).
+                    # (a camera tracker without epuck_link's report): start again from
+                    # where the robot is, like a restarted agent.  The robot sides say (below).
                     joined = False
                     x_est = None
                 if joined and not tick.stop:

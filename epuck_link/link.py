@@ -146,10 +146,13 @@ class Watchdog:
     events: int = 0
     """Stops so far (not counting the initial one)."""
 
-    def check(self, now: float, last_command: float | None, live: bool) -> tuple[bool, str | None]:
+    def check(
+        self, now: float, last_command: float | None, live: bool, what: str = "command"
+    ) -> tuple[bool, str | None]:
         """(drive allowed, event to log or None) at time ``now`` [s].
 
-        ``last_command``: when the latest command arrived [s, same clock], or None."""
+        ``last_command``: when the latest command arrived [s, same clock], or None; with the
+        fleet's clock, when the deadline's rule last decided a step (``what`` = "tick")."""
         fresh = last_command is not None and now - last_command <= self.timeout
         if not self.stopped:
             if live and fresh:
@@ -159,7 +162,7 @@ class Watchdog:
             if not live:
                 return False, "watchdog: the agent's liveliness token is gone; zero speed"
             assert last_command is not None
-            return False, f"watchdog: no command for {now - last_command:.2f} s; zero speed"
+            return False, f"watchdog: no {what} for {now - last_command:.2f} s; zero speed"
         if live and fresh and last_command is not None and last_command > self.stopped_at:
             self.stopped = False
             return True, "commands from a live agent: driving"
@@ -327,6 +330,8 @@ def main(argv: list[str] | None = None) -> int:
     seen_cmd: Command | None = None
     seen_tick: Tick | None = None
     last_cmd_at: float | None = None
+    decided_at: float | None = None
+    """When the deadline's rule last decided a step [s]: with the clock, what the watchdog watches."""
     a = np.zeros(2)
     braked = False
     """Stopped by the deadline's rule (nothing to follow) until a command is applied."""
@@ -354,6 +359,9 @@ def main(argv: list[str] | None = None) -> int:
             with inbox.cond:
                 cmd = inbox.get(Command, me)
                 tick = inbox.get(Tick, "tracker")
+                # When they arrived, not when this loop got to them (a loaded machine).
+                cmd_at = inbox.arrived.get((Command.TYPE, me), now)
+                tick_at = inbox.arrived.get((Tick.TYPE, "tracker"), now)
                 fresh_poses = list(inbox.history.pop(poses, {}).values())  # in order of arrival
                 live = me in inbox.live
             for pose in fresh_poses:
@@ -364,18 +372,21 @@ def main(argv: list[str] | None = None) -> int:
             decisions = []
             if tick is not seen_tick and tick is not None:
                 seen_tick = tick
+                inbox.release(tick.step)  # messages the fault plan delays
+                inbox.prune(tick.step - 2)
                 if not tick.stop:  # the state at the tick: the camera pose of this step, and q
                     x_k = measured_state(drive.pose, np.array(drive.velocity()), p.lookahead)
-                    decisions += judge.tick(tick.step, now, x_k, cmd, live)
+                    decisions += judge.tick(tick.step, tick_at, x_k, cmd, live)
             if cmd is not seen_cmd and cmd is not None:
-                seen_cmd, last_cmd_at = cmd, now
+                seen_cmd, last_cmd_at = cmd, cmd_at
                 if judge.step is None:  # no clock yet: applied as it comes
                     a, braked = np.array([cmd.ax, cmd.ay]), False
-                elif (taken := judge.command(cmd, now, live)) is not None:
+                elif (taken := judge.command(cmd, cmd_at, live)) is not None:
                     decisions.append(taken)
             if (expired := judge.expire(now, cmd, live)) is not None:
                 decisions.append(expired)
             for what, acc, report in decisions:
+                decided_at = now
                 pub_applied.put(report.encode())
                 braked = what == BRAKED
                 if acc is not None:
@@ -391,9 +402,16 @@ def main(argv: list[str] | None = None) -> int:
                 episode = what if what in off_steps else ""
             if now < due:
                 continue
-            ok, event = watchdog.check(now, last_cmd_at, live)
+            # With the clock, a decision every step keeps the watchdog quiet (the deadline's
+            # rule brakes for a silent agent, and says so); without ticks, a command does.
+            if judge.step is None:
+                ok, event = watchdog.check(now, last_cmd_at, live)
+            else:
+                ok, event = watchdog.check(now, decided_at, live, "tick")
             if event is not None:
                 log(role, event)
+                if not ok:
+                    judge.side.brake()  # nothing is followed after a stop
             dt = min(now - last, MAX_DT)
             last = now
             if ok and not braked:

@@ -99,7 +99,14 @@ class LinkDeadline:
     ``deadline`` [s] after that.  A command that comes later is not applied: the robot
     keeps to what was decided, and the :class:`~fleet.wire.Applied` report (one per step,
     at the decision) lets the tracker tell the agent and its neighbours in tick k + 1.
-    Times are the caller's monotonic clock [s]."""
+
+    A step still undecided when the next tick arrives (its tick reached the link more than
+    half a step late), and a step whose tick never reached it, cannot be reported in time
+    for the tick after it.  The only story then safe for everyone is the brake: the link
+    stops the robot, reports those steps braked (the tracker puts a late braked report in
+    its next tick, and the agent starts again from where the robot is), and applies no
+    command until the step after the one whose tick revealed it.  Times are the caller's
+    monotonic clock [s]."""
 
     def __init__(self, robot: str, design: Any, watchdog: float, deadline: float):
         self.robot = robot
@@ -110,6 +117,8 @@ class LinkDeadline:
         self.due = math.inf
         """When the command of ``step`` is due [s]."""
         self.decided = True
+        self.hold_until = -1
+        """No command of this step or an earlier one is applied (after a late brake)."""
         self.x: np.ndarray | None = None
         """The state measured at the tick (4,) [px, vx, py, vy] in m, m/s, world frame."""
 
@@ -121,28 +130,37 @@ class LinkDeadline:
     def tick(
         self, k: int, now: float, x: np.ndarray | None, newest: Command | None, alive: bool
     ) -> list[tuple[str, np.ndarray | None, Applied]]:
-        """Tick k received at ``now`` with the state ``x`` measured then.  Returns the
-        decisions taken: the previous step's, if its deadline had not passed yet (it is
-        taken without a command), and step k's, if its command (``newest``) came first."""
-        out = []
-        if not self.decided and self.step is not None and k > self.step:
-            out.append(self._decide(None, newest, alive))
+        """Tick k received at ``now`` [s] with the state ``x`` measured then.  Returns the
+        decisions taken: the brake for the steps before k left undecided or never started
+        (see the class docstring), and step k's, if its command (``newest``) came first."""
+        out: list[tuple[str, np.ndarray | None, Applied]] = []
+        if self.step is not None and k <= self.step:
+            return out  # an old or repeated tick: nothing new
+        if self.step is not None:
+            late = [self.step] if not self.decided else []
+            late += range(self.step + 1, k)
+            if late:
+                self.side.brake()
+                self.hold_until = k
+                for j in late[-8:]:
+                    rep = Applied(robot=self.robot, step=j, last=self.side.applied_step, braked=True)
+                    out.append((BRAKED, None, rep))
         self.step, self.due, self.decided, self.x = k, now + self.deadline, False, x
-        if newest is not None and newest.step == k:
+        if newest is not None and newest.step == k and k > self.hold_until:
             out.append(self._decide(newest, newest, alive))
         return out
 
     def command(self, cmd: Command, now: float, alive: bool) -> tuple[str, np.ndarray | None, Applied] | None:
-        """A command received at ``now``: applied if it is of the current step, in time,
-        and the step is not decided yet; otherwise None (too late, or not ours to take)."""
-        if self.decided or cmd.step != self.step or now > self.due:
+        """A command received at ``now`` [s]: applied if it is of the current step, in time,
+        the step is not decided yet and no late brake holds it; otherwise None."""
+        if self.decided or cmd.step != self.step or now > self.due or cmd.step <= self.hold_until:
             return None
         return self._decide(cmd, cmd, alive)
 
     def expire(
         self, now: float, newest: Command | None, alive: bool
     ) -> tuple[str, np.ndarray | None, Applied] | None:
-        """At or after the deadline with no command in time: the candidate or the brake."""
+        """At or after the deadline [s] with no command in time: the candidate or the brake."""
         if self.decided or now < self.due:
             return None
         return self._decide(None, newest, alive)
@@ -158,13 +176,65 @@ class LinkDeadline:
         return what, a, report
 
 
-def tick_maps(reports: dict[str, Applied | None]) -> tuple[dict[str, int], dict[str, int]]:
-    """:attr:`~fleet.wire.Tick.fallback` and :attr:`~fleet.wire.Tick.braked` from the robot
-    sides' :class:`~fleet.wire.Applied` reports of one step, by robot id (None: no report,
-    which says nothing)."""
-    fallback: dict[str, int] = {}
-    braked: dict[str, int] = {}
-    for rid, rep in reports.items():
-        if rep is not None and not rep.on_time:
-            (braked if rep.braked else fallback)[rid] = rep.last
-    return fallback, braked
+REPORT_WAIT = 0.1
+"""How long a tracker waits for a link's report before a tick, as a fraction of Ts: only for
+links that reported the step before (a link that is gone does not hold up every tick)."""
+
+
+class Reports:
+    """What a tracker tells in each tick from the links' :class:`~fleet.wire.Applied`
+    reports (the camera tracker, and the tracker of emulated robots).
+
+    Tick k says what each robot did over step k − 1: its candidate (``fallback``) or the
+    brake (``braked``), from that step's report.  A braked report that came too late for
+    its own tick goes into the next one: whatever happened in between, the agent starts
+    again from where its stopped robot is, and its neighbours keep clear of it as of a
+    braked robot.  A late report of a step on the candidate cannot be told afterwards
+    (the agent has planned on from the step it missed): it is logged and counted.  The
+    inbox must keep the reports of the last :data:`LOOKBACK` steps (prune no later)."""
+
+    LOOKBACK = 8
+    """Steps back that a late report is looked for."""
+
+    def __init__(self, ids: list[str]):
+        self.ids = ids
+        self.expected: set[str] = set()
+        """Robots whose link reported the last step: waited for (bounded) before a tick."""
+        self.seen: set[tuple[str, int]] = set()
+        """(robot, step) of the reports already taken."""
+        self.untold = 0
+        """Late reports of steps on the candidate, never told."""
+
+    def for_tick(
+        self, inbox: Any, k: int, timeout: float, log: Any
+    ) -> tuple[dict[str, int], dict[str, int], list[str]]:
+        """(Tick.fallback, Tick.braked, robots whose command of step k − 1 was not applied)
+        for tick k, after waiting up to ``timeout`` [s] for the expected reports of step
+        k − 1.  ``inbox`` is subscribed to ``fleet/F/applied/*`` with ``keep``."""
+        last = k - 1
+        inbox.wait(lambda: all(inbox.get(Applied, r, last) is not None for r in self.expected), timeout)
+        steps = range(max(0, last - self.LOOKBACK), last + 1)
+        with inbox.cond:
+            got = [
+                rep for r in self.ids for j in steps
+                if (r, j) not in self.seen and (rep := inbox.get(Applied, r, j)) is not None
+            ]  # fmt: skip
+        fallback: dict[str, int] = {}
+        braked: dict[str, int] = {}
+        for rep in sorted(got, key=lambda a: -a.step):  # the newest first
+            self.seen.add((rep.robot, rep.step))
+            if rep.on_time:
+                continue
+            if rep.step == last:
+                (braked if rep.braked else fallback)[rep.robot] = rep.last
+            elif rep.braked:
+                braked.setdefault(rep.robot, rep.last)
+            else:
+                self.untold += 1
+                log(f"step {rep.step}: {rep.robot}'s robot side followed its candidate, but its report "
+                    "came after the tick: the agent and its neighbours were not told")  # fmt: skip
+        for r in braked:
+            fallback.pop(r, None)
+        self.expected = {r for r in self.ids if (r, last) in self.seen}
+        self.seen = {(r, j) for r, j in self.seen if j >= last - self.LOOKBACK}
+        return fallback, braked, [*fallback, *braked]

@@ -237,7 +237,7 @@ def test_epuck_link_takes_the_command_only_by_its_deadline():
     ignored later; without it the candidate of the last command applied is followed, with
     the state measured at the tick, then the robot is braked; every decision is reported
     (fleet.wire.Applied) once, as the tracker will put it in the next tick."""
-    from fleet.robot_side import BRAKED, CANDIDATE, COMMAND, LinkDeadline, tick_maps
+    from fleet.robot_side import BRAKED, CANDIDATE, COMMAND, LinkDeadline
     from fleet.wire import Command
 
     _, design = _controller()
@@ -268,18 +268,68 @@ def test_epuck_link_takes_the_command_only_by_its_deadline():
     assert judge.command(cmd(6), 10.19, True) is None
     [(what, a, rep)] = judge.tick(6, 10.2, x5, cmd(6), True)
     assert what == COMMAND and rep.on_time and np.array_equal(a, [0.6, 0.0])
-    # A tick that comes before the last step's deadline decides that step first, without a command.
-    assert judge.tick(7, 10.3, x5, cmd(6), True) == []
-    [(w7, _, r7)] = judge.tick(8, 10.33, x5, cmd(6), True)
-    assert (w7, r7.step, r7.last) == (CANDIDATE, 7, 6)
-    w8, _, r8 = judge.expire(10.4, cmd(6), True)
-    assert (w8, r8.step, r8.last, r8.braked) == (CANDIDATE, 8, 6, False)
-    judge.tick(9, 10.43, x5, cmd(6), True)
-    w9, _, r9 = judge.expire(10.5, cmd(6), True)
-    assert (w9, r9.step, r9.last, r9.braked) == (BRAKED, 9, 6, True)  # v_next (2 steps) is used up
-    assert tick_maps({"r1": r7, "r2": r9, "r3": rep, "r4": None}) == ({"r1": 6}, {"r2": 6})
-    # A dead agent's robot is braked at once.
-    judge.tick(10, 10.6, x5, None, True)
+    # A command that came after its deadline is not applied, even if nothing has expired yet.
+    judge.tick(7, 10.3, x5, cmd(6), True)
+    assert judge.command(cmd(7), 10.351, True) is None
+    assert judge.expire(10.36, cmd(7), True)[0] == CANDIDATE
+    # Tick 9 before step 8's deadline (tick 8 came 0.5 Ts late): step 8 cannot be reported in
+    # time, so it is braked, and so is step 9, whatever comes, until tick 10.
+    judge.tick(8, 10.45, x5, cmd(7), True)
+    [(w8, _, r8)] = judge.tick(9, 10.48, x5, cmd(7), True)
+    assert (w8, r8.step, r8.last, r8.braked) == (BRAKED, 8, 6, True)
+    assert judge.command(cmd(9), 10.49, True) is None  # in time, but held
+    w9, _, r9 = judge.expire(10.54, cmd(9), True)
+    assert (w9, r9.step, r9.last, r9.braked) == (BRAKED, 9, 6, True)
+    assert judge.tick(10, 10.6, x5, None, True) == []
     assert judge.command(cmd(10), 10.61, True)[0] == COMMAND
-    judge.tick(11, 10.7, x5, cmd(10), False)
-    assert judge.expire(10.8, cmd(10), False)[0] == BRAKED
+    # A tick that never reached the link (11): step 11 is reported braked when 12 comes.
+    [(w11, _, r11)] = judge.tick(12, 10.8, x5, cmd(10), True)
+    assert (w11, r11.step, r11.last, r11.braked) == (BRAKED, 11, 10, True)
+    assert judge.expire(10.86, cmd(10), True)[0] == BRAKED  # step 12 too: held
+    # The candidate is followed for as long as it lasts (2 steps), then the robot is braked.
+    judge.tick(13, 10.9, x5, None, True)
+    judge.command(cmd(13), 10.91, True)
+    whats = []
+    for k in (14, 15, 16):
+        judge.tick(k, 10.9 + 0.1 * (k - 13), x5, cmd(13), True)
+        whats.append(judge.expire(10.96 + 0.1 * (k - 13), cmd(13), True)[0])
+    assert whats == [CANDIDATE, CANDIDATE, BRAKED]
+    # A dead agent's robot is braked at once.
+    judge.tick(17, 11.3, x5, None, True)
+    assert judge.command(cmd(17), 11.31, True)[0] == COMMAND
+    judge.tick(18, 11.4, x5, cmd(17), False)
+    assert judge.expire(11.5, cmd(17), False)[0] == BRAKED
+
+
+def test_a_tracker_tells_the_links_reports_in_the_next_tick():
+    """fleet.robot_side.Reports: tick k tells each robot's report of step k − 1 (its candidate,
+    or the brake); a braked report too late for its tick goes into the next one; a late report
+    of a step on the candidate is logged and counted, never told; a link that reported the
+    step before is waited for (bounded)."""
+    from fleet.robot_side import Reports
+    from fleet.runtime import Inbox
+    from fleet.wire import Applied, Keys
+
+    keys = Keys("lab")
+    inbox = Inbox(keys, "tracker")
+
+    def put(robot: str, step: int, last: int, braked: bool = False) -> None:
+        msg = Applied(robot=robot, step=step, last=last, braked=braked)
+        inbox._accept(keys.applied(robot), msg.encode(), Applied, True, 0.0)
+
+    lines: list[str] = []
+    reports = Reports(["r1", "r2", "r3"])
+    put("r1", 4, 4)
+    put("r2", 4, 3)
+    assert reports.for_tick(inbox, 5, 0.0, lines.append) == ({"r2": 3}, {}, ["r2"])
+    assert reports.expected == {"r1", "r2"}
+    put("r2", 5, 5)
+    assert reports.for_tick(inbox, 6, 0.01, lines.append) == ({}, {}, [])  # r1's is late
+    put("r1", 5, 4, braked=True)  # after tick 6
+    put("r3", 5, 2)  # on the candidate, after tick 6
+    put("r1", 6, 4, braked=True)
+    put("r2", 6, 6)
+    assert reports.for_tick(inbox, 7, 0.0, lines.append) == ({}, {"r1": 4}, ["r1"])
+    assert reports.untold == 1 and len(lines) == 1 and "r3's robot side followed its candidate" in lines[0]
+    put("r2", 3, 2)  # too old and already told: never told again
+    assert reports.for_tick(inbox, 8, 0.0, lines.append) == ({}, {}, [])

@@ -122,6 +122,9 @@ def test_a_link_without_its_command_in_time_follows_the_candidate_and_the_tick_s
     # Logged once an episode (one may have begun a little earlier, on the machine's own delays).
     assert re.search(r"\[epuck_link r1\] step (5\d|6[0-3]): no command in time; following the shifted", err)
     assert re.search(r"\[agent r1\] step (5\d|6[0-4]): commands after step \d+ not applied; on its cand", err)
+    # The deadline's rule stopped nothing, and the watchdog only at the end (the agents gone).
+    stops = re.findall(r"\[epuck_link r\d\] stopped: .*?, (\d+) watchdog stops", err)
+    assert stops == ["1", "1"], stops
     braked = sum(v["steps_braked"] for v in s["robots"].values())
     assert s["deadline_misses"] == int(link["r1"]) + int(link["r2"]) + braked
     for rid, r in s["robots"].items():

@@ -987,7 +987,7 @@ def _run(
     announce: Any,
 ) -> int:
     """Open Zenoh, announce, step until the end of the video, ``--steps`` or a signal."""
-    from fleet.robot_side import tick_maps
+    from fleet.robot_side import REPORT_WAIT, Reports
     from fleet.runtime import Inbox, open_session, publisher
     from fleet.wire import Applied, Keys, Pose, Tick, Truth
 
@@ -1015,6 +1015,9 @@ def _run(
     k = 0
     late = 0
     misses = 0
+    reports = Reports(ids)
+    fallback: dict[str, int] = {}
+    braked: dict[str, int] = {}
     code = 0
     try:
         if args.wait_agents:
@@ -1060,10 +1063,11 @@ def _run(
                 for rid, (x, y, th) in found.items():
                     pubs[rid].put(Pose(robot=rid, seq=k, t=frame.t, x=x, y=y, theta=_wrap(th)).encode())
                     truths[rid].put(Truth(robot=rid, seq=k, t=frame.t, x=x, y=y, theta=_wrap(th)).encode())
+            if k > 0:
+                fallback, braked, _ = reports.for_tick(inbox, k, REPORT_WAIT * Ts, report)
             with inbox.cond:
-                fallback, braked = tick_maps({r: inbox.get(Applied, r, k - 1) for r in ids})
                 misses += len(fallback) + sum(1 for r in braked if r in inbox.live)
-                inbox.prune(k - 1)
+            inbox.prune(k - Reports.LOOKBACK)
             clock.put(
                 Tick(
                     robot=ROLE, step=k, t=t_k, stop=False, misses=misses, fallback=fallback, braked=braked

@@ -39,8 +39,9 @@ import numpy as np
 
 from agent.models import measured_state
 from fleet.harness import GOAL_TOLERANCE, Disturbance, PoseNoise, make_plant
-from fleet.robot_side import BRAKED, CANDIDATE, RobotSide, tick_maps
+from fleet.robot_side import BRAKED, CANDIDATE, REPORT_WAIT, Reports, RobotSide
 from fleet.runtime import (
+    STEPS_KEPT,
     Inbox,
     add_common_args,
     announce,
@@ -212,6 +213,7 @@ def main(argv: list[str] | None = None) -> int:
         k = 0
         misses = 0
         sides = {rid: RobotSide(design, args.watchdog, world.drives) for rid in ids}
+        reports = Reports(ids)
         heard: set[str] = set()
         braking = dict.fromkeys(ids, False)
         on_chain: dict[str, int] = {}
@@ -263,11 +265,11 @@ def main(argv: list[str] | None = None) -> int:
             if not world.drives and k > 0:
                 # The links decided step k − 1 at their own deadlines: the tick says what they
                 # did, and the digest leaves out the plans they did not execute.
+                on_chain, braked_map, _ = reports.for_tick(inbox, k, REPORT_WAIT * p.Ts, partial(log, role))
                 with inbox.cond:
-                    on_chain, braked_map = tick_maps({r: inbox.get(Applied, r, k - 1) for r in ids})
                     late = [*on_chain, *(r for r in braked_map if r in inbox.live)]
-                for r in [*on_chain, *braked_map]:
-                    remember_steps(sides[r].unexecuted, (k - 1,), k)
+                for r, done in (*on_chain.items(), *braked_map.items()):
+                    remember_steps(sides[r].unexecuted, range(max(done + 1, k - STEPS_KEPT), k), k)
                 if late:
                     misses += len(late)
                     log(role, f"step {k - 1}: deadline missed by {', '.join(late)} (seen by epuck_link)")
@@ -343,7 +345,7 @@ def main(argv: list[str] | None = None) -> int:
             # Agents send the command before the plan of a step; the early stop below
             # judges the plans of this very step, as `fleet simulate` does.
             inbox.wait(partial(_planned, inbox, answering, k), args.timeout if not realtime else 0.0)
-            inbox.prune(k)
+            inbox.prune(k if world.drives else k - Reports.LOOKBACK)
             if _all_home(inbox, ids, world, k):
                 k += 1
                 break
