@@ -231,3 +231,16 @@ def test_solver_variants_run_in_shuffled_order(monkeypatch: pytest.MonkeyPatch) 
     calls.clear()  # seeded: a second run times them in the same orders
     bench.compare_solvers([seq], False, lambda _: None)
     assert [tuple(n for i, n in calls if i == q) for q in range(40)] == orders
+
+
+def test_cpu_figures_cover_a_window_shorter_than_the_sampling_period() -> None:
+    """A quick lockstep run can step for less time than the sampler's period: its CPU is taken
+    from the sample before the window to the one after, never as nothing."""
+    from fleet.bench import _harness
+
+    sampler = _harness().Sampler
+    samples = [(0.0, 1.0), (0.25, 1.2), (0.5, 1.3)]
+    assert sampler._between(samples, 0.05, 0.19) == pytest.approx(0.2)  # inside one period
+    assert sampler._between(samples, 0.0, 0.5) == pytest.approx(0.3)
+    assert sampler._between(samples, 0.3, 0.4) == pytest.approx(0.1)
+    assert sampler._between([], 0.0, 1.0) == 0.0
