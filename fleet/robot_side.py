@@ -208,9 +208,10 @@ class Reports:
     def for_tick(
         self, inbox: Any, k: int, timeout: float, log: Any
     ) -> tuple[dict[str, int], dict[str, int], list[str]]:
-        """(Tick.fallback, Tick.braked, robots whose command of step k − 1 was not applied)
-        for tick k, after waiting up to ``timeout`` [s] for the expected reports of step
-        k − 1.  ``inbox`` is subscribed to ``fleet/F/applied/*`` with ``keep``."""
+        """(Tick.fallback, Tick.braked, the deadline misses to count) for tick k, after waiting
+        up to ``timeout`` [s] for the expected reports of step k − 1.  A miss is a robot on its
+        candidate, or braked while its agent is live (a dead agent's robot is no miss).
+        ``inbox`` is subscribed to ``fleet/F/applied/*`` with ``keep``."""
         last = k - 1
         inbox.wait(lambda: all(inbox.get(Applied, r, last) is not None for r in self.expected), timeout)
         steps = range(max(0, last - self.LOOKBACK), last + 1)
@@ -219,6 +220,7 @@ class Reports:
                 rep for r in self.ids for j in steps
                 if (r, j) not in self.seen and (rep := inbox.get(Applied, r, j)) is not None
             ]  # fmt: skip
+            live = set(inbox.live)
         fallback: dict[str, int] = {}
         braked: dict[str, int] = {}
         for rep in sorted(got, key=lambda a: -a.step):  # the newest first
@@ -237,4 +239,4 @@ class Reports:
             fallback.pop(r, None)
         self.expected = {r for r in self.ids if (r, last) in self.seen}
         self.seen = {(r, j) for r, j in self.seen if j >= last - self.LOOKBACK}
-        return fallback, braked, [*fallback, *braked]
+        return fallback, braked, [*fallback, *(r for r in braked if r in live)]

@@ -318,6 +318,7 @@ def test_a_tracker_tells_the_links_reports_in_the_next_tick():
         inbox._accept(keys.applied(robot), msg.encode(), Applied, True, 0.0)
 
     lines: list[str] = []
+    inbox.live.update({"r1", "r2", "r3"})  # a braked robot counts as a miss while its agent lives
     reports = Reports(["r1", "r2", "r3"])
     put("r1", 4, 4)
     put("r2", 4, 3)
@@ -333,3 +334,6 @@ def test_a_tracker_tells_the_links_reports_in_the_next_tick():
     assert reports.untold == 1 and len(lines) == 1 and "r3's robot side followed its candidate" in lines[0]
     put("r2", 3, 2)  # too old and already told: never told again
     assert reports.for_tick(inbox, 8, 0.0, lines.append) == ({}, {}, [])
+    inbox.live.discard("r3")  # a dead agent's braked robot: told, not a miss
+    put("r3", 8, 5, braked=True)
+    assert reports.for_tick(inbox, 9, 0.0, lines.append) == ({}, {"r3": 5}, [])

@@ -1064,9 +1064,8 @@ def _run(
                     pubs[rid].put(Pose(robot=rid, seq=k, t=frame.t, x=x, y=y, theta=_wrap(th)).encode())
                     truths[rid].put(Truth(robot=rid, seq=k, t=frame.t, x=x, y=y, theta=_wrap(th)).encode())
             if k > 0:
-                fallback, braked, _ = reports.for_tick(inbox, k, REPORT_WAIT * Ts, report)
-            with inbox.cond:
-                misses += len(fallback) + sum(1 for r in braked if r in inbox.live)
+                fallback, braked, missed = reports.for_tick(inbox, k, REPORT_WAIT * Ts, report)
+                misses += len(missed)
             inbox.prune(k - Reports.LOOKBACK)
             clock.put(
                 Tick(

@@ -265,9 +265,8 @@ def main(argv: list[str] | None = None) -> int:
             if not world.drives and k > 0:
                 # The links decided step k − 1 at their own deadlines: the tick says what they
                 # did, and the digest leaves out the plans they did not execute.
-                on_chain, braked_map, _ = reports.for_tick(inbox, k, REPORT_WAIT * p.Ts, partial(log, role))
-                with inbox.cond:
-                    late = [*on_chain, *(r for r in braked_map if r in inbox.live)]
+                wait = REPORT_WAIT * p.Ts
+                on_chain, braked_map, late = reports.for_tick(inbox, k, wait, partial(log, role))
                 for r, done in (*on_chain.items(), *braked_map.items()):
                     remember_steps(sides[r].unexecuted, range(max(done + 1, k - STEPS_KEPT), k), k)
                 if late:
