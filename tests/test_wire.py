@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import zlib
 
 import msgpack
@@ -26,6 +27,7 @@ from fleet.wire import (
     Tick,
     Truth,
     WireError,
+    _checked,
     decode,
     encode_array,
 )
@@ -194,6 +196,13 @@ def test_a_digest_relays_what_neighbours_use_of_each_plan():
         assert (got.footprint, got.priority, got.rank, got.phase) == (
             sent.footprint, sent.priority, sent.rank, sent.phase)  # fmt: skip
         assert got.t0 == pytest.approx(sent.t0) and got.status == "relayed"
+        # Made without the dataclass __init__ (fleet.wire._checked), yet a whole Plan: with
+        # a nominal plan (a relayed one has none) it passes the receiving checks as it is.
+        whole = dataclasses.replace(got, nominal=sent.nominal)
+        assert type(got) is Plan and decode(whole.encode(), Plan, robot=got.robot) == whole
+        assert type(got.footprint) is float
+    with pytest.raises(ValueError, match="fields"):
+        _checked(Plan, robot="r1", step=1)
     empty = decode(Digest.of("tracker", 3, 0.1, 20, []).encode(), Digest)
     assert empty.ids == [] and empty.plans() == []
 
