@@ -265,6 +265,8 @@ def main(argv: list[str] | None = None) -> int:
                 ).encode()
             )  # fmt: skip
             inbox.prune(k - 2)
+            if link.drained:  # realtime relay: the next step's target now, off the deadline's path
+                _steer_ahead(ctrl, inbox, others, withdrawn, starts, k, p.Ts)
             k += 1
     finally:
         c = ctrl.counters
@@ -272,6 +274,7 @@ def main(argv: list[str] | None = None) -> int:
             role,
             f"stopped after {k} steps: {c.solves} solves, {c.fallbacks} fallbacks, "
             f"{c.tube_exits} tube exits, {c.holds} blind holds, {c.unapplied} steps on the candidate, "
+            f"{c.ahead} steered ahead, "
             f"{guard.hazard_steps} neighbour-steps "
             f"kept clear of as static discs ({guard.transitions} changes), {inbox.injected} injected faults, "
             f"{inbox.rejects.total} rejected payloads",
@@ -456,6 +459,25 @@ def _relayed(inbox: Inbox, others: list[str], step: int) -> bool:
     """The tracker's digest of ``step`` has arrived: what it lacks is late or lost."""
     d = inbox.get(Digest, "tracker")
     return d is not None and d.step >= step
+
+
+def _steer_ahead(
+    ctrl: TubeMPC, inbox: Inbox, others: list[str], withdrawn: dict[str, set[int]],
+    starts: dict[str, NeighbourInfo], k: int, limit: float,
+) -> bool:  # fmt: skip
+    """Choose the target of step k + 1 (:meth:`TubeMPC.steer_ahead`) once the
+    neighbours' plans of step k are in: the tracker relays them once it has the
+    commands of step k, half a step before tick k + 1, while the cores are idle.
+    The navigator plans around every live robot's newest executed plan, as the step
+    would.  Waits at most ``limit`` [s]; skipped (False) if tick k + 1 or nothing comes
+    first: the step then steers itself."""
+    inbox.wait(lambda: _relayed(inbox, others, k) or _tick_at_least(inbox, k + 1), limit)
+    with inbox.cond:
+        if _tick_at_least(inbox, k + 1) or not _relayed(inbox, others, k):
+            return False
+        plans = {j: inbox.newest(Plan, j, k, withdrawn[j]) for j in others if j in inbox.live}
+    ctrl.steer_ahead([starts[j] if pl is None else _neighbour(pl) for j, pl in plans.items()])
+    return True
 
 
 def _tick_at_least(inbox: Inbox, k: int) -> bool:

@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 
 from agent.controller import SNAPSHOTS, TubeMPC, chain_input
+from agent.coordination import NeighbourInfo
 from agent.tube import require_admissible, synthesize
 from fleet import harness
 from fleet.scenario import controlled_point, load_scenario
@@ -337,3 +338,84 @@ def test_a_tracker_tells_the_links_reports_in_the_next_tick():
     inbox.live.discard("r3")  # a dead agent's braked robot: told, not a miss
     put("r3", 8, 5, braked=True)
     assert reports.for_tick(inbox, 9, 0.0, lines.append) == ({}, {"r3": 5}, [])
+
+
+def _in_the_way(design: object) -> list[NeighbourInfo]:
+    """A robot parked-in-motion at the centre, on the path of ``_controller()``'s robot
+    ((0.7, 0) to (−0.7, 0)), that goes first: the navigator plans around it."""
+    r = design.footprint  # type: ignore[attr-defined]
+    return [
+        NeighbourInfo(
+            "r9", np.array([0.0, 0.02]), r, priority=1, rank=1, target=np.array([0.0, -0.6]),
+            goal=np.array([0.0, -0.6]),
+        )
+    ]  # fmt: skip
+
+
+def test_a_target_chosen_ahead_is_the_one_the_step_would_choose():
+    """The realtime agent steers between steps (TubeMPC.steer_ahead) to keep the navigator
+    off the path from tick to command; with the same neighbours, every step's command,
+    committed reference, target and mode are those of a controller that steers in the step."""
+    a, design = _controller()
+    b, _ = _controller()
+    nbs = _in_the_way(design)
+    rng = np.random.default_rng(3)
+    modes = set()
+    for _ in range(60):
+        x = _x(a, rng)
+        b.steer_ahead(nbs)
+        oa, ob = a.step(x, nbs), b.step(x, nbs)
+        # Not bit for bit: two ProxSuite instances may round differently (memory alignment).
+        assert np.allclose(oa.a, ob.a, atol=1e-9) and np.allclose(oa.committed, ob.committed, atol=1e-9)
+        assert np.allclose(oa.target, ob.target, atol=1e-9) and oa.mode == ob.mode
+        modes.add(oa.mode)
+    assert b.counters.ahead == 60 and a.counters.ahead == 0
+    assert modes & {"path", "yield", "escape"}, modes  # the navigator had work to do
+
+
+def test_a_target_chosen_ahead_is_dropped_by_a_new_goal_only():
+    """A new goal between the choice and the step: the step steers again, to the new goal.
+    A rewind, a re-initialisation or a blind hold in between keep it (it only shapes the
+    cost; the last test shows that even a wrong one keeps the robots apart)."""
+    ctrl, _ = _controller()
+    twin, _ = _controller()  # steers in the step
+    rng = np.random.default_rng(4)
+    x = _x(ctrl, rng)
+    ctrl.step(x, [])
+    twin.step(x, [])
+    ctrl.steer_ahead([])
+    x = _x(ctrl, rng)
+    for c in (ctrl, twin):
+        c.set_goal(np.array([-0.2, 0.3]))
+    out, out_twin = ctrl.step(x, []), twin.step(x, [])
+    assert ctrl.counters.ahead == 0 and np.allclose(out.target, out_twin.target, atol=1e-9)
+    changes = {
+        "reset": lambda: ctrl.reset(ctrl.last_point + 0.01),
+        "rewind": lambda: ctrl.rewind(1),
+        "hold": lambda: ctrl.hold(_x(ctrl, rng)),
+    }
+    for n, (name, change) in enumerate(changes.items(), start=1):
+        ctrl.step(_x(ctrl, rng), [])
+        ctrl.steer_ahead([])
+        chosen = ctrl._ahead
+        change()
+        out = ctrl.step(_x(ctrl, rng), [])
+        assert chosen is not None and ctrl.counters.ahead == n, name
+        assert np.array_equal(out.target, chosen[0]) and out.mode == chosen[1], name
+
+
+def test_a_target_chosen_without_the_neighbours_still_keeps_them_apart():
+    """The target is shaping only.  Chosen ahead from no neighbours at all, it points
+    straight through the robot in the way; the split rule still keeps every appended
+    point R from that robot's committed point, and the robot presses up to it."""
+    ctrl, design = _controller()
+    nbs = _in_the_way(design)
+    R = 2 * design.footprint  # type: ignore[attr-defined]
+    rng = np.random.default_rng(5)
+    closest = math.inf
+    for _ in range(120):
+        ctrl.steer_ahead([])
+        out = ctrl.step(_x(ctrl, rng), nbs)
+        closest = min(closest, float(np.linalg.norm(out.committed[-1] - nbs[0].last_point)))
+    assert ctrl.counters.ahead == 120
+    assert R - 1e-9 <= closest < R + 0.01

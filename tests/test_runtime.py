@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import queue
+import re
 import signal
 import subprocess
 import sys
@@ -517,3 +518,7 @@ def test_realtime_digest_comes_half_a_step_before_its_tick(tmp_path):
     with lock:
         again = sum(1 for n in copies.values() if n > 1)
         assert max(copies.values()) <= 2 and again <= len(copies) // 2, copies
+    # In the half step the digest leads by, each agent chose its next target (the navigator
+    # off the path from tick to command, TubeMPC.steer_ahead) for most of its steps.
+    ahead = {r: int(n) for r, n in re.findall(r"\[agent (r\d)\] stopped after .*?, (\d+) steered ahead", err)}
+    assert set(ahead) == {"r1", "r2", "r3"} and min(ahead.values()) >= 60, ahead
