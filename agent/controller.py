@@ -177,8 +177,9 @@ class TubeMPC:
         """States (ξ, ỹ, x̃) before each of the last SNAPSHOTS steps, oldest first."""
         self._candidate: tuple[tuple[Array, Array, Array], Array] | None = None
         """The candidate of the state (ξ, ỹ, x̃) it was made for (:meth:`candidate`)."""
-        self._ahead: tuple[Array, str] | None = None
-        """The next step's target (2,) [m] and mode, chosen ahead (:meth:`steer_ahead`)."""
+        self._ahead: tuple[Array, Array, str] | None = None
+        """The next step's target chosen ahead (:meth:`steer_ahead`): the committed reference
+        ỹ it was chosen for, the target (2,) [m] and the mode."""
         self.reached_once = False
         self.k = 0
         self.reset(np.asarray(start, dtype=float))
@@ -194,6 +195,7 @@ class TubeMPC:
         xi[self.qp.iy] = point
         self.xi = xi
         self.target = self.goal
+        self._ahead = None
 
     @property
     def last_point(self) -> Array:
@@ -273,12 +275,13 @@ class TubeMPC:
         The realtime agent calls it once its neighbours' plans of this step are in,
         in the half step after its deadline, and so takes the navigator (0.4 ms a
         step at 32 robots, a grid re-plan of 1.5 ms every 10 steps) off the path from
-        tick to command.  The next :meth:`step` takes the choice even if a
-        :meth:`rewind`, :meth:`reset` or :meth:`hold` moved c_i in between: the target
-        only shapes the cost, so a target chosen from a c_i one step old is as safe
-        as any, and a robot that missed its deadline is then not made to pay for the
-        navigator in the next race to it.  A :meth:`set_goal` drops the choice."""
-        self._ahead = self.steer(known)
+        tick to command.  The next :meth:`step` takes the choice only if the committed
+        reference is still the one it was chosen for: a :meth:`rewind`, :meth:`reset`,
+        :meth:`hold` or :meth:`set_goal` in between drops it, and the step steers
+        itself (the navigator's counters then advance twice in that step).  Taking it
+        anyway would be as safe, since the target only shapes the cost, but at 24
+        robots it missed more deadlines: 0.56 and 1.01 % against 0.14 and 0.21 %."""
+        self._ahead = (self.y_ref, *self.steer(known))
 
     def step(
         self, x: Array, neighbours: Sequence[NeighbourInfo], hazards: Sequence[Hazard] = ()
@@ -302,8 +305,8 @@ class TubeMPC:
         normals += hn
         bounds += hb
         ahead, self._ahead = self._ahead, None
-        if ahead is not None:
-            self.target, mode = ahead
+        if ahead is not None and ahead[0] is self.y_ref:  # replaced, never changed in place
+            self.target, mode = ahead[1], ahead[2]
             self.counters.ahead += 1
         else:
             self.target, mode = self.steer([*neighbours, *(h.info for h in hazards if h.info is not None)])
