@@ -355,6 +355,20 @@ def _until(
     raise AssertionError(f"no {text!r} within {timeout} s:\n" + "".join(log[-30:]))
 
 
+def _stop(launcher: subprocess.Popen[str]) -> None:
+    """Kill the launcher (by its pid) if it still runs."""
+    if launcher.poll() is None:
+        launcher.kill()
+        launcher.wait(timeout=10)
+
+
+def _collected(lines: queue.Queue[str], log: list[str], out: Path) -> tuple[str, dict]:
+    """The launcher's whole stderr (what ``log`` holds and the rest of ``lines``) and the summary."""
+    while not lines.empty():
+        log.append(lines.get())
+    return "".join(log), json.loads((out / "summary.json").read_text())
+
+
 def _child_pid(launcher_pid: int, *words: str) -> int:
     """The launcher's child process whose command line has each of ``words``."""
 
@@ -459,13 +473,8 @@ def test_hung_agent_is_braked_and_resumes(tmp_path, lease, topology):
             os.kill(victim, signal.SIGCONT)
         launcher.wait(timeout=300)
     finally:
-        if launcher.poll() is None:
-            launcher.kill()
-            launcher.wait(timeout=10)
-    while not lines.empty():
-        log.append(lines.get())
-    err = "".join(log)
-    s = json.loads((tmp_path / "summary.json").read_text())
+        _stop(launcher)
+    err, s = _collected(lines, log, tmp_path)
     assert launcher.returncode == 0, err[-3000:]
     assert s["collisions"] == 0 and s["all_goals_reached"]
     assert s["min_reference_separation_m"] >= s["required_reference_separation_m"] - 1e-9
@@ -508,13 +517,8 @@ def test_a_tracker_behind_the_wall_clock_starts_the_clock_over(tmp_path):
             os.kill(tracker, signal.SIGCONT)
         launcher.wait(timeout=300)
     finally:
-        if launcher.poll() is None:
-            launcher.kill()
-            launcher.wait(timeout=10)
-    while not lines.empty():
-        log.append(lines.get())
-    err = "".join(log)
-    s = json.loads((tmp_path / "summary.json").read_text())
+        _stop(launcher)
+    err, s = _collected(lines, log, tmp_path)
     assert launcher.returncode == 0, err[-3000:]
     assert s["collisions"] == 0 and s["all_goals_reached"], s
     over = re.search(r"\[tracker\] step (\d+): the tick went out (\d+) ms late; the clock starts over", err)
