@@ -265,8 +265,8 @@ def main(argv: list[str] | None = None) -> int:
                 ).encode()
             )  # fmt: skip
             inbox.prune(k - 2)
-            if link.drained:  # realtime relay: the next step's target now, off the deadline's path
-                _steer_ahead(ctrl, inbox, others, withdrawn, starts, k, p.Ts)
+            if link.drained and blind <= args.blind_steps:  # realtime relay, not holding blind:
+                _steer_ahead(ctrl, inbox, others, withdrawn, last, starts, k, p.Ts)  # off the deadline's path
             k += 1
     finally:
         c = ctrl.counters
@@ -463,20 +463,22 @@ def _relayed(inbox: Inbox, others: list[str], step: int) -> bool:
 
 def _steer_ahead(
     ctrl: TubeMPC, inbox: Inbox, others: list[str], withdrawn: dict[str, set[int]],
-    starts: dict[str, NeighbourInfo], k: int, limit: float,
+    last: dict[str, Plan | None], starts: dict[str, NeighbourInfo], k: int, limit: float,
 ) -> bool:  # fmt: skip
     """Choose the target of step k + 1 (:meth:`TubeMPC.steer_ahead`) once the
     neighbours' plans of step k are in: the tracker relays them once it has the
     commands of step k, half a step before tick k + 1, while the cores are idle.
-    The navigator plans around every live robot's newest executed plan, as the step
-    would.  Waits at most ``limit`` [s]; skipped (False) if tick k + 1 or nothing comes
-    first: the step then steers itself."""
+    The navigator plans around every live robot's newest executed plan (else the last
+    one the step used, else its start), as the step would.  Waits at most ``limit``
+    [s]; skipped (False) if tick k + 1 or nothing comes first: the step then steers
+    itself."""
     inbox.wait(lambda: _relayed(inbox, others, k) or _tick_at_least(inbox, k + 1), limit)
     with inbox.cond:
         if _tick_at_least(inbox, k + 1) or not _relayed(inbox, others, k):
             return False
         plans = {j: inbox.newest(Plan, j, k, withdrawn[j]) for j in others if j in inbox.live}
-    ctrl.steer_ahead([starts[j] if pl is None else _neighbour(pl) for j, pl in plans.items()])
+    known = {j: pl or last.get(j) for j, pl in plans.items()}
+    ctrl.steer_ahead([starts[j] if pl is None else _neighbour(pl) for j, pl in known.items()])
     return True
 
 

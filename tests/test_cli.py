@@ -498,3 +498,21 @@ def test_bad_topology_is_refused_naming_the_option(tmp_path, value):
         proc.stderr
     )
     assert not (tmp_path / "summary.json").exists()
+
+
+@pytest.mark.parametrize("value", ["0", "-0.5", "0.9", "1"])
+def test_bad_tracker_deadline_is_refused_naming_the_option(value):
+    """A deadline past 0.75·Ts leaves the simulated tracker too little of the step for its own
+    work (its ticks would fall further behind each step): one line, exit 2, before any
+    network is opened."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "tracker", "--scenario", str(SCENARIOS / "paper_two_robots.toml"),
+         "--clock", "realtime", "--deadline", value],
+        cwd=ROOT, env=dict(os.environ, OMP_NUM_THREADS="1"), capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    no_traceback(proc)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.count("\n") == 1, proc.stderr
+    assert proc.stderr.startswith(f"tracker: error: --deadline: {float(value)} outside (0, 0.75]"), (
+        proc.stderr
+    )

@@ -155,6 +155,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.source == "emulator" and args.clock != "realtime":
         print("tracker: error: --clock: the emulated robots move in wall time; use realtime", file=sys.stderr)
         return 2
+    if not 0 < args.deadline <= 1 - LAG_LIMIT:
+        # Beyond, the rest of the step is too short for this process's own work, and each
+        # tick would go out later than the last until the clock starts over.
+        print(
+            f"tracker: error: --deadline: {args.deadline} outside (0, {1 - LAG_LIMIT:g}]: the tracker "
+            "needs the rest of the step",
+            file=sys.stderr,
+        )
+        return 2
     p = design.params
     seed = scn.simulation.seed if args.seed is None else args.seed
     rng = np.random.default_rng(seed)
@@ -328,7 +337,7 @@ def main(argv: list[str] | None = None) -> int:
                             f"step {k}: the tick went out {lag * 1e3:.0f} ms late; the clock starts over",
                         )
                 behind = lag > LAG_LIMIT * p.Ts
-                _until(max(t_start + t, sent) + args.deadline * p.Ts)
+                _until(sent + args.deadline * p.Ts)  # sent ≥ t_start + t: it waited for it
                 inbox.drain()
                 late = [r for r in ids if inbox.get(Command, r, k) is None and r in inbox.live]
                 if late and world.drives:  # emulated robots: their links judge (Applied)
@@ -463,7 +472,8 @@ def _all_home(inbox: Inbox, ids: list[str], world: SimulatedWorld | EmulatedWorl
     for rid in ids:
         if rid not in inbox.live:
             continue  # a dead agent's robot is braked where it is: it cannot get home
-        plan = inbox.get(Plan, rid, k) or inbox.newest(Plan, rid, k)
+        with inbox.cond:  # the plans' callbacks add to the history meanwhile
+            plan = inbox.get(Plan, rid, k) or inbox.newest(Plan, rid, k)
         if plan is None or np.linalg.norm(plan.committed[-1] - plan.goal) >= 1e-3:
             return False
         with inbox.cond:
