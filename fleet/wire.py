@@ -186,15 +186,17 @@ def _str(v: Any, name: str, pattern: re.Pattern[str] | None = None, maxlen: int 
 M = TypeVar("M", bound="Message")
 
 
-_FIELD_NAMES: dict[type, tuple[str, ...]] = {}
+_FIELD_NAMES: dict[type, tuple[tuple[str, ...], frozenset[str]]] = {}
 
 
-def _field_names(cls: type) -> tuple[str, ...]:
-    """The dataclass field names of a message class, looked up once (an agent encodes
-    two messages a step; ``dataclasses.fields`` builds its tuple anew each call)."""
+def _field_names(cls: type) -> tuple[tuple[str, ...], frozenset[str]]:
+    """The dataclass field names of a message class, in order and as a set, looked up once
+    (an agent encodes two messages a step; ``dataclasses.fields`` builds its tuple anew
+    each call)."""
     names = _FIELD_NAMES.get(cls)
     if names is None:
-        names = _FIELD_NAMES[cls] = tuple(f.name for f in fields(cls))
+        ordered = tuple(f.name for f in fields(cls))
+        names = _FIELD_NAMES[cls] = (ordered, frozenset(ordered))
     return names
 
 
@@ -209,7 +211,7 @@ class Message:
 
     def _fields(self) -> dict[str, Any]:
         out: dict[str, Any] = {}
-        for name in _field_names(type(self)):
+        for name in _field_names(type(self))[0]:
             v = getattr(self, name)
             out[name] = encode_array(v) if isinstance(v, np.ndarray) else v
         return out
@@ -667,7 +669,7 @@ def _names(cls: type[Message]) -> frozenset[str]:
     """The keys of a valid ``cls`` map: its fields, "schema" and "type" (cached)."""
     got = _NAMES.get(cls)
     if got is None:
-        got = _NAMES[cls] = frozenset({*_field_names(cls), "schema", "type"})
+        got = _NAMES[cls] = _field_names(cls)[1] | {"schema", "type"}
     return got
 
 
@@ -677,21 +679,12 @@ def _checked(cls: type[M], **values: Any) -> M:
     Every field must be given (a ``ValueError`` otherwise).  A frozen dataclass's
     ``__init__`` sets each field through ``object.__setattr__``: 7 µs a plan, and
     an agent takes n − 1 relayed plans a step."""
-    if values.keys() != _fields_set(cls):
-        raise ValueError(f"{cls.__name__}: fields {sorted(values)}, expected {sorted(_fields_set(cls))}")
+    expected = _field_names(cls)[1]
+    if values.keys() != expected:
+        raise ValueError(f"{cls.__name__}: fields {sorted(values)}, expected {sorted(expected)}")
     msg = object.__new__(cls)
     msg.__dict__.update(values)
     return msg
-
-
-_FIELDS_SET: dict[type, frozenset[str]] = {}
-
-
-def _fields_set(cls: type) -> frozenset[str]:
-    got = _FIELDS_SET.get(cls)
-    if got is None:
-        got = _FIELDS_SET[cls] = frozenset(_field_names(cls))
-    return got
 
 
 def _short(text: str, limit: int = 160) -> str:
