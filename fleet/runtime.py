@@ -37,8 +37,15 @@ STEPS_KEPT = 64
 def remember_steps(steps: set[int], new: Iterable[int], now: int, kept: int = STEPS_KEPT) -> None:
     """Add ``new`` to ``steps``, the recent steps a fact holds for (e.g. "its command was not
     applied"), and forget those before ``now − kept`` once there are twice ``kept``: the
-    set stays bounded without a scan each step.  An old entry is still true, only not needed."""
-    steps.update(s for s in new if s >= now - kept)
+    set stays bounded without a scan each step.  An old entry is still true, only not needed.
+
+    A ``range`` (the steps a tick says were never executed, resent at every tick of a long
+    episode: up to ``kept`` steps for each of 32 robots) is added without a Python loop,
+    half the time of a generator over it."""
+    if isinstance(new, range) and new.step == 1:
+        steps.update(range(max(new.start, now - kept), new.stop))
+    else:
+        steps.update(s for s in new if s >= now - kept)
     if len(steps) > 2 * kept:
         steps.difference_update([s for s in steps if s < now - kept])
 
@@ -425,6 +432,8 @@ class Inbox:
         ``skip`` (lock held): unlike ``get(typ, robot)``, it does not depend on what
         arrived since."""
         hist = self.history.get((typ.TYPE, robot), {})
+        if at_most not in skip and (msg := hist.get(at_most)) is not None:
+            return msg  # type: ignore[no-any-return]  # the usual case: no scan
         steps = [s for s in hist if s <= at_most and s not in skip]
         if steps:
             return hist[max(steps)]  # type: ignore[no-any-return]

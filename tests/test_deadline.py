@@ -230,6 +230,39 @@ def test_remembered_steps_stay_bounded_and_keep_the_recent_ones():
         assert len(steps) <= 2 * STEPS_KEPT + 1
     remember_steps(steps, range(0, 1000), 1000)  # only the recent part of a long range
     assert min(steps) >= 1000 - 2 * STEPS_KEPT - 1 and len(steps) <= 2 * STEPS_KEPT + 1
+    # A range (a tick's never-executed steps, resent each tick) is added as its steps one by one.
+    cases = ((range(0, 1000), 1000), (range(995, 1000), 1000), (range(10, 40), 100), (range(5, 5), 9))
+    for new, now in cases:
+        by_range: set[int] = {3, 7}
+        by_step: set[int] = {3, 7}
+        remember_steps(by_range, new, now)
+        remember_steps(by_step, tuple(new), now)
+        assert by_range == by_step
+        assert set(range(max(new.start, now - STEPS_KEPT), new.stop)) <= by_range
+
+
+def test_the_newest_plan_skips_withdrawn_and_later_steps():
+    """``Inbox.newest``: the plan of the newest kept step ≤ at_most that is not skipped
+    (a withdrawn plan was never executed), whatever arrived since."""
+    from fleet.runtime import Inbox
+    from fleet.wire import Keys, Plan
+
+    def plan(k: int) -> Plan:
+        z = np.zeros((3, 2))
+        return Plan(
+            robot="r2", step=k, t0=0.1 * (k + 1), Ts=0.1, committed=z + k, nominal=z, footprint=0.1,
+            priority=0, rank=1, phase=0, target=np.zeros(2), goal=np.zeros(2), status="solved",
+            solve_time=0.0, tube_ok=True,
+        )  # fmt: skip
+
+    inbox = Inbox(Keys("lab"), "agent r1")
+    assert inbox.newest(Plan, "r2", 5) is None
+    for k in (3, 4, 6):
+        inbox._store(Plan.TYPE, plan(k), keep=True)
+    newest = inbox.newest
+    assert [getattr(newest(Plan, "r2", k, skip), "step", None) for k, skip in (
+        (6, set()), (5, set()), (4, set()), (4, {4}), (6, {6, 4}), (6, {6, 4, 3}), (2, set()),
+    )] == [6, 4, 4, 3, 3, None, None]  # fmt: skip
 
 
 def test_epuck_link_takes_the_command_only_by_its_deadline():
