@@ -32,6 +32,9 @@ figures, each described in benchmarks/README.md ("Scale and performance"):
    sampler reads VmRSS and CPU time of every fleet process from /proc.
 5. The goals: 16 robots realtime with zero deadline misses, 32 robots with
    fewer than 0.1 % misses, zero collisions in both.
+6. The capacity: the largest realtime fleet again at twice the period (Ts =
+   0.2 s, where it is not overloaded), the CPU of all its processes a step,
+   and the cores that makes at Ts = 0.1 s, against the machine's.
 
 The machine's load average (os.getloadavg) is printed and recorded at the start,
 before each fleet run and at the end: on a shared 2-core machine it decides
@@ -102,6 +105,10 @@ SCENES = {3: "paper_three_robots", 8: "swap_8", 16: "swap_16", 32: "swap_32"}
 
 GOAL_MISS_RATE_32 = 1e-3
 """Realtime goal for 32 robots: fewer than 0.1 % of the agent-steps miss their deadline."""
+GOAL_TS = 0.1
+"""Sampling period of the realtime goals [s]."""
+CAPACITY_TS = 2 * GOAL_TS
+"""Period [s] of the capacity run ([6]): the largest realtime fleet at half the rate."""
 
 
 # ============================================================================ helpers
@@ -915,27 +922,33 @@ def _wait_port(port: int, timeout: float, proc: subprocess.Popen[Any]) -> bool:
     return False
 
 
-def capped_scenario(name: str, sim_s: float, tmp: Path) -> Path:
-    """A copy of scenarios/``name``.toml whose duration is ``sim_s`` [s]."""
+def capped_scenario(name: str, sim_s: float, tmp: Path, Ts: float | None = None) -> Path:
+    """A copy of scenarios/``name``.toml whose duration is ``sim_s`` [s], and whose
+    controller's sampling period is ``Ts`` [s] if given (the tube is designed for it)."""
     data = tomllib.loads((ROOT / "scenarios" / f"{name}.toml").read_text())
     data["duration"] = float(sim_s)
-    path = tmp / f"{name}_{sim_s:g}s.toml"
-    path.write_text(scene_to_toml(data, comment=f"{name} with duration {sim_s:g} s (fleet bench)"))
+    tag = f"{sim_s:g}s"
+    if Ts is not None:
+        data.setdefault("controller", {})["Ts"] = float(Ts)
+        tag += f"_Ts{Ts:g}"
+    path = tmp / f"{name}_{tag}.toml"
+    what = f"duration {sim_s:g} s" + ("" if Ts is None else f", Ts = {Ts:g} s")
+    path.write_text(scene_to_toml(data, comment=f"{name} with {what} (fleet bench)"))
     return path
 
 
 def fleet_run(
     robots: int, clock: str, sim_s: float, out: Path, tmp: Path, log: Callable[[str], None],
-    exchange: str = "relay", topology: str = "star",
+    exchange: str = "relay", topology: str = "star", Ts: float | None = None,
 ) -> dict[str, Any]:  # fmt: skip
     """One ``fleet run`` of the shipped scene for ``robots`` robots, ``sim_s`` simulated seconds,
     plans travelling by ``exchange`` (mesh or relay), the processes linked by ``topology``
-    (mesh or star)."""
+    (mesh or star), at the scene's sampling period or at ``Ts`` [s]."""
     from fleet.net import free_port, loopback
 
     name = SCENES[robots]
-    scn_path = capped_scenario(name, sim_s, tmp)
-    run_dir = out / f"{clock}_{robots}"
+    scn_path = capped_scenario(name, sim_s, tmp, Ts)
+    run_dir = out / f"{clock}_{robots}" if Ts is None else out / f"{clock}_{robots}_Ts{Ts:g}"
     if run_dir.exists():
         shutil.rmtree(run_dir)
     run_dir.mkdir(parents=True)
@@ -999,6 +1012,7 @@ def fleet_run(
         supervisor_steps=int(s["steps"]),
         supervisor_unjudged_steps=int(s.get("unjudged_steps", 0)),
         supervisor_complete=int(s["steps"]) >= steps - 1 and not s.get("unjudged_steps", 0),
+        Ts_s=Ts,
         sim_s=steps * Ts,
         wall_s=s["wall_time_s"],
         rtf=s["sim_time_s"] / s["wall_time_s"] if s["wall_time_s"] else math.nan,
@@ -1054,6 +1068,26 @@ def fleet_run(
     if lat is not None:
         row["latency"] = {k: v for k, v in lat.items() if k.endswith("_ms")}
     return row
+
+
+def capacity(r: dict[str, Any] | None, info: dict[str, Any]) -> dict[str, Any] | None:
+    """What the fleet of run ``r`` (at twice the goals' period; or None) needs at ``GOAL_TS``.
+
+    CPU of all its processes a step [ms] = cores used × stepping wall time / steps; at
+    ``GOAL_TS`` it needs that / GOAL_TS cores.  Not projected to other fleet sizes: the
+    tracker's and the supervisor's share does not grow with them in proportion.  A lower
+    bound: a step that misses its deadline costs more (the candidate, rewinds), and an
+    overloaded run's figure is not the need either (``deadline_misses`` > 0)."""
+    if r is None or "steps" not in r or "cpu" not in r:
+        return None
+    cpu = r["cpu"]
+    per_step = 1e3 * cpu["cores_used"] * cpu["window_s"] / max(1, r["steps"])
+    return {
+        "robots": r["robots"], "Ts_s": r["Ts_s"], "steps": r["steps"], "cores_used": cpu["cores_used"],
+        "deadline_misses": r["deadline_misses"], "cpu_ms_per_step": per_step,
+        "cpu_ms_per_robot_step": per_step / r["robots"], "goal_Ts_s": GOAL_TS,
+        "cores_needed_at_goal_Ts": per_step / (1e3 * GOAL_TS), "nproc": info["nproc"],
+    }  # fmt: skip
 
 
 def _tracker_end(lines: list[str]) -> tuple[int, int] | None:
@@ -1200,6 +1234,16 @@ def run(args: argparse.Namespace) -> int:
                 r = fleet_run(n, "realtime", rt_s, out, tmp, log, args.exchange, args.topology)
                 runs.append(r)
                 print_run(r, log)
+            if rt_sizes:
+                # The largest realtime fleet again at twice the period: the CPU it needs a
+                # robot-step when it is not overloaded ([6]).
+                slow = fleet_run(
+                    max(rt_sizes), "realtime", rt_s, out, tmp, log, args.exchange, args.topology,
+                    Ts=CAPACITY_TS,
+                )  # fmt: skip
+                slow["purpose"] = "capacity"
+                runs.append(slow)
+                print_run(slow, log)
             log(RUN_LEGEND)
     result["fleet_runs"] = runs
     result["lockstep_rtf"] = {str(r["robots"]): r.get("rtf") for r in runs if r["clock"] == "lockstep"}
@@ -1218,7 +1262,7 @@ def run(args: argparse.Namespace) -> int:
     # ---- [5] goals
     goals = []
     for r in runs:
-        if r["clock"] != "realtime" or "steps" not in r:
+        if r["clock"] != "realtime" or "steps" not in r or r.get("purpose") == "capacity":
             continue
         n = r["robots"]
         # Collisions count only if the supervisor judged every step (it runs niced and
@@ -1247,6 +1291,17 @@ def run(args: argparse.Namespace) -> int:
                 f"{g['steps']} steps judged; goal {g['goal']}: "
                 f"{'met' if g['met'] else 'MISSED'}"
             )
+
+    result["capacity"] = capacity(next((r for r in runs if r.get("purpose") == "capacity"), None), info)
+    if result["capacity"] is not None:
+        c = result["capacity"]
+        log(
+            f"\n[6] capacity: {c['robots']} robots at Ts = {c['Ts_s']:g} s used {c['cores_used']:.2f} cores, "
+            f"{c['cpu_ms_per_step']:.0f} ms of CPU a step ({c['cpu_ms_per_robot_step']:.2f} a robot; "
+            f"{c['deadline_misses']} misses{', overloaded: a lower bound' if c['deadline_misses'] else ''}): "
+            f"at Ts = {GOAL_TS:g} s it needs {c['cores_needed_at_goal_Ts']:.2f} cores; this machine has "
+            f"{c['nproc']}"
+        )
 
     result["loadavg_at_end"] = loadavg()
     result["total_wall_s"] = time.perf_counter() - t_start

@@ -64,7 +64,8 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     ap.add_argument(
         "--realtime", default=None, metavar="N,N,…",
-        help="fleet sizes of the realtime runs (default 16,32; quick 3)",
+        help="fleet sizes of the realtime runs (default 16,32; quick 3); the largest runs again at "
+        "twice the period for the capacity figure [6]",
     )  # fmt: skip
     ap.add_argument(
         "--lockstep-s", type=float, default=None, metavar="S",
@@ -83,7 +84,7 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
         help="how the fleet runs' processes link (fleet run --topology; default star: the tracker a "
         "router, one link per process)",
     )  # fmt: skip
-    ap.add_argument("--no-fleet", action="store_true", help="skip the fleet runs (figures [4] and [5])")
+    ap.add_argument("--no-fleet", action="store_true", help="skip the fleet runs (figures [4] to [6])")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -78,6 +78,7 @@ def test_quick_prints_the_tables(quick: tuple[subprocess.CompletedProcess[str], 
         "[3] wire codec",
         "[4] fleet run",
         "[5] realtime",
+        "[6] capacity",
     ):
         assert heading in proc.stdout, f"missing {heading!r} in\n{proc.stdout}"
     assert "load average at start" in proc.stdout
@@ -168,6 +169,27 @@ def test_quick_fleet_runs(quick: tuple[subprocess.CompletedProcess[str], dict[st
     positive(d["rss_mb_per_agent"]["p50"], "rss_mb_per_agent.p50")
     assert d["latency"], "no latency figures"
     assert d["goals"] and all(isinstance(g["met"], bool) for g in d["goals"])
+    # The capacity run is not a goal: the goals are at Ts = 0.1 s.
+    assert [g["robots"] for g in d["goals"]] == [3]
+    assert [r["Ts_s"] for r in runs if r["clock"] == "realtime"] == pytest.approx([0.1, 0.2])
+
+
+def test_quick_capacity(quick: tuple[subprocess.CompletedProcess[str], dict[str, Any]]) -> None:
+    """[6]: the realtime fleet again at Ts = 0.2 s; the CPU of all its processes a step, from
+    that run's own figures, and the cores it makes at Ts = 0.1 s."""
+    _, d = quick
+    c = d["capacity"]
+    run = next(r for r in d["fleet_runs"] if r.get("purpose") == "capacity")
+    assert (c["robots"], c["Ts_s"], c["goal_Ts_s"]) == (3, pytest.approx(0.2), 0.1)
+    assert c["steps"] == run["steps"] and c["deadline_misses"] == run["deadline_misses"]
+    cpu = run["cpu"]
+    assert c["cpu_ms_per_step"] == pytest.approx(1e3 * cpu["cores_used"] * cpu["window_s"] / c["steps"])
+    positive(c["cpu_ms_per_step"], "cpu_ms_per_step")
+    assert c["cpu_ms_per_robot_step"] == pytest.approx(c["cpu_ms_per_step"] / 3)
+    # Twice the rate, twice the cores: the run's stepping took about its simulated time.
+    assert c["cores_needed_at_goal_Ts"] == pytest.approx(c["cpu_ms_per_step"] / 100.0)
+    assert c["cores_needed_at_goal_Ts"] == pytest.approx(2 * c["cores_used"] * run["wall_s"] / run["sim_s"])
+    assert c["nproc"] == d["machine"]["nproc"]
 
 
 def test_hex_lattice_neighbours_keep_their_distance() -> None:
