@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -82,3 +83,59 @@ def test_a_fleet_above_the_pair_limit_logs_each_robots_nearest_distance(tmp_path
         assert set(rows) == set(expected), entity
         for step, pts in expected.items():
             assert np.allclose(rows[step], brute(pts), atol=1e-6), (entity, step)
+
+
+def _rows(rrd: Path, column: str) -> dict[str, dict[int, Any]]:
+    """entity path → {step: value of ``column``} of every row that has it."""
+    from rerun.chunk import RrdReader
+
+    out: dict[str, dict[int, Any]] = {}
+    for ch in RrdReader(rrd).stream():
+        batch = ch.to_record_batch()
+        if column not in batch.schema.names or "step" not in batch.schema.names:
+            continue
+        rows = zip(batch.column("step").to_pylist(), batch.column(column).to_pylist(), strict=True)
+        out.setdefault(str(ch.entity_path), {}).update((s, v) for s, v in rows if v is not None)
+    return out
+
+
+def test_each_robot_s_plans_and_poses_land_at_their_own_steps(tmp_path):
+    """Rows are sent a flush at a time, entities sharing time columns and strips of one shape
+    sent as one array: every robot's reference, plan and true position is still at its step,
+    also for a robot whose plan of a step is missing, and for a plan of another length."""
+    os.environ["RERUN_ANALYTICS"] = "0"
+    scn = load_scenario(ROOT / "scenarios" / "paper_three_robots.toml")
+    ids = [r.id for r in scn.robots]
+    rng = np.random.default_rng(7)
+    rec = Recorder(tmp_path / "r.rrd", scn, footprint=0.1, rho=0.01, radius=0.037)
+    sent: dict[tuple[str, str], dict[int, np.ndarray]] = {}
+    for k in range(4):
+        truth = {r: Pose(robot=r, seq=k, t=0.1 * k, x=float(x), y=float(y), theta=0.0)
+                 for r, (x, y) in zip(ids, rng.uniform(-1, 1, (len(ids), 2)), strict=True)}  # fmt: skip
+        plans = {}
+        for i, r in enumerate(ids):
+            sent.setdefault((r, "true"), {})[k] = np.array([[truth[r].x, truth[r].y]])
+            if (k, r) == (1, ids[2]):
+                continue  # no plan of this robot at this step
+            nominal = np.zeros((0, 2)) if (k, r) == (2, ids[1]) else rng.uniform(-1, 1, (6, 2))
+            plans[r] = Plan(
+                robot=r, step=k, t0=0.1 * (k + 1), Ts=0.1, committed=rng.uniform(-1, 1, (5, 2)),
+                nominal=nominal, footprint=0.1, priority=0, rank=i, phase=0, target=np.zeros(2),
+                goal=np.array(scn.robots[i].goal, float), status="PROXQP_SOLVED", solve_time=1e-4,
+                tube_ok=True,
+            )  # fmt: skip
+            sent.setdefault((r, "reference"), {})[k + 1] = plans[r].committed
+            sent.setdefault((r, "plan"), {})[k + 1] = nominal
+        rec.truth(k, 0.1, truth, truth)
+        rec.plans(k, 0.1, plans)
+        if k == 1:
+            rec.flush()
+    rec.close()
+    strips = _rows(tmp_path / "r.rrd", "LineStrips2D:strips")
+    points = _rows(tmp_path / "r.rrd", "Points2D:positions")
+    for (r, part), by_step in sent.items():
+        got = (points if part == "true" else strips)[f"/world/robots/{r}/{part}"]
+        assert set(got) == set(by_step), (r, part)
+        for k, want in by_step.items():
+            value = np.array(got[k] if part == "true" else got[k][0], float).reshape(-1, 2)
+            assert np.allclose(value, want), (r, part, k)
