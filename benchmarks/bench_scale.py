@@ -1257,7 +1257,11 @@ def run(args: argparse.Namespace) -> int:
         "p50": float(np.median(rss50)) if rss50 else math.nan,
         "max": float(max(rss)) if rss else math.nan,
     }
-    result["latency"] = {f"{r['clock']}_{r['robots']}": r["latency"] for r in runs if "latency" in r}
+    result["latency"] = {
+        f"{r['clock']}_{r['robots']}" + ("_capacity" if r.get("purpose") == "capacity" else ""): r["latency"]
+        for r in runs
+        if "latency" in r
+    }
 
     # ---- [5] goals
     goals = []

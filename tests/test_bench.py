@@ -172,6 +172,10 @@ def test_quick_fleet_runs(quick: tuple[subprocess.CompletedProcess[str], dict[st
     # The capacity run is not a goal: the goals are at Ts = 0.1 s.
     assert [g["robots"] for g in d["goals"]] == [3]
     assert [r["Ts_s"] for r in runs if r["clock"] == "realtime"] == pytest.approx([0.1, 0.2])
+    # Each run's latency under its own key: the capacity run does not overwrite the goal run's.
+    assert set(d["latency"]) == {"lockstep_3", "realtime_3", "realtime_3_capacity"}
+    goal_run = next(r for r in runs if r["clock"] == "realtime" and r.get("purpose") != "capacity")
+    assert d["latency"]["realtime_3"] == goal_run["latency"]
 
 
 def test_quick_capacity(quick: tuple[subprocess.CompletedProcess[str], dict[str, Any]]) -> None:
