@@ -1073,15 +1073,19 @@ def fleet_run(
 def capacity(r: dict[str, Any] | None, info: dict[str, Any]) -> dict[str, Any] | None:
     """What the fleet of run ``r`` (at twice the goals' period; or None) needs at ``GOAL_TS``.
 
-    CPU of all its processes a step [ms] = cores used × stepping wall time / steps; at
-    ``GOAL_TS`` it needs that / GOAL_TS cores.  Not projected to other fleet sizes: the
-    tracker's and the supervisor's share does not grow with them in proportion.  A lower
-    bound: a step that misses its deadline costs more (the candidate, rewinds), and an
-    overloaded run's figure is not the need either (``deadline_misses`` > 0)."""
-    if r is None or "steps" not in r or "cpu" not in r:
+    CPU of all its processes a step [ms] = cores used × stepping wall time (first to last
+    tick, ``steps − 1`` periods) / (steps − 1); at ``GOAL_TS`` it needs that / GOAL_TS
+    cores.  Not projected to other fleet sizes: the tracker's and the supervisor's share
+    does not grow with them in proportion.  An estimate, not a bound: a step that misses
+    its deadline costs more (the candidate, rewinds), and an overloaded run's figure is not
+    the need either (``deadline_misses`` > 0); work that follows the wall clock instead of
+    the steps (the recorder's flushes, Zenoh's upkeep: about 0.1 core at 32 robots) is
+    counted twice.  None without the observer's ticks: the window would then include the
+    start-up."""
+    if r is None or "steps" not in r or "cpu" not in r or "latency" not in r:
         return None
     cpu = r["cpu"]
-    per_step = 1e3 * cpu["cores_used"] * cpu["window_s"] / max(1, r["steps"])
+    per_step = 1e3 * cpu["cores_used"] * cpu["window_s"] / max(1, r["steps"] - 1)
     return {
         "robots": r["robots"], "Ts_s": r["Ts_s"], "steps": r["steps"], "cores_used": cpu["cores_used"],
         "deadline_misses": r["deadline_misses"], "cpu_ms_per_step": per_step,
@@ -1140,6 +1144,8 @@ def print_run(r: dict[str, Any], log: Callable[[str], None]) -> None:
             f"{a['fallbacks']} fallbacks, {a['tube_exits']} tube exits, {a['blind_holds']} blind holds "
             f"in {a['solves']} solves"
         )
+    if r.get("purpose") == "capacity":
+        notes.append(f"the capacity run [6], at Ts = {r['Ts_s']:g} s")
     if not r["supervisor_complete"]:
         notes.append(
             f"supervisor judged only {r['supervisor_steps']} of {r['steps']} steps (collisions: those only)"

@@ -187,12 +187,16 @@ def test_quick_capacity(quick: tuple[subprocess.CompletedProcess[str], dict[str,
     assert (c["robots"], c["Ts_s"], c["goal_Ts_s"]) == (3, pytest.approx(0.2), 0.1)
     assert c["steps"] == run["steps"] and c["deadline_misses"] == run["deadline_misses"]
     cpu = run["cpu"]
-    assert c["cpu_ms_per_step"] == pytest.approx(1e3 * cpu["cores_used"] * cpu["window_s"] / c["steps"])
+    assert c["cpu_ms_per_step"] == pytest.approx(1e3 * cpu["cores_used"] * cpu["window_s"] / (c["steps"] - 1))
     positive(c["cpu_ms_per_step"], "cpu_ms_per_step")
     assert c["cpu_ms_per_robot_step"] == pytest.approx(c["cpu_ms_per_step"] / 3)
-    # Twice the rate, twice the cores: the run's stepping took about its simulated time.
     assert c["cores_needed_at_goal_Ts"] == pytest.approx(c["cpu_ms_per_step"] / 100.0)
-    assert c["cores_needed_at_goal_Ts"] == pytest.approx(2 * c["cores_used"] * run["wall_s"] / run["sim_s"])
+    # The premise: the fleet's CPU follows its step rate.  The same 3 robots at Ts = 0.1 s, in
+    # the run before, used the cores the figure says within a factor of 3: a shared machine,
+    # and at 3 robots the work that follows the wall clock (recorder, Zenoh) is half of it;
+    # a wrong unit is off by 10 or more (a period not applied: the Ts_s check above).
+    at_goal = next(r for r in d["fleet_runs"] if r["clock"] == "realtime" and r is not run)
+    assert 1 / 3 <= c["cores_needed_at_goal_Ts"] / at_goal["cpu"]["cores_used"] <= 3.0
     assert c["nproc"] == d["machine"]["nproc"]
 
 
