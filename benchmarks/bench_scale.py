@@ -1308,7 +1308,7 @@ def run(args: argparse.Namespace) -> int:
         log(
             f"\n[6] capacity: {c['robots']} robots at Ts = {c['Ts_s']:g} s used {c['cores_used']:.2f} cores, "
             f"{c['cpu_ms_per_step']:.0f} ms of CPU a step ({c['cpu_ms_per_robot_step']:.2f} a robot; "
-            f"{c['deadline_misses']} misses{', overloaded: a lower bound' if c['deadline_misses'] else ''}): "
+            f"{c['deadline_misses']} misses{', overloaded: it needs more' if c['deadline_misses'] else ''}): "
             f"at Ts = {GOAL_TS:g} s it needs {c['cores_needed_at_goal_Ts']:.2f} cores; this machine has "
             f"{c['nproc']}"
         )
