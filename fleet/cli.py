@@ -178,9 +178,41 @@ def cmd_run(args: argparse.Namespace) -> int:
             f"/{len(summary['robots'])}"
         )
         print(f"summary: {out / 'summary.json'}")
+        note = realtime_note(summary, design.params.Ts) if clock == "realtime" else None
+        if note:
+            print(note)
     if code:
         print(f"fleet: run failed: {verdict}", file=sys.stderr)
     return code
+
+
+MISS_NOTE = 0.01
+"""Share of robot-steps [1] above which a realtime run's deadline misses are explained."""
+LAG_NOTE = 1.05
+"""Wall time per simulated time above which a realtime run's lag is explained."""
+
+
+def realtime_note(summary: dict[str, Any], Ts: float) -> str | None:
+    """One line on why a realtime run missed many deadlines or ran slower than the wall
+    clock, or None: the machine is short of CPU for this fleet at this period ``Ts`` [s]."""
+    steps, n = int(summary.get("steps", 0)), len(summary.get("robots", {}))
+    misses = int(summary.get("deadline_misses", 0))
+    sim, wall = float(summary.get("sim_time_s", 0.0)), float(summary.get("wall_time_s", 0.0))
+    share = misses / max(1, steps * n)
+    slow = sim > 0 and wall > LAG_NOTE * sim
+    if share <= MISS_NOTE and not slow:
+        return None
+    what = []
+    if share > MISS_NOTE:
+        what.append(
+            f"{100 * share:.1f} % of the deadlines were missed (the robots followed their candidates, or braked)"
+        )
+    if slow:
+        what.append(f"the simulated clock ran {wall - sim:.1f} s behind the wall clock")
+    return (
+        f"note: {' and '.join(what)}: this machine is short of CPU for {n} agents at Ts = {Ts:g} s; "
+        "`fleet bench --realtime N` measures what a fleet needs (figure [6])"
+    )
 
 
 def _run_links(scn: Any) -> dict[str, str]:

@@ -516,3 +516,23 @@ def test_bad_tracker_deadline_is_refused_naming_the_option(value):
     assert proc.stderr.startswith(f"tracker: error: --deadline: {float(value)} outside (0, 0.75]"), (
         proc.stderr
     )
+
+
+def test_a_realtime_run_short_of_cpu_says_so_in_one_line():
+    """``fleet run`` on the realtime clock explains many misses or a lagging clock (the
+    figures of a 32-robot run on 2 cores), and says nothing for a run that kept up."""
+    from fleet.cli import realtime_note
+
+    robots = {f"r{i}": {} for i in range(1, 33)}
+    kept_up = {"steps": 300, "robots": robots, "deadline_misses": 20, "sim_time_s": 30.0, "wall_time_s": 30.4}
+    assert realtime_note(kept_up, 0.1) is None
+    overloaded = {**kept_up, "deadline_misses": 7143, "wall_time_s": 38.3}
+    note = realtime_note(overloaded, 0.1)
+    assert note is not None and "\n" not in note
+    assert "74.4 % of the deadlines were missed" in note
+    assert "8.3 s behind the wall clock" in note and "32 agents at Ts = 0.1 s" in note
+    assert "fleet bench" in note
+    only_late = realtime_note({**kept_up, "wall_time_s": 40.0}, 0.1)
+    assert only_late is not None and "missed" not in only_late and "10.0 s behind" in only_late
+    only_misses = realtime_note({**kept_up, "deadline_misses": 97}, 0.2)
+    assert only_misses is not None and "1.0 % of the deadlines" in only_misses and "behind" not in only_misses
