@@ -205,7 +205,8 @@ def realtime_note(summary: dict[str, Any], Ts: float) -> str | None:
     what = []
     if share > MISS_NOTE:
         what.append(
-            f"{100 * share:.1f} % of the deadlines were missed (the robots followed their candidates, or braked)"
+            f"{100 * share:.1f} % of the deadlines were missed "
+            "(the robots followed their candidates, or braked)"
         )
     if slow:
         what.append(f"the simulated clock ran {wall - sim:.1f} s behind the wall clock")
