@@ -28,7 +28,6 @@ from agent.controller import TubeMPC
 from agent.coordination import Hazard, NeighbourInfo
 from agent.models import measured_state
 from fleet.runtime import (
-    STEPS_KEPT,
     Inbox,
     add_common_args,
     announce,
@@ -150,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
             inbox.release(k)
             for j, done in (*tick.fallback.items(), *tick.braked.items()):
                 if j in withdrawn:  # the plans of steps done + 1 … k − 1 were never executed
-                    remember_steps(withdrawn[j], range(max(done + 1, k - STEPS_KEPT), k), k)
+                    remember_steps(withdrawn[j], range(done + 1, k), k)  # only the recent part is kept
             executed = tick.executed(me)
             if joined and executed is not None:
                 # The robot side did not apply the command of step k − 1.  It followed

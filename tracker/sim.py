@@ -41,7 +41,6 @@ from agent.models import measured_state
 from fleet.harness import GOAL_TOLERANCE, Disturbance, PoseNoise, make_plant
 from fleet.robot_side import BRAKED, CANDIDATE, REPORT_WAIT, Reports, RobotSide
 from fleet.runtime import (
-    STEPS_KEPT,
     Inbox,
     add_common_args,
     announce,
@@ -282,7 +281,7 @@ def main(argv: list[str] | None = None) -> int:
                 wait = REPORT_WAIT * p.Ts
                 on_chain, braked_map, late = reports.for_tick(inbox, k, wait, partial(log, role))
                 for r, done in (*on_chain.items(), *braked_map.items()):
-                    remember_steps(sides[r].unexecuted, range(max(done + 1, k - STEPS_KEPT), k), k)
+                    remember_steps(sides[r].unexecuted, range(done + 1, k), k)  # only the recent part is kept
                 if late:
                     misses += len(late)
                     log(role, f"step {k - 1}: deadline missed by {', '.join(late)} (seen by epuck_link)")
@@ -473,7 +472,7 @@ def _all_home(inbox: Inbox, ids: list[str], world: SimulatedWorld | EmulatedWorl
         if rid not in inbox.live:
             continue  # a dead agent's robot is braked where it is: it cannot get home
         with inbox.cond:  # the plans' callbacks add to the history meanwhile
-            plan = inbox.get(Plan, rid, k) or inbox.newest(Plan, rid, k)
+            plan = inbox.newest(Plan, rid, k)  # the plan of step k if it is in
         if plan is None or np.linalg.norm(plan.committed[-1] - plan.goal) >= 1e-3:
             return False
         with inbox.cond:
