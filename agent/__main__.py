@@ -5,6 +5,6 @@ import os
 os.environ.setdefault("OMP_NUM_THREADS", "1")  # ProxSuite links libgomp (DESIGN §8)
 
 from agent.node import main
-from fleet.runtime import exit_process
+from ground.process import exit_process
 
 exit_process(main())

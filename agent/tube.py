@@ -29,8 +29,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 
-from agent.params import ControllerParams
 from agent.sets import Array, MRPIApprox, SetComputationError, Zonotope, mrpi_outer
+from ground.model import double_integrator, position_to_rest_state
+from ground.params import ControllerParams
+from ground.scenario import ConfigError, Scenario, check_geometry
 
 
 class InadmissibleDesign(ValueError):
@@ -39,21 +41,6 @@ class InadmissibleDesign(ValueError):
     def __init__(self, failures: list[str]):
         self.failures = failures
         super().__init__("; ".join(failures))
-
-
-def double_integrator(Ts: float) -> tuple[Array, Array, Array]:
-    """(A (4,4), B (4,2), C (2,4)) of two decoupled double integrators."""
-    A1 = np.array([[1.0, Ts], [0.0, 1.0]])
-    B1 = np.array([[0.5 * Ts * Ts], [Ts]])
-    A = scipy.linalg.block_diag(A1, A1)
-    B = scipy.linalg.block_diag(B1, B1)
-    C = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]])
-    return A, B, C
-
-
-def position_to_rest_state() -> Array:
-    """E (4,2): maps a position [x, y] to the state at rest there."""
-    return np.array([[1.0, 0.0], [0.0, 0.0], [0.0, 1.0], [0.0, 0.0]])
 
 
 def dlqr_gain(A: Array, B: Array, Q: Array, R: Array) -> Array:
@@ -323,4 +310,18 @@ def require_admissible(design: TubeDesign) -> TubeDesign:
     """Raise :class:`InadmissibleDesign` if the design has failures."""
     if design.failures:
         raise InadmissibleDesign(design.failures)
+    return design
+
+
+def validated_design(scn: Scenario) -> TubeDesign:
+    """The admissible tube design of a scenario, its starts and goals checked against the
+    footprint; raises :class:`~ground.scenario.ConfigError` (field ``controller`` or the robot's)
+    with the reason, and nothing else."""
+    try:
+        design = synthesize(scn.controller, scn.arena)
+    except SetComputationError as e:
+        raise ConfigError("controller", str(e)) from None
+    if design.failures:
+        raise ConfigError("controller", "inadmissible tube design: " + "; ".join(design.failures))
+    check_geometry(scn, design.footprint)
     return design

@@ -28,8 +28,8 @@ def machine_speed(reps: int = 2000) -> float:
     the same day, 53–57 µs), printed with the real-time factors so runs can be compared."""
     import numpy as np
 
-    from agent.models import LookaheadInnerLoop, UnicyclePlant
-    from agent.params import WheelGeometry
+    from epuck_link.unicycle import LookaheadInnerLoop, UnicyclePlant
+    from ground.params import WheelGeometry
 
     plant = UnicyclePlant(np.array([0.1, 0.2, 0.3]), LookaheadInnerLoop(0.04), WheelGeometry())
     a = np.array([0.1, -0.1])

@@ -77,10 +77,10 @@ import proxsuite  # noqa: E402
 
 from agent.controller import TubeMPC  # noqa: E402
 from agent.coordination import UNDER_WAY, NeighbourInfo  # noqa: E402
-from agent.params import preset  # noqa: E402
 from agent.qp import TubeQP  # noqa: E402
 from agent.tube import require_admissible, synthesize  # noqa: E402
 from fleet.scenes import scene_to_toml  # noqa: E402
+from ground.params import preset  # noqa: E402
 
 try:
     import daqp
@@ -658,7 +658,7 @@ def harness_sequences(seed: int, steps: int) -> list[dict[str, Any]]:
 # ============================================================================ [3] wire
 def wire_costs(reps: int, log: Callable[[str], None]) -> dict[str, Any]:
     """[3]: encode/decode time per message type [µs], and one agent's decode work per step."""
-    from fleet.wire import Command, Odom, Plan, Pose, Tick, decode
+    from ground.wire import Command, Odom, Plan, Pose, Tick, decode
 
     N = preset("epuck").horizon
     rng = np.random.default_rng(0)
@@ -856,8 +856,8 @@ class Observer:
     def __init__(self, hub: str, fleet: str = "lab", mode: str = "peer"):
         import zenoh
 
-        from fleet.net import NetConfig
-        from fleet.wire import Command, Keys, Pose, Tick, WireError, decode
+        from ground.net import NetConfig
+        from ground.wire import Command, Keys, Pose, Tick, WireError, decode
 
         self.keys = Keys(fleet)
         self.tick: dict[int, float] = {}
@@ -944,7 +944,7 @@ def fleet_run(
     """One ``fleet run`` of the shipped scene for ``robots`` robots, ``sim_s`` simulated seconds,
     plans travelling by ``exchange`` (mesh or relay), the processes linked by ``topology``
     (mesh or star), at the scene's sampling period or at ``Ts`` [s]."""
-    from fleet.net import free_port, loopback
+    from ground.net import free_port, loopback
 
     name = SCENES[robots]
     scn_path = capped_scenario(name, sim_s, tmp, Ts)

@@ -66,9 +66,9 @@ from agent.controller import TubeMPC  # noqa: E402
 from agent.coordination import UNDER_WAY, Navigator, NeighbourInfo  # noqa: E402
 from agent.qp import TubeQP  # noqa: E402
 from agent.tube import require_admissible, synthesize  # noqa: E402
-from fleet import harness  # noqa: E402
-from fleet.scenario import check_geometry, load_scenario, parse_scenario  # noqa: E402
+from fleet import simulate as harness  # noqa: E402
 from fleet.scenes import random_scene  # noqa: E402
+from ground.scenario import check_geometry, load_scenario, parse_scenario  # noqa: E402
 
 try:
     import daqp

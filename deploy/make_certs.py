@@ -50,7 +50,7 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 NAME = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
-"""Identity names: the robot-id pattern of fleet/wire.py."""
+"""Identity names: the robot-id pattern of ground/wire.py."""
 SERVICES = ("tracker", "supervisor", "operator", "router")
 """Identities made besides the robots."""
 ROUTER = "router"

@@ -12,15 +12,15 @@
   image.
 
 The robot is a differential drive with the E-puck geometry
-(:class:`agent.params.WheelGeometry`: wheel radius 20.5 mm, axle 53 mm, 1000
+(:class:`ground.params.WheelGeometry`: wheel radius 20.5 mm, axle 53 mm, 1000
 steps per revolution).  Speeds are clamped to ±``--speed-limit`` steps/s;
 between two requests the wheels turn at constant speed and the pose is
-integrated exactly (:func:`agent.models.integrate_unicycle`) in wall time, or
+integrated exactly (:func:`epuck_link.unicycle.integrate_unicycle`) in wall time, or
 on an injected clock in tests.  The encoder counts are kept exactly and
 reported as int16s that wrap, as the firmware does.
 
 With ``--robot`` the ground-truth pose of the axle centre (world frame, m and
-rad) is published as :class:`fleet.wire.Truth` on ``fleet/F/emu/R`` at
+rad) is published as :class:`ground.wire.Truth` on ``fleet/F/emu/R`` at
 ``--rate`` Hz (default 100).  Its ``t`` is seconds since the emulator started,
 on ``time.monotonic``; the readiness line gives that origin as
 ``clock_origin`` [s, time.monotonic].  Without ``--robot`` no Zenoh session is
@@ -47,10 +47,10 @@ from typing import Any
 
 import numpy as np
 
-from agent.models import integrate_unicycle, unicycle_from_wheels, wrap_angle
-from agent.params import WheelGeometry
 from epuck_link import protocol as P
-from fleet.wire import Truth
+from epuck_link.unicycle import integrate_unicycle, unicycle_from_wheels, wrap_angle
+from ground.params import WheelGeometry
+from ground.wire import Truth
 
 LOOPBACK = "127.0.0.1"
 
@@ -307,7 +307,7 @@ class TcpServer:
 
 
 class TruthPublisher:
-    """Publishes the emulator's pose as :class:`fleet.wire.Truth` at ``rate`` [Hz].
+    """Publishes the emulator's pose as :class:`ground.wire.Truth` at ``rate`` [Hz].
 
     ``put`` sends one encoded message (a Zenoh publisher's ``put``).  ``t`` is
     seconds since the emulator's origin; ``seq`` counts from 0."""
@@ -348,9 +348,10 @@ class TruthPublisher:
 
 # --------------------------------------------------------------------- CLI
 def main(argv: list[str] | None = None) -> int:
-    from fleet.runtime import add_common_args, announce, log, open_session, publisher
-    from fleet.scenario import ConfigError, load_scenario
-    from fleet.wire import ROBOT_ID, Keys
+    from ground.bus import open_session, publisher
+    from ground.process import add_common_args, announce, log
+    from ground.scenario import ConfigError, load_scenario
+    from ground.wire import ROBOT_ID, Keys
 
     ap = argparse.ArgumentParser(prog="python -m epuck_link.emulator", description=__doc__.splitlines()[0])
     add_common_args(ap)
@@ -453,6 +454,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    from fleet.runtime import exit_process
+    from ground.process import exit_process
 
     exit_process(main())

@@ -46,8 +46,8 @@ import math
 import struct
 from dataclasses import dataclass
 
-from agent.models import wheel_speeds
-from agent.params import WheelGeometry
+from epuck_link.unicycle import wheel_speeds
+from ground.params import WheelGeometry
 
 
 class ProtocolError(ValueError):
@@ -99,7 +99,7 @@ def wrap_int16(count: int) -> int:
 def wheel_steps(v: float, omega: float, geom: WheelGeometry) -> tuple[int, int, bool]:
     """(v [m/s], ω [rad/s]) of the axle centre → (left, right) [steps/s], saturated.
 
-    Uses :func:`agent.models.wheel_speeds`: when a wheel would exceed
+    Uses :func:`epuck_link.unicycle.wheel_speeds`: when a wheel would exceed
     ``geom.max_steps``, both are scaled by one factor, so the curvature ω/v is
     kept.  Returns ``(left, right, saturated)`` with the speeds rounded."""
     left, right, sat = wheel_speeds(v, omega, geom)

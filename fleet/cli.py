@@ -24,12 +24,12 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from agent.params import PRESETS, preset
 from agent.sets import SetComputationError
 from agent.tube import synthesize
 from fleet.launch import TOPOLOGIES
-from fleet.runtime import lease_arg
-from fleet.scenario import ConfigError, check_geometry, load_scenario
+from ground.params import PRESETS, preset
+from ground.process import lease_arg
+from ground.scenario import ConfigError, check_geometry, load_scenario
 
 DEFAULT_ARENA = (-1.0, 1.0, -1.0, 1.0)
 EXIT_FAIL = 1
@@ -95,7 +95,7 @@ def cmd_design(args: argparse.Namespace) -> int:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    from fleet.harness import run
+    from fleet.simulate import run
 
     scn = load_scenario(args.scenario)
     try:
@@ -111,7 +111,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     except OSError as e:
         return _bad(f"--out: cannot create {out}: {e.strerror}")
     result = run(scn, seed=args.seed, design=design)
-    from fleet.trace import from_harness
+    from supervisor.trace import from_harness
 
     from_harness(result, scn).save(out / "trace.npz")
     summary = result.summary()
@@ -150,7 +150,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         return _bad(f"controller: inadmissible tube design: {'; '.join(design.failures)}")
     check_geometry(scn, design.footprint)
     if args.faults:
-        from fleet.faults import FaultPlan, FaultPlanError
+        from ground.faults import FaultPlan, FaultPlanError
 
         try:
             FaultPlan.parse(args.faults)
@@ -264,7 +264,7 @@ def _interrupt(signum: int, frame: Any) -> None:
 
 
 def _calibrate_arguments(ap: argparse.ArgumentParser) -> None:
-    from fleet.calibrate import add_arguments
+    from tracker.calibrate import add_arguments
 
     add_arguments(ap)
 
@@ -282,19 +282,19 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _markers_arguments(ap: argparse.ArgumentParser) -> None:
-    from fleet.markers import add_arguments
+    from tracker.markers import add_arguments
 
     add_arguments(ap)
 
 
 def cmd_markers(args: argparse.Namespace) -> int:
-    from fleet.markers import run
+    from tracker.markers import run
 
     return int(run(args))
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from fleet.calibrate import run
+    from tracker.calibrate import run
 
     return int(run(args))
 
@@ -348,7 +348,7 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     r.add_argument(
         "--faults", metavar="JSON",
-        help="fault plan for every process (JSON text or file; see fleet/faults.py): drop or delay messages",
+        help="fault plan for every process (JSON text or file; see ground/faults.py): drop or delay messages",
     )  # fmt: skip
     r.add_argument(
         "--exchange", choices=["mesh", "relay"], default="mesh",

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
-from fleet.net import NetConfig, free_port, loopback
+from ground.net import NetConfig, free_port, loopback
 
 TOPOLOGIES = ("mesh", "star")
 """How ``fleet run`` links its processes: a mesh of Zenoh peers, or a star around the tracker."""
@@ -127,7 +127,7 @@ def run_fleet(
     """Run the fleet; returns (exit code, one-line verdict, summary or None).
 
     ``hub`` is the tracker's listening endpoint (default: a free loopback port).
-    ``faults`` is a fault plan (:mod:`fleet.faults`) handed to every process.
+    ``faults`` is a fault plan (:mod:`ground.faults`) handed to every process.
     ``exchange`` is how plans travel: ``mesh`` (agent to agent) or ``relay``
     (the tracker's digest, docs/runtime-notes.md).
     ``lease`` is every process's Zenoh transport lease [s] (default 10 s in the mesh,

@@ -1,10 +1,11 @@
 """``fleet goal``: give a running agent a new goal and wait until it takes it.
 
-The operator's session connects to the fleet's hub (``fleet run --listen``),
-waits for the robot's liveliness token (the readiness signal), checks the
-goal against the scenario's walls and obstacles and the neighbours' current
-goals (the agent checks it again), then publishes it on
-``fleet/<fleet>/goal/<id>`` until a plan of that robot carries it.
+The operator's session connects to the fleet's hub (``fleet run --listen``), waits for the
+robot's liveliness token (the readiness signal) and for the robots' plans, checks the goal
+against the scenario's walls and obstacles with the footprint the robot's plan carries and
+against the neighbours' current goals (the agent checks it again), then publishes it on
+``fleet/<fleet>/goal/<id>`` until a plan of that robot carries it.  A goal outside the arena or
+inside an obstacle is refused before anything is opened.
 """
 
 from __future__ import annotations
@@ -14,11 +15,10 @@ from functools import partial
 
 import numpy as np
 
-from agent.node import goal_problem
-from fleet.net import NetConfig
-from fleet.runtime import Inbox, load_validated
-from fleet.scenario import ConfigError
-from fleet.wire import Goal, Keys, Plan
+from ground.bus import Inbox
+from ground.net import NetConfig, SecureConfigError, load_config
+from ground.scenario import ConfigError, check_point, goal_problem, load_scenario
+from ground.wire import Goal, Keys, Plan
 
 RESEND = 0.5
 """Seconds between re-publications of the goal until the agent acknowledges it [s]."""
@@ -37,16 +37,12 @@ def send_goal(
     not take the goal within ``timeout`` [s], or a neighbour parks too close."""
     import zenoh
 
-    from fleet.secure import SecureConfigError, load_config
-
-    scn, design = load_validated(scenario)
+    scn = load_scenario(scenario)
     ids = [r.id for r in scn.robots]
     if robot not in ids:
         raise ConfigError("--robot", f"{robot!r} is not in the scenario (robots: {', '.join(ids)})")
     target = np.array(goal, dtype=float)
-    problem = goal_problem(scn, design.footprint, target, [])
-    if problem is not None:
-        raise ConfigError("goal", problem)
+    check_point(scn, target, 0.0, "goal")  # finite, in the arena, outside every obstacle
     keys = Keys(fleet)
     if zenoh_config is not None:
         try:
@@ -70,8 +66,14 @@ def send_goal(
         # The neighbours' current goals travel in their plans: wait for one from every live robot.
         inbox.wait(lambda: all(inbox.get(Plan, r) is not None for r in ids if r in inbox.live), timeout)
         with inbox.cond:
+            own = inbox.get(Plan, robot)
             plans = [p for r in ids if r != robot and (p := inbox.get(Plan, r)) is not None]
-        problem = goal_problem(scn, design.footprint, target, plans)
+        if own is None:
+            return 1, f"{robot} sent no plan within {timeout:g} s"
+        problem = goal_problem(scn, own.footprint, target, [])
+        if problem is not None:  # the walls and obstacles, with the robot's own footprint
+            raise ConfigError("goal", problem)
+        problem = goal_problem(scn, own.footprint, target, plans)
         if problem is not None:
             return 1, f"goal rejected: {problem}"
         pub = session.declare_publisher(keys.goal(robot))

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fleet.trace import Trace
+from supervisor.trace import Trace
 
 
 def write_report(out: Path) -> list[Path]:

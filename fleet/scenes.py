@@ -1,11 +1,11 @@
-"""Programmatic scenes: scenario dicts accepted by :func:`fleet.scenario.parse_scenario`.
+"""Programmatic scenes: scenario dicts accepted by :func:`ground.scenario.parse_scenario`.
 
 * :func:`antipodal_swap` — n robots on a circle, each crossing to the antipodal point.
 * :func:`random_scene` — seeded random starts and goals with a minimum separation.
 * :func:`scene_to_toml` — render such a dict as a scenario file.
 
 The scenes use the default (``epuck``) controller; their defaults are chosen so
-that :func:`fleet.scenario.check_geometry` accepts them with that preset's
+that :func:`ground.scenario.check_geometry` accepts them with that preset's
 footprint radius (≈ 0.134 m).
 """
 
@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from agent.params import preset
+from ground.params import preset
 
 
 def _clean(x: float) -> float:
@@ -50,7 +50,7 @@ def antipodal_swap(
     ``[simulation] seed``.
 
     With the epuck preset (footprint ≈ 0.134 m, look-ahead 0.04 m) the default
-    radius 0.8 m passes :func:`~fleet.scenario.check_geometry` up to n = 16:
+    radius 0.8 m passes :func:`~ground.scenario.check_geometry` up to n = 16:
     the start controlled points lie on a 0.76 m circle, 2·0.76·sin(π/16) ≈
     0.297 m apart (≥ 0.268 m), and the goals are 0.2 m from the walls."""
     if n < 1:

@@ -14,7 +14,7 @@ the robot id for the agent and the ``epuck_link`` of that robot, and
 router's own).  :func:`identity` maps a process role to it.
 
 Rights.  The router's access control (Zenoh ``access_control``) is
-default-deny and grants, for fleet ``F`` (keys of :mod:`fleet.wire`):
+default-deny and grants, for fleet ``F`` (keys of :mod:`ground.wire`):
 
 ==============  ======================================================  =====================
 identity        may publish (put)                                       liveliness token
@@ -62,7 +62,6 @@ import argparse
 import json
 import re
 import signal
-import string
 import sys
 import threading
 from collections.abc import Iterable, Sequence
@@ -70,7 +69,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from fleet.wire import ROBOT_ID, Keys
+from ground.net import SecureConfigError, load_config
+from ground.wire import ROBOT_ID, Keys
 
 SERVICES = ("tracker", "supervisor", "operator")
 """Identities of the fleet's services (certificate common names)."""
@@ -80,10 +80,6 @@ ROLES = ("agent", "link", "tracker", "supervisor", "operator")
 """Process roles: ``agent`` and ``link`` (``epuck_link``) act for a robot and use its identity."""
 WILDCARD_HOSTS = ("0.0.0.0", "[::]", "::", "*")
 _ENDPOINT = re.compile(r"^tls/(?P<host>\[[0-9A-Fa-f:.]+\]|[^/:\[\]]+):(?P<port>\d{1,5})$")
-
-
-class SecureConfigError(ValueError):
-    """A secure configuration cannot be built; the message names the field or file."""
 
 
 def identity(role: str, robot: str | None = None) -> str:
@@ -297,32 +293,6 @@ def router_config(
     return to_zenoh(router_json(listen, certs, robots, fleet, sim_tracker))
 
 
-def render(template: str, values: dict[str, str]) -> str:
-    """Fill the ``${NAME}`` placeholders of a JSON5 template; every one must be given.
-
-    Values are escaped for a JSON string (the placeholders sit inside quotes)."""
-    try:
-        return string.Template(template).substitute({k: json.dumps(v)[1:-1] for k, v in values.items()})
-    except KeyError as e:
-        raise SecureConfigError(f"template: no value for ${{{e.args[0]}}} (--set {e.args[0]}=...)") from None
-    except ValueError as e:
-        raise SecureConfigError(f"template: {e}") from None
-
-
-def load_config(path: str | Path, values: dict[str, str] | None = None) -> Any:
-    """A ``zenoh.Config`` from a JSON5 file, its placeholders filled with ``values``."""
-    import zenoh
-
-    try:
-        text = Path(path).read_text()
-    except OSError as e:
-        raise SecureConfigError(f"config: {e}") from None
-    try:
-        return zenoh.Config.from_json5(render(text, values or {}))
-    except zenoh.ZError as e:
-        raise SecureConfigError(f"config: {path}: {e}") from None
-
-
 def _get(conf: Any, key: str) -> Any:
     return json.loads(conf.get_json(key))
 
@@ -359,7 +329,7 @@ def serve_router(conf: Any, allow_wildcard: bool = False) -> int:
     the listener is bound (``zenoh.open`` returns only then)."""
     import zenoh
 
-    from fleet.runtime import announce, log
+    from ground.process import announce, log
 
     listen = check_router(conf, allow_wildcard)
     zenoh.init_log_from_env_or("warn")  # to stderr; RUST_LOG=trace also shows each ACL decision
@@ -406,7 +376,7 @@ def probe(conf: Any, subs: Iterable[str], lives: Iterable[str], label: str) -> i
     the probe."""
     import zenoh
 
-    from fleet.runtime import announce
+    from ground.process import announce
 
     out = _Out()
     try:
@@ -547,6 +517,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    from fleet.runtime import exit_process
+    from ground.process import exit_process
 
     exit_process(main())

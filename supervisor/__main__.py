@@ -1,6 +1,6 @@
 """``python -m supervisor``: see :mod:`supervisor.monitor`."""
 
-from fleet.runtime import exit_process
+from ground.process import exit_process
 from supervisor.monitor import main
 
 exit_process(main())

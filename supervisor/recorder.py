@@ -30,8 +30,9 @@ from typing import Any
 
 import numpy as np
 
-from fleet.trace import outlines
-from fleet.wire import Plan, Pose
+from ground.scenario import Scenario
+from ground.wire import Plan, Pose
+from supervisor.trace import outlines
 
 PALETTE = [
     (31, 119, 180), (44, 160, 44), (214, 39, 40), (148, 103, 189), (140, 86, 75),
@@ -59,15 +60,17 @@ def robot_colour(rank: int) -> tuple[int, int, int]:
 class Recorder:
     """Writes ``DIR/recording.rrd``; :meth:`close` flushes it completely."""
 
-    def __init__(
-        self, path: Path, scn: Any, footprint: float, rho: float, radius: float, viewer: bool = False
-    ):
+    def __init__(self, path: Path, scn: Scenario, viewer: bool = False):
         os.environ.setdefault("RERUN_ANALYTICS", "0")
         import rerun as rr
 
         self.rr = rr
         self.ids = [r.id for r in scn.robots]
-        self.footprint, self.rho, self.radius = footprint, rho, radius
+        p = scn.controller
+        self.radius = p.robot_radius
+        """Body radius [m]."""
+        self.body = p.robot_radius + p.lookahead
+        """The body disc around the controlled point [m]: a footprint r_i is this plus ρ_i."""
         self.rec = rr.RecordingStream("epuck-fleet", recording_id=scn.name)
         if viewer:
             # The viewer listens on 127.0.0.1; the file is written as well.
@@ -100,7 +103,7 @@ class Recorder:
         self.rec.set_time("sim_time", duration=step * Ts)
 
     def _static_styles(self) -> None:
-        """What does not change per step is logged once: colours, radii, labels, tube size."""
+        """What does not change per step is logged once: colours, radii, labels."""
         rr, log = self.rr, self.rec.log
         for rid in self.ids:
             c = [self.colour[rid]]
@@ -113,7 +116,7 @@ class Recorder:
             log(f"{base}/heading", rr.Arrows2D.from_fields(colors=c), static=True)
             log(f"{base}/measured", rr.Points2D.from_fields(radii=0.005), static=True)
             log(f"{base}/footprint", rr.Ellipses2D.from_fields(colors=c), static=True)
-            log(f"{base}/tube", rr.Ellipses2D.from_fields(half_sizes=[[self.rho] * 2], colors=c), static=True)
+            log(f"{base}/tube", rr.Ellipses2D.from_fields(colors=c), static=True)
             log(f"{base}/reference", rr.LineStrips2D.from_fields(colors=c), static=True)
             log(f"{base}/plan", rr.LineStrips2D.from_fields(colors=c), static=True)
             log(f"solve_ms/{rid}", rr.SeriesLines(colors=c), static=True)
@@ -192,7 +195,8 @@ class Recorder:
             y = pl.committed[0]
             base = f"world/robots/{rid}"
             row(f"{base}/footprint", rr.Ellipses2D, k, Ts, centers=[y], half_sizes=[[pl.footprint] * 2])
-            row(f"{base}/tube", rr.Ellipses2D, k, Ts, centers=[y])
+            rho = pl.footprint - self.body
+            row(f"{base}/tube", rr.Ellipses2D, k, Ts, centers=[y], half_sizes=[[rho, rho]])
             row(f"{base}/reference", rr.LineStrips2D, k, Ts, strips=[pl.committed])
             row(f"{base}/plan", rr.LineStrips2D, k, Ts, strips=[pl.nominal])
             row(f"solve_ms/{rid}", rr.Scalars, k, Ts, scalars=[pl.solve_time * 1e3])
@@ -216,7 +220,9 @@ class Recorder:
         if not self.pairs and len(plans) == len(self.ids):  # one row holds every robot's series
             ends = np.array([plans[r].committed[-1] for r in self.ids])
             row("separation/reference/nearest", rr.Scalars, k, Ts, scalars=nearest(ends))
-        row("separation/reference/required", rr.Scalars, k, Ts, scalars=[2.0 * self.footprint])
+        if plans:
+            required = 2.0 * max(pl.footprint for pl in plans.values())
+            row("separation/reference/required", rr.Scalars, k, Ts, scalars=[required])
 
     def _blueprint(self) -> Any:
         """The layout: the arena large on the left; separations, solve times and events on the right."""

@@ -3,7 +3,7 @@
 ``Generator(name, rng).make(robot)`` returns one :class:`Payload` aimed at the decoder of
 the message type ``name`` (``pose``, ``truth``, ``odom``, ``plan``, ``cmd``, ``goal``,
 ``tick``, ``wheels``, ``digest``, ``applied``) on the key of robot ``robot``. Every *kind*
-but two builds a payload that the wire contract (``fleet/wire.py``) rejects by construction
+but two builds a payload that the wire contract (``ground/wire.py``) rejects by construction
 (``strict``): garbage that is not msgpack, msgpack that is not a map, a wrong schema version
 or message type, missing or extra fields, NaN/±inf in a number or inside an array, a wrong
 array dtype, shape or byte length, a huge declared shape, a bad list (the digest's columns:
@@ -25,7 +25,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from fleet.wire import (
+from ground.wire import (
     MAX_HORIZON,
     MAX_PAYLOAD,
     MAX_RELAYED,

@@ -215,8 +215,8 @@ def test_hex_lattice_neighbours_keep_their_distance() -> None:
 
 
 def test_swap_32_file_matches_generator() -> None:
-    from fleet.scenario import load_scenario, parse_scenario
     from fleet.scenes import COMPACT_CONTROLLER, antipodal_swap
+    from ground.scenario import load_scenario, parse_scenario
 
     from_file = load_scenario(ROOT / "scenarios" / "swap_32.toml")
     data = antipodal_swap(32, radius=1.55, arena=(-1.8, 1.8, -1.8, 1.8), duration=300.0)

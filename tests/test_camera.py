@@ -1,5 +1,5 @@
 """The ArUco camera tracker (tracker/camera.py), its synthetic images (tracker/synth.py),
-``fleet calibrate`` (fleet/calibrate.py) and the ``[camera]`` scenario schema.
+``fleet calibrate`` (tracker/calibrate.py) and the ``[camera]`` scenario schema.
 
 Ground truth comes from :mod:`tracker.synth`: markers drawn in world coordinates and
 warped into a 30°-oblique pinhole camera (1600×1200 px, 5 cm markers ≈ 18–28 px),
@@ -22,12 +22,12 @@ from typing import Any
 import numpy as np
 import pytest
 
-from fleet.scenario import ARUCO_DICTIONARIES, ConfigError, Fiducial, load_scenario, parse_scenario
+from ground.scenario import ARUCO_DICTIONARIES, ConfigError, Fiducial, load_scenario, parse_scenario
 
 cv2 = pytest.importorskip("cv2")
 
-from fleet.calibrate import main as calibrate_main  # noqa: E402
 from tracker import camera as C  # noqa: E402
+from tracker.calibrate import main as calibrate_main  # noqa: E402
 from tracker.synth import PinholeCamera, Renderer, marker_centre, marker_corners, write_video  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -399,8 +399,8 @@ def test_video_through_the_tracker_process_matches_the_trajectories(tmp_path, vi
     (t, x, y, θ) matches the trajectory at t; the corrupt frame's step is skipped."""
     import zenoh
 
-    from fleet.net import NetConfig, free_port, loopback
-    from fleet.wire import Keys, Pose, Tick, decode
+    from ground.net import NetConfig, free_port, loopback
+    from ground.wire import Keys, Pose, Tick, decode
 
     scn = write_scenario(tmp_path / "s.toml", scenario_dict())
     hub = loopback(free_port())

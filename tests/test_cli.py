@@ -17,7 +17,7 @@ from typing import Any
 
 import pytest
 
-from agent.params import preset
+from ground.params import preset
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENARIOS = ROOT / "scenarios"
@@ -423,8 +423,9 @@ def test_lease_reaches_the_zenoh_configuration(tmp_path):
     ``--zenoh-config`` file (whose own lease stands when --lease is not given)."""
     import argparse
 
-    from fleet.net import NetConfig
-    from fleet.runtime import add_common_args, session_config
+    from ground.bus import session_config
+    from ground.net import NetConfig
+    from ground.process import add_common_args
 
     assert json.loads(NetConfig(lease=1.0).zenoh().get_json("transport/link/tx/lease")) == 1000
     ap = argparse.ArgumentParser()
@@ -449,8 +450,9 @@ def test_mode_reaches_the_zenoh_configuration_and_contradictions_are_refused(tmp
     line naming the option, exit 2; a client whose router is not there, one line and exit 1."""
     import argparse
 
-    from fleet.net import NetConfig, free_port
-    from fleet.runtime import add_common_args, session_config
+    from ground.bus import session_config
+    from ground.net import NetConfig, free_port
+    from ground.process import add_common_args
 
     ap = argparse.ArgumentParser()
     add_common_args(ap)

@@ -17,7 +17,7 @@ from agent.coordination import (
     shares,
     split_halfplanes,
 )
-from fleet.scenario import Circle
+from ground.scenario import Circle
 
 EPS = 0.0055
 

@@ -20,11 +20,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agent.controller import SNAPSHOTS, TubeMPC, chain_input
+from agent.controller import SNAPSHOTS, TubeMPC
 from agent.coordination import NeighbourInfo
 from agent.tube import require_admissible, synthesize
-from fleet import harness
-from fleet.scenario import controlled_point, load_scenario
+from epuck_link.robot_side import chain_input
+from fleet import simulate as harness
+from ground.geometry import controlled_point
+from ground.scenario import load_scenario
 
 SCENARIOS = Path(__file__).resolve().parent.parent / "scenarios"
 
@@ -174,20 +176,22 @@ def test_more_rows_than_the_qp_holds_are_all_met_or_the_candidate_is_taken():
 
 
 def test_the_robot_side_follows_the_candidate_then_brakes():
-    """fleet.robot_side.RobotSide, step by step: a command in time is applied; a missing one is
+    """epuck_link.robot_side.RobotSide, step by step: a command in time is applied; a missing one is
     replaced by the candidate of the last applied command until it is used up; a late command
     keeps the watchdog quiet, silence does not; a dead agent's robot, a braked one and one whose
     agent has no plan yet are braked; without ``drives`` (epuck_link applies the commands) the
     last acceleration is held."""
-    from fleet.robot_side import BRAKED, CANDIDATE, COMMAND, HELD, RobotSide
-    from fleet.wire import Command
+    from epuck_link.robot_side import BRAKED, CANDIDATE, COMMAND, HELD, RobotSide
+    from ground.wire import Command
 
     _, design = _controller()
     Ts = design.params.Ts
     x = np.array([0.01, 0.0, 0.0, 0.0])
     v_next = np.array([[0.1, 0.0], [0.2, 0.0], [0.2, 0.1]])
-    cmd = Command(robot="r1", step=4, ax=0.3, ay=0.0, fallback=True, x_next=np.zeros(4), v_next=v_next)
-    side = RobotSide(design, watchdog=2.5 * Ts, drives=True)
+    cmd = Command(
+        robot="r1", step=4, ax=0.3, ay=0.0, fallback=True, x_next=np.zeros(4), v_next=v_next, K=design.K
+    )
+    side = RobotSide(design.params, watchdog=2.5 * Ts, drives=True)
     what, a, _ = side.decide(4, cmd, cmd, True, x)
     assert what == COMMAND and side.applied_step == 4 and np.array_equal(a, [0.3, 0.0])
     for k, m in ((5, 0), (6, 1)):
@@ -198,13 +202,13 @@ def test_the_robot_side_follows_the_candidate_then_brakes():
     assert side.decide(7, None, cmd, True, x)[0] == CANDIDATE
     assert side.decide(8, None, cmd, True, x) == (BRAKED, None, f"no command for {2.5 * Ts} s")
     # A late command of the step before keeps the watchdog quiet: the candidate is used up first.
-    late = RobotSide(design, watchdog=2.5 * Ts, drives=True)
+    late = RobotSide(design.params, watchdog=2.5 * Ts, drives=True)
     late.decide(4, cmd, cmd, True, x)
     steps = [late.decide(k, None, Command(robot="r1", step=k - 1, ax=0, ay=0), True, x) for k in range(5, 9)]
     assert [s[0] for s in steps] == [CANDIDATE] * 3 + [BRAKED] and steps[-1][2] == "nothing left to follow"
     # After braking there is nothing to follow until a command is applied again.
     assert late.decide(9, None, Command(robot="r1", step=8, ax=0, ay=0), True, x)[0] == BRAKED
-    fresh = Command(robot="r1", step=10, ax=0.0, ay=0.0, fallback=True, v_next=v_next)
+    fresh = Command(robot="r1", step=10, ax=0.0, ay=0.0, fallback=True, v_next=v_next, K=design.K)
     assert late.decide(10, fresh, fresh, True, x)[0] == COMMAND
     assert late.decide(11, None, fresh, True, x)[0] == CANDIDATE
     # A dead agent's robot is braked at once; an agent with no plan yet gives nothing to follow.
@@ -212,7 +216,7 @@ def test_the_robot_side_follows_the_candidate_then_brakes():
     rest = Command(robot="r1", step=13, ax=0.0, ay=0.0)  # fallback=False: no plan yet
     late.decide(13, rest, rest, True, x)
     assert late.decide(14, None, rest, True, x) == (BRAKED, None, "nothing left to follow")
-    link = RobotSide(design, watchdog=2.5 * Ts, drives=False)
+    link = RobotSide(design.params, watchdog=2.5 * Ts, drives=False)
     link.decide(4, cmd, cmd, True, None)
     what, a, _ = link.decide(5, None, cmd, True, None)
     assert what == HELD and np.array_equal(a, [0.3, 0.0])
@@ -221,7 +225,7 @@ def test_the_robot_side_follows_the_candidate_then_brakes():
 def test_remembered_steps_stay_bounded_and_keep_the_recent_ones():
     """The processes' sets of unapplied steps: every step of the last STEPS_KEPT is kept, the
     set never holds more than twice that, and a step too old on arrival is not added."""
-    from fleet.runtime import STEPS_KEPT, remember_steps
+    from ground.bus import STEPS_KEPT, remember_steps
 
     steps: set[int] = set()
     for k in range(1000):
@@ -244,8 +248,8 @@ def test_remembered_steps_stay_bounded_and_keep_the_recent_ones():
 def test_the_newest_plan_skips_withdrawn_and_later_steps():
     """``Inbox.newest``: the plan of the newest kept step ≤ at_most that is not skipped
     (a withdrawn plan was never executed), whatever arrived since."""
-    from fleet.runtime import Inbox
-    from fleet.wire import Keys, Plan
+    from ground.bus import Inbox
+    from ground.wire import Keys, Plan
 
     def plan(k: int) -> Plan:
         z = np.zeros((3, 2))
@@ -266,13 +270,13 @@ def test_the_newest_plan_skips_withdrawn_and_later_steps():
 
 
 def test_epuck_link_takes_the_command_only_by_its_deadline():
-    """fleet.robot_side.LinkDeadline, the rule epuck_link applies at its own clock: step k
+    """epuck_link.robot_side.LinkDeadline, the rule epuck_link applies at its own clock: step k
     starts when tick k is received, its command is taken until ``deadline`` after that and
     ignored later; without it the candidate of the last command applied is followed, with
     the state measured at the tick, then the robot is braked; every decision is reported
-    (fleet.wire.Applied) once, as the tracker will put it in the next tick."""
-    from fleet.robot_side import BRAKED, CANDIDATE, COMMAND, LinkDeadline
-    from fleet.wire import Command
+    (ground.wire.Applied) once, as the tracker will put it in the next tick."""
+    from epuck_link.robot_side import BRAKED, CANDIDATE, COMMAND, LinkDeadline
+    from ground.wire import Command
 
     _, design = _controller()
     A, B, K = design.A, design.B, design.K
@@ -281,10 +285,10 @@ def test_epuck_link_takes_the_command_only_by_its_deadline():
 
     def cmd(k: int) -> Command:
         return Command(
-            robot="r1", step=k, ax=k / 10, ay=0.0, fallback=True, x_next=np.zeros(4), v_next=v_next
+            robot="r1", step=k, ax=k / 10, ay=0.0, fallback=True, x_next=np.zeros(4), v_next=v_next, K=K
         )
 
-    judge = LinkDeadline("r1", design, watchdog=0.5, deadline=0.05)
+    judge = LinkDeadline("r1", design.params, watchdog=0.5, deadline=0.05)
     assert judge.tick(4, 10.0, x4, None, True) == [] and judge.wake_at == 10.05
     assert judge.expire(10.049, None, True) is None  # not due yet
     what, a, rep = judge.command(cmd(4), 10.02, True)
@@ -336,13 +340,13 @@ def test_epuck_link_takes_the_command_only_by_its_deadline():
 
 
 def test_a_tracker_tells_the_links_reports_in_the_next_tick():
-    """fleet.robot_side.Reports: tick k tells each robot's report of step k − 1 (its candidate,
+    """tracker.reports.Reports: tick k tells each robot's report of step k − 1 (its candidate,
     or the brake); a braked report too late for its tick goes into the next one; a late report
     of a step on the candidate is logged and counted, never told; a link that reported the
     step before is waited for (bounded)."""
-    from fleet.robot_side import Reports
-    from fleet.runtime import Inbox
-    from fleet.wire import Applied, Keys
+    from ground.bus import Inbox
+    from ground.wire import Applied, Keys
+    from tracker.reports import Reports
 
     keys = Keys("lab")
     inbox = Inbox(keys, "tracker")

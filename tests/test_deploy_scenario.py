@@ -18,10 +18,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from agent.params import preset
 from agent.tube import synthesize
 from epuck_link.transport import parse_link
-from fleet.scenario import Scenario, check_geometry, controlled_point, load_scenario, parse_scenario
+from ground.geometry import controlled_point
+from ground.params import preset
+from ground.scenario import Scenario, check_geometry, load_scenario, parse_scenario
 
 ROOT = Path(__file__).resolve().parent.parent
 REAL = ROOT / "deploy" / "lab_three_robots.toml"

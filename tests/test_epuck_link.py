@@ -27,10 +27,9 @@ import msgpack
 import numpy as np
 import pytest
 
-from agent.params import WheelGeometry
 from epuck_link import protocol as P
+from epuck_link.drive import Drive, Watchdog, WheelOdometry
 from epuck_link.emulator import EpuckEmulator
-from epuck_link.link import Drive, Watchdog, WheelOdometry
 from epuck_link.transport import (
     AsercomCodec,
     LinkError,
@@ -43,8 +42,9 @@ from epuck_link.transport import (
     WifiCodec,
     parse_link,
 )
-from fleet.net import NetConfig, free_port, loopback
-from fleet.wire import Command, Keys, Odom, Pose, Truth, Wheels, WireError, decode
+from ground.net import NetConfig, free_port, loopback
+from ground.params import WheelGeometry
+from ground.wire import Command, Keys, Odom, Pose, Truth, Wheels, WireError, decode
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -203,7 +203,7 @@ def test_watchdog_logic():
 
 
 def test_drive_holds_a_and_zeroes_q_on_halt():
-    from agent.models import LookaheadInnerLoop
+    from epuck_link.unicycle import LookaheadInnerLoop
 
     drive = Drive(LookaheadInnerLoop(0.04), GEOM, np.array(START))
     for _ in range(10):  # 0.2 s at 1 m/s² along the heading: q = 0.2 m/s → saturated
@@ -218,7 +218,7 @@ def test_drive_holds_a_and_zeroes_q_on_halt():
 def test_drive_is_the_simulated_plants_inner_loop():
     """50 Hz of Drive.step gives UnicyclePlant's wheel commands and pose (5 substeps per 0.1 s),
     up to the rounding of the wheel speeds to whole steps/s; the heading turns with ω between poses."""
-    from agent.models import LookaheadInnerLoop, UnicyclePlant, wrap_angle
+    from epuck_link.unicycle import LookaheadInnerLoop, UnicyclePlant, wrap_angle
 
     rng = np.random.default_rng(7)
     plant = UnicyclePlant(np.array(START), LookaheadInnerLoop(0.04), GEOM, substeps=5)
@@ -834,8 +834,8 @@ def wifi_rig(hub):
 HELPER = r"""
 import json, os, sys, threading, time
 import zenoh
-from fleet.net import NetConfig
-from fleet.wire import Command, Keys
+from ground.net import NetConfig
+from ground.wire import Command, Keys
 
 endpoint, fleet, robot = sys.argv[1:4]
 keys = Keys(fleet)

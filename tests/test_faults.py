@@ -30,11 +30,12 @@ from agent.controller import TubeMPC
 from agent.coordination import Hazard, NeighbourInfo, hazard_halfplanes
 from agent.node import Guard
 from agent.tube import synthesize
-from fleet.faults import DELIVER, DROP, FaultPlan, FaultPlanError
-from fleet.harness import Disturbance, PoseNoise, make_plant, measure
-from fleet.net import free_port, loopback
-from fleet.scenario import controlled_point, load_scenario
-from fleet.wire import Plan
+from fleet.simulate import Disturbance, PoseNoise, make_plant, measure
+from ground.faults import DELIVER, DROP, FaultPlan, FaultPlanError
+from ground.geometry import controlled_point
+from ground.net import free_port, loopback
+from ground.scenario import load_scenario
+from ground.wire import Plan
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENARIOS = ROOT / "scenarios"

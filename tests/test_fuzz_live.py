@@ -51,8 +51,8 @@ import pytest
 from fuzzing import NAMES, TYPES, Generator, Payload, field_names, table_names
 from procfs import alive, children, group_alive, stat
 
-from fleet.net import NetConfig, free_port, loopback
-from fleet.wire import MAX_PAYLOAD, Keys, Message, Odom, WireError, decode
+from ground.net import NetConfig, free_port, loopback
+from ground.wire import MAX_PAYLOAD, Keys, Message, Odom, WireError, decode
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENARIO = ROOT / "scenarios" / "paper_three_robots.toml"
@@ -144,7 +144,7 @@ class Item:
 
 
 def verdict(key: str, typ: type[Message], data: bytes) -> str:
-    """The receiving side's decision, exactly as fleet.runtime.Inbox's subscriber takes it."""
+    """The receiving side's decision, exactly as ground.bus.Inbox's subscriber takes it."""
     full = f"{KEYS.root}/{key}"
     try:
         rid = None if full.endswith(("/clock", "/digest")) else KEYS.robot_of(full)
@@ -254,13 +254,13 @@ def test_generated_payloads_are_all_rejected_by_the_decoder():
         shown = [
             f"{n} × {name}/{kind}, e.g. {examples[(name, kind)]}" for (name, kind), n in sorted(leaks.items())
         ]
-        pytest.fail("invalid payloads accepted by fleet.wire.decode:\n" + "\n".join(shown))
+        pytest.fail("invalid payloads accepted by ground.wire.decode:\n" + "\n".join(shown))
 
 
 LOG_CHILD = """
 import sys
-from fleet.runtime import Inbox
-from fleet.wire import Keys, WireError
+from ground.bus import Inbox
+from ground.wire import Keys, WireError
 rejects = Inbox(Keys("lab"), sys.argv[1]).rejects
 rejects.max_sources = 10**6  # one line per source here: this test is about whole lines
 print("ready", flush=True)
@@ -287,7 +287,7 @@ sys.exit(max(k.wait(timeout=120) for k in kids))
 def test_rejection_lines_of_concurrent_processes_stay_whole():
     """The fleet's processes share the launcher's stderr, and .ci/run sets PYTHONUNBUFFERED=1.
     Two processes reporting rejections at once (one line per source, 20,000 sources each) must
-    still produce whole lines: fleet.runtime.log must write each line in one write."""
+    still produce whole lines: ground.bus.log must write each line in one write."""
     n = 20_000
     res = subprocess.run(
         [sys.executable, "-c", LOG_PARENT, LOG_CHILD, str(n)],
@@ -300,7 +300,7 @@ def test_rejection_lines_of_concurrent_processes_stay_whole():
     broken = [ln for ln in lines if not line.fullmatch(ln)]
     whole = Counter(ln.split("]")[0] for ln in lines if line.fullmatch(ln))
     assert not broken and whole == {"[agent r1": n, "[agent r2": n}, (
-        f"{len(broken)} of {len(lines)} lines merged or split (fleet/runtime.py log() prints the message "
+        f"{len(broken)} of {len(lines)} lines merged or split (ground/bus.py log() prints the message "
         f"and its newline in two writes), e.g. {broken[:2]}"
     )
 
@@ -638,7 +638,7 @@ def test_live_fleet_rejects_fuzzed_payloads_on_every_key(tmp_path, exchange):
     if forged:
         problems.append(
             f"the key {INJECTION!r} forged {len(forged)} log lines, one per receiving process "
-            f"(fleet/wire.py RejectCounter.reject logs the source key unescaped), e.g. {forged[0]!r}"
+            f"(ground/wire.py RejectCounter.reject logs the source key unescaped), e.g. {forged[0]!r}"
         )
 
     # Every rejection counted, by every process.

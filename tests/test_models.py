@@ -1,4 +1,4 @@
-"""Robot models (agent/models.py): wheels, exact unicycle arcs and the two inner loops.
+"""Robot models (epuck_link/unicycle.py): wheels, exact unicycle arcs and the two inner loops.
 
 The inner loops must make the controlled point behave as the double integrator of
 DESIGN §1, including from rest, where the paper's eq. 3 is singular.
@@ -12,7 +12,8 @@ import math
 import numpy as np
 import pytest
 
-from agent.models import (
+from agent.tube import double_integrator
+from epuck_link.unicycle import (
     DoubleIntegratorPlant,
     LookaheadInnerLoop,
     PaperInnerLoop,
@@ -23,8 +24,7 @@ from agent.models import (
     wheel_speeds,
     wrap_angle,
 )
-from agent.params import WheelGeometry, preset
-from agent.tube import double_integrator
+from ground.params import WheelGeometry, preset
 
 GEOM = WheelGeometry()
 TS = 0.1

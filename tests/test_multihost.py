@@ -71,7 +71,7 @@ from netns_util import ROOT, HostProc, netns
 from procfs import tcp_sockets
 
 from fleet.secure import client_json
-from fleet.wire import Keys
+from ground.wire import Keys
 
 SCENARIO = ROOT / "scenarios" / "paper_three_robots.toml"
 PLACEMENT = {"r1": "a", "r2": "b", "r3": "b"}

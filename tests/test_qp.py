@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from agent.qp import TubeQP, daqp_solve
-from fleet.harness import run
-from fleet.scenario import load_scenario
+from fleet.simulate import run
+from ground.scenario import load_scenario
 
 
 @pytest.fixture(scope="module")

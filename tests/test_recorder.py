@@ -9,8 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from fleet.scenario import load_scenario
-from fleet.wire import Plan, Pose
+from ground.scenario import load_scenario
+from ground.wire import Plan, Pose
 from supervisor.recorder import PAIR_SERIES_MAX, Recorder
 
 ROOT = Path(__file__).resolve().parent.parent

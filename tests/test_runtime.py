@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 from procfs import alive, children, tcp_sockets
 
-from fleet.net import free_port, loopback
+from ground.net import free_port, loopback
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENARIOS = ROOT / "scenarios"
@@ -66,7 +66,7 @@ def test_three_robots_as_processes(three):
 
 def test_camera_poses_are_noisy_within_the_designed_bound(three):
     """The tracker's camera poses differ from the ground truth, never by more than pose_noise."""
-    from fleet.scenario import load_scenario
+    from ground.scenario import load_scenario
 
     _, out = three
     bound_p, bound_th = load_scenario(SCENARIOS / "paper_three_robots.toml").controller.pose_noise
@@ -344,7 +344,7 @@ def test_realtime_run_of_three_robots_for_20_s(tmp_path, exchange):
 def test_goal_changed_at_run_time(tmp_path):
     """An operator moves r1's goal while the fleet runs: bad goals are refused, the good one is
     taken, and the run is judged against it (realtime clock, so the run is still going)."""
-    from fleet.net import free_port, loopback
+    from ground.net import free_port, loopback
 
     hub = loopback(free_port())
     scn = str(SCENARIOS / "paper_three_robots.toml")
@@ -404,11 +404,12 @@ def test_agent_checks_run_time_goals_itself():
     """The agent refuses a goal on its own (the operator's check is a courtesy, not the guard)."""
     import numpy as np
 
-    from agent.node import goal_problem
-    from fleet.runtime import load_validated
-    from fleet.wire import Plan
+    from agent.tube import validated_design
+    from ground.scenario import goal_problem, load_scenario
+    from ground.wire import Plan
 
-    scn, design = load_validated(str(SCENARIOS / "paper_three_robots.toml"))
+    scn = load_scenario(SCENARIOS / "paper_three_robots.toml")
+    design = validated_design(scn)
     fp = design.footprint
     assert goal_problem(scn, fp, np.array([0.7, -0.45]), []) is None
     assert "arena wall" in goal_problem(scn, fp, np.array([0.0, 1.0 - 0.5 * fp]), [])
@@ -461,8 +462,8 @@ def test_realtime_digest_comes_half_a_step_before_its_tick(tmp_path):
 
     import zenoh
 
-    from fleet.net import NetConfig, free_port, loopback
-    from fleet.wire import Digest, Keys, Tick, decode
+    from ground.net import NetConfig, free_port, loopback
+    from ground.wire import Digest, Keys, Tick, decode
 
     text = (SCENARIOS / "paper_three_robots.toml").read_text()
     scn = tmp_path / "three_12s.toml"

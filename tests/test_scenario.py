@@ -1,4 +1,4 @@
-"""Tests of the scenario schema (fleet.scenario) and the programmatic scenes (fleet.scenes)."""
+"""Tests of the scenario schema (ground.scenario) and the programmatic scenes (fleet.scenes)."""
 
 from __future__ import annotations
 
@@ -16,9 +16,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from agent.params import ControllerParams, preset
 from agent.tube import synthesize
-from fleet.scenario import (
+from fleet.scenes import COMPACT_CONTROLLER, antipodal_swap, random_scene, scene_to_toml
+from ground.params import ControllerParams, preset
+from ground.scenario import (
     Circle,
     ConfigError,
     Polygon,
@@ -28,7 +29,6 @@ from fleet.scenario import (
     load_scenario,
     parse_scenario,
 )
-from fleet.scenes import COMPACT_CONTROLLER, antipodal_swap, random_scene, scene_to_toml
 
 SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
 SHIPPED = sorted(SCENARIO_DIR.glob("*.toml"))

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fleet.harness import GOAL_TOLERANCE, run
-from fleet.scenario import load_scenario, parse_scenario
 from fleet.scenes import random_scene
+from fleet.simulate import GOAL_TOLERANCE, run
+from ground.scenario import load_scenario, parse_scenario
 
 SCENARIOS = Path(__file__).parent.parent / "scenarios"
 

@@ -16,7 +16,7 @@ multicast scouting off everywhere) while an attacker floods r2's keys:
   the whole run, publishes on ``fleet/lab/plan/r2`` plans of r2 for the current steps whose
   committed reference runs straight through r1 and r3, with a tiny footprint and the highest
   priority, and on ``fleet/lab/cmd/r2`` commands of r2 for the current steps that accelerate
-  r2 at a_max toward r1.  Every message is well formed (``fleet.wire`` classes), so a receiver
+  r2 at a_max toward r1.  Every message is well formed (``ground.wire`` classes), so a receiver
   that got one would use it, not reject it.  Its forged plans are marked by their status and an
   impossible solve time; its forged commands it reports at the end, (step, ax, ay) each;
 - as a positive control it also publishes on its own keys (``plan/r1``, ``cmd/r1``) with
@@ -63,9 +63,9 @@ from typing import Any
 import pytest
 from netns_util import LOCAL, ROOT, HostProc
 
-from fleet.net import free_port
 from fleet.secure import client_json, router_json
-from fleet.wire import Keys
+from ground.net import free_port
+from ground.wire import Keys
 
 SCENARIO = ROOT / "scenarios" / "paper_three_robots.toml"
 ROBOTS = ("r1", "r2", "r3")
@@ -95,10 +95,11 @@ ATTACKER = r"""
 import json, sys, threading
 import numpy as np
 import zenoh
-from fleet.runtime import announce, exit_process, publisher
-from fleet.scenario import load_scenario
-from fleet.secure import load_config
-from fleet.wire import Command, Keys, Plan, Pose, Tick, WireError, decode
+from ground.bus import publisher
+from ground.process import announce, exit_process
+from ground.scenario import load_scenario
+from ground.net import load_config
+from ground.wire import Command, Keys, Plan, Pose, Tick, WireError, decode
 
 conf, scenario, fleet, me, victim, status, solve_time, control_step, mid = sys.argv[1:10]
 solve_time, control_step, mid = float(solve_time), int(control_step), int(mid)
@@ -230,9 +231,9 @@ EOF ends it."""
 OBSERVER = r"""
 import json, sys, threading
 import zenoh
-from fleet.runtime import announce, exit_process
-from fleet.secure import load_config
-from fleet.wire import Command, Plan, WireError, decode
+from ground.process import announce, exit_process
+from ground.net import load_config
+from ground.wire import Command, Plan, WireError, decode
 
 lock = threading.Lock()
 

@@ -31,7 +31,6 @@ import pytest
 from netns_util import LOCAL, HostProc
 from procfs import tcp_sockets
 
-from fleet.net import free_port
 from fleet.secure import (
     Credentials,
     SecureConfigError,
@@ -40,11 +39,11 @@ from fleet.secure import (
     check_router,
     client_json,
     identity,
-    render,
     router_json,
     to_zenoh,
 )
-from fleet.wire import Keys
+from ground.net import free_port, render
+from ground.wire import Keys
 
 ROOT = Path(__file__).resolve().parent.parent
 DEPLOY = ROOT / "deploy"

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from fleet.runtime import Inbox
-from fleet.wire import Keys, Plan, Tick
+from ground.bus import Inbox
+from ground.wire import Keys, Plan, Tick
 from supervisor.monitor import _plan_step
 
 IDS = ["r1", "r2"]
@@ -96,7 +96,7 @@ def test_a_plan_whose_command_was_not_applied_is_not_what_is_checked() -> None:
     would be one.  The unexecuted plan still counts as a solve."""
     from pathlib import Path
 
-    from fleet.scenario import load_scenario
+    from ground.scenario import load_scenario
     from supervisor.monitor import Monitor
 
     scn = load_scenario(Path(__file__).resolve().parent.parent / "scenarios" / "paper_two_robots.toml")
@@ -120,7 +120,7 @@ def test_a_committed_reference_is_only_ever_extended() -> None:
     where the ticks account for every step in between (a plan lost on its way is no break)."""
     from pathlib import Path
 
-    from fleet.scenario import load_scenario
+    from ground.scenario import load_scenario
     from supervisor.monitor import Monitor, continues
 
     def plan(step: int, committed: np.ndarray) -> Plan:

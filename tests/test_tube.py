@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from agent.params import preset
 from agent.sets import SetComputationError, Zonotope, mrpi_outer, unit_directions
 from agent.tube import InadmissibleDesign, require_admissible, synthesize
+from ground.params import preset
 
 ARENA = (-1.0, 1.0, -1.0, 1.0)
 

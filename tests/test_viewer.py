@@ -30,7 +30,7 @@ from typing import IO
 import pytest
 from procfs import group_alive
 
-from fleet.net import free_port
+from ground.net import free_port
 from supervisor.recorder import robot_colour
 
 ROOT = Path(__file__).resolve().parent.parent

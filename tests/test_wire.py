@@ -9,9 +9,9 @@ import msgpack
 import numpy as np
 import pytest
 
-from fleet.faults import FaultPlan
-from fleet.runtime import Inbox
-from fleet.wire import (
+from ground.bus import Inbox
+from ground.faults import FaultPlan
+from ground.wire import (
     MAX_PAYLOAD,
     MAX_RELAYED,
     SCHEMA_VERSION,
@@ -196,7 +196,7 @@ def test_a_digest_relays_what_neighbours_use_of_each_plan():
         assert (got.footprint, got.priority, got.rank, got.phase) == (
             sent.footprint, sent.priority, sent.rank, sent.phase)  # fmt: skip
         assert got.t0 == pytest.approx(sent.t0) and got.status == "relayed"
-        # Made without the dataclass __init__ (fleet.wire._checked), yet a whole Plan: with
+        # Made without the dataclass __init__ (ground.wire._checked), yet a whole Plan: with
         # a nominal plan (a relayed one has none) it passes the receiving checks as it is.
         whole = dataclasses.replace(got, nominal=sent.nominal)
         assert type(got) is Plan and decode(whole.encode(), Plan, robot=got.robot) == whole
@@ -292,7 +292,7 @@ def test_fuzz_decoders_never_raise_anything_but_wire_error(name):
 def test_reject_reports_are_capped_escaped_and_short():
     """A sender chooses the key and the payload: the counter reports at most max_sources
     keys (then one line), escapes newlines and cuts long reasons, and still counts all."""
-    from fleet.wire import RejectCounter, WireError
+    from ground.wire import RejectCounter, WireError
 
     lines: list[str] = []
     rc = RejectCounter(report=lines.append, max_sources=4)

@@ -19,7 +19,7 @@ corner 0 → 1 along its x axis) map to w_i = H(c_i) on the plane.  Then
 Corners come from OpenCV's detector with CORNER_REFINE_SUBPIX, then
 :func:`refine_edges` fits straight lines to the four outer edges.  The
 homography maps the plane of the fiducials; robot markers must lie in that
-plane (see :class:`fleet.scenario.CameraSpec`).  Lens distortion is not
+plane (see :class:`ground.scenario.CameraSpec`).  Lens distortion is not
 modelled: undistort a distorting camera's images first, or the reprojection
 error of :class:`Calibration` shows it.  Markers should span ≥ 18 px in the
 image (3 px per bit for 4×4): at 14–22 px about 1 % of them were missed.
@@ -29,11 +29,11 @@ oblique view, 5 cm markers of 18–28 px, Gaussian blur σ 0.8 px, noise σ 2
 grey levels, fitted homography): position error ≤ 0.4 mm, heading ≤ 0.7°.
 
 Process. It publishes, every Ts = ``controller.Ts`` (step k, time k·Ts), one
-:class:`fleet.wire.Pose` per robot whose marker was found, ``seq = k`` and ``t`` = the
+:class:`ground.wire.Pose` per robot whose marker was found, ``seq = k`` and ``t`` = the
 capture time [s] of the frame used, then ``Tick(robot="tracker", step=k, t=k·Ts,
 stop=False)``: the simulated tracker's messages and keys, without Odom (on hardware
 ``epuck_link`` publishes the odometry). The tick's ``fallback`` and ``braked`` come from
-the links' :class:`fleet.wire.Applied` reports of step k − 1 (``misses`` counts them);
+the links' :class:`ground.wire.Applied` reports of step k − 1 (``misses`` counts them);
 the same pose goes on the truth key too, as the supervisor's best ground truth on real
 robots. Clocks:
 
@@ -82,7 +82,7 @@ from typing import Any
 
 import numpy as np
 
-from fleet.scenario import CameraSpec, ConfigError, Fiducial, Scenario
+from ground.scenario import CameraSpec, ConfigError, Fiducial, Scenario, load_scenario
 
 ROLE = "tracker"
 OPENCV_MISSING = "camera source needs OpenCV: pip install 'epuck-fleet[camera]'"
@@ -859,7 +859,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         prog="python -m tracker --source camera", description="ArUco camera tracker (see tracker/camera.py)"
     )
-    from fleet.runtime import add_common_args
+    from ground.process import add_common_args
 
     add_common_args(ap)
     ap.add_argument("--source", choices=["camera"], default="camera", help="pose source")
@@ -885,7 +885,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"tracker: error: {OPENCV_MISSING}", file=sys.stderr)
         return 2
     quiet_opencv(cv2)
-    from fleet.runtime import announce, load_validated, log
+    from ground.process import announce, log
 
     def report(msg: str) -> None:
         log(ROLE, msg)
@@ -902,7 +902,7 @@ def main(argv: list[str] | None = None) -> int:
             raise ConfigError("--steps", f"must be >= 1, got {args.steps}")
         if args.calibration_frames < 1:
             raise ConfigError("--calibration-frames", f"must be >= 1, got {args.calibration_frames}")
-        scn, _design = load_validated(args.scenario)
+        scn = load_scenario(args.scenario)
         camera, markers = camera_setup(scn)
         calibration = Calibration.load(camera.homography) if camera.homography is not None else None
         if args.video is not None:
@@ -987,9 +987,9 @@ def _run(
     announce: Any,
 ) -> int:
     """Open Zenoh, announce, step until the end of the video, ``--steps`` or a signal."""
-    from fleet.robot_side import REPORT_WAIT, Reports
-    from fleet.runtime import Inbox, open_session, publisher
-    from fleet.wire import Applied, Keys, Pose, Tick, Truth
+    from ground.bus import Inbox, open_session, publisher
+    from ground.wire import Applied, Keys, Pose, Tick, Truth
+    from tracker.reports import REPORT_WAIT, Reports
 
     ids = [r.id for r in scn.robots]
     keys = Keys(args.fleet)

@@ -437,7 +437,7 @@ def main(argv: list[str] | None = None) -> int:
     except ImportError:
         print(f"tracker: error: {OPENCV_MISSING}", file=sys.stderr)
         return 2
-    from fleet.scenario import ConfigError, load_scenario
+    from ground.scenario import ConfigError, load_scenario
 
     try:
         scn = load_scenario(args.scenario)

@@ -9,15 +9,35 @@ whether it is simulated or real when its agent's command misses the deadline
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import numpy as np
 
-from agent.controller import chain_input
-from fleet.runtime import remember_steps
-from fleet.wire import Applied, Command
+from ground.bus import remember_steps
+from ground.geometry import Array
+from ground.model import double_integrator
+from ground.params import ControllerParams
+from ground.wire import Applied, Command
 
 COMMAND, CANDIDATE, HELD, BRAKED = "command", "candidate", "held", "braked"
+
+
+def chain_input(x_next: Array, v_next: Array, m: int, x: Array, A: Array, B: Array, K: Array) -> Array | None:
+    """The robot side's fallback ``m`` ≥ 0 steps after the step of the last command it
+    applied (m = 0: the very next step), with no command in time.
+
+    ``x_next`` (4,) and ``v_next`` (M, 2) are that command's shifted candidate
+    (:attr:`StepOutput.x_next`); ``x`` (4,) [m, m/s] is the measured state now.
+    Returns u = v̂ + K(x − x̂) (2,) [m/s²] with x̂ propagated m steps by the nominal
+    model x̂⁺ = A x̂ + B v̂, or None once the candidate is used up (m ≥ M).  The
+    agent, told so by the tick, takes the same candidate (:meth:`TubeMPC.rewind`):
+    it is feasible by construction, so x − x̂ stays in Z and the references
+    already committed stay valid."""
+    if not 0 <= m < v_next.shape[0]:
+        return None
+    x_hat = np.asarray(x_next, dtype=float)
+    for i in range(m):
+        x_hat = A @ x_hat + B @ v_next[i]
+    return np.asarray(v_next[m] + K @ (np.asarray(x, dtype=float) - x_hat))
 
 
 class RobotSide:
@@ -29,8 +49,11 @@ class RobotSide:
     :class:`LinkDeadline`.  With ``drives`` False (the tracker of robots whose ``epuck_link``
     decides) a missing command only holds the last acceleration."""
 
-    def __init__(self, design: Any, watchdog: float, drives: bool):
-        self.design = design
+    def __init__(self, params: ControllerParams, watchdog: float, drives: bool):
+        self.Ts = params.Ts
+        """Sampling period [s]."""
+        self.A, self.B, _ = double_integrator(params.Ts)
+        """The nominal model the candidate is propagated with (:mod:`ground.model`)."""
         self.watchdog = watchdog
         self.drives = drives
         self.applied: Command | None = None
@@ -64,7 +87,7 @@ class RobotSide:
         self.quiet = 0 if heard else self.quiet + 1
         if cmd is None and self.drives:
             remember_steps(self.unexecuted, (k,), k)
-        if not alive or self.quiet * self.design.params.Ts > self.watchdog:
+        if not alive or self.quiet * self.Ts > self.watchdog:
             self.brake()
             return (
                 BRAKED,
@@ -77,10 +100,10 @@ class RobotSide:
             return COMMAND, self.last_a, ""
         if not self.drives:
             return HELD, self.last_a, ""
-        last, d = self.applied, self.design
+        last = self.applied
         a = None
         if last is not None and last.fallback and self.following and x is not None:
-            a = chain_input(last.x_next, last.v_next, k - last.step - 1, x, d.A, d.B, d.K)
+            a = chain_input(last.x_next, last.v_next, k - last.step - 1, x, self.A, self.B, last.K)
         if a is None:
             self.brake()
             return BRAKED, None, "nothing left to follow"
@@ -97,7 +120,7 @@ class LinkDeadline:
 
     Step k starts when the link receives tick k; its command must arrive within
     ``deadline`` [s] after that.  A command that comes later is not applied: the robot
-    keeps to what was decided, and the :class:`~fleet.wire.Applied` report (one per step,
+    keeps to what was decided, and the :class:`~ground.wire.Applied` report (one per step,
     at the decision) lets the tracker tell the agent and its neighbours in tick k + 1.
 
     A step still undecided when the next tick arrives (its tick reached the link more than
@@ -108,9 +131,9 @@ class LinkDeadline:
     command until the step after the one whose tick revealed it.  Times are the caller's
     monotonic clock [s]."""
 
-    def __init__(self, robot: str, design: Any, watchdog: float, deadline: float):
+    def __init__(self, robot: str, params: ControllerParams, watchdog: float, deadline: float):
         self.robot = robot
-        self.side = RobotSide(design, watchdog, drives=True)
+        self.side = RobotSide(params, watchdog, drives=True)
         self.deadline = deadline
         self.step: int | None = None
         """The step of the last tick received (None before the first)."""
@@ -174,69 +197,3 @@ class LinkDeadline:
         self.decided = True
         report = Applied(robot=self.robot, step=k, last=self.side.applied_step, braked=what == BRAKED)
         return what, a, report
-
-
-REPORT_WAIT = 0.1
-"""How long a tracker waits for a link's report before a tick, as a fraction of Ts: only for
-links that reported the step before (a link that is gone does not hold up every tick)."""
-
-
-class Reports:
-    """What a tracker tells in each tick from the links' :class:`~fleet.wire.Applied`
-    reports (the camera tracker, and the tracker of emulated robots).
-
-    Tick k says what each robot did over step k − 1: its candidate (``fallback``) or the
-    brake (``braked``), from that step's report.  A braked report that came too late for
-    its own tick goes into the next one: whatever happened in between, the agent starts
-    again from where its stopped robot is, and its neighbours keep clear of it as of a
-    braked robot.  A late report of a step on the candidate cannot be told afterwards
-    (the agent has planned on from the step it missed): it is logged and counted.  The
-    inbox must keep the reports of the last :data:`LOOKBACK` steps (prune no later)."""
-
-    LOOKBACK = 8
-    """Steps back that a late report is looked for."""
-
-    def __init__(self, ids: list[str]):
-        self.ids = ids
-        self.expected: set[str] = set()
-        """Robots whose link reported the last step: waited for (bounded) before a tick."""
-        self.seen: set[tuple[str, int]] = set()
-        """(robot, step) of the reports already taken."""
-        self.untold = 0
-        """Late reports of steps on the candidate, never told."""
-
-    def for_tick(
-        self, inbox: Any, k: int, timeout: float, log: Any
-    ) -> tuple[dict[str, int], dict[str, int], list[str]]:
-        """(Tick.fallback, Tick.braked, the deadline misses to count) for tick k, after waiting
-        up to ``timeout`` [s] for the expected reports of step k − 1.  A miss is a robot on its
-        candidate, or braked while its agent is live (a dead agent's robot is no miss).
-        ``inbox`` is subscribed to ``fleet/F/applied/*`` with ``keep``."""
-        last = k - 1
-        inbox.wait(lambda: all(inbox.get(Applied, r, last) is not None for r in self.expected), timeout)
-        steps = range(max(0, last - self.LOOKBACK), last + 1)
-        with inbox.cond:
-            got = [
-                rep for r in self.ids for j in steps
-                if (r, j) not in self.seen and (rep := inbox.get(Applied, r, j)) is not None
-            ]  # fmt: skip
-            live = set(inbox.live)
-        fallback: dict[str, int] = {}
-        braked: dict[str, int] = {}
-        for rep in sorted(got, key=lambda a: -a.step):  # the newest first
-            self.seen.add((rep.robot, rep.step))
-            if rep.on_time:
-                continue
-            if rep.step == last:
-                (braked if rep.braked else fallback)[rep.robot] = rep.last
-            elif rep.braked:
-                braked.setdefault(rep.robot, rep.last)
-            else:
-                self.untold += 1
-                log(f"step {rep.step}: {rep.robot}'s robot side followed its candidate, but its report "
-                    "came after the tick: the agent and its neighbours were not told")  # fmt: skip
-        for r in braked:
-            fallback.pop(r, None)
-        self.expected = {r for r in self.ids if (r, last) in self.seen}
-        self.seen = {(r, j) for r, j in self.seen if j >= last - self.LOOKBACK}
-        return fallback, braked, [*fallback, *(r for r in braked if r in live)]

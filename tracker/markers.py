@@ -1,7 +1,7 @@
 """``fleet markers SCENARIO.toml [--out FILE.pdf] [--paper a4|letter] [--png DIR] [--dpi N]``
 
 Printable ArUco markers for a scenario's camera tracker (its ``[camera]``
-table, :class:`fleet.scenario.CameraSpec`): every robot's marker, labelled
+table, :class:`ground.scenario.CameraSpec`): every robot's marker, labelled
 with the robot id, the marker id and an arrow along the robot's forward
 direction, then every fiducial, labelled with its id and the world position
 [m] of its centre.
@@ -45,7 +45,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from fleet.scenario import CameraSpec, ConfigError, Scenario, load_scenario
+from ground.scenario import CameraSpec, ConfigError, Scenario, load_scenario
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure

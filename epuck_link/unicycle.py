@@ -41,8 +41,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agent.params import WheelGeometry
-from agent.sets import Array
+from ground.geometry import Array, axle_centre, controlled_point, wrap_angle
+from ground.params import WheelGeometry
 
 
 def wheel_speeds(v: float, omega: float, geom: WheelGeometry) -> tuple[float, float, bool]:
@@ -79,21 +79,6 @@ def integrate_unicycle(pose: Array, v: float, omega: float, dt: float) -> Array:
     return np.array([x + chord * math.cos(mid), y + chord * math.sin(mid), th + omega * dt])
 
 
-def measured_state(pose: Array, velocity: Array, lookahead: float) -> Array:
-    """The controller's state [px, vx, py, vy] (4,) [m, m/s] from a camera pose
-    (x, y, θ) [m, m, rad, world frame] and the odometry's controlled-point
-    velocity (2,) [m/s]: the point sits ``lookahead`` [m] ahead of the axle."""
-    x, y, th = float(pose[0]), float(pose[1]), float(pose[2])
-    px = x + lookahead * math.cos(th)
-    py = y + lookahead * math.sin(th)
-    return np.array([px, float(velocity[0]), py, float(velocity[1])])
-
-
-def wrap_angle(a: float) -> float:
-    """Angle wrapped to [−π, π)."""
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
 class InnerLoop:
     """Common interface: keeps its own extension state, maps a → (v, ω)."""
 
@@ -117,9 +102,7 @@ class InnerLoop:
 
     def point(self, pose: Array) -> Array:
         """Controlled point (2,) [m, world frame] for an axle-centre pose."""
-        return np.array(
-            [pose[0] + self.lookahead * math.cos(pose[2]), pose[1] + self.lookahead * math.sin(pose[2])]
-        )
+        return controlled_point(pose, self.lookahead)
 
 
 @dataclass
@@ -289,8 +272,8 @@ class DoubleIntegratorPlant:
     """The exact nominal model ``x⁺ = A x + B a`` (for theory tests)."""
 
     def __init__(self, pose: Array, A: Array, B: Array, lookahead: float = 0.0):
-        c, s = math.cos(pose[2]), math.sin(pose[2])
-        self.x = np.array([pose[0] + lookahead * c, 0.0, pose[1] + lookahead * s, 0.0])
+        px, py = controlled_point(pose, lookahead)
+        self.x = np.array([px, 0.0, py, 0.0])
         self.A, self.B = A, B
         self.theta = float(pose[2])
         self.lookahead = lookahead
@@ -300,8 +283,8 @@ class DoubleIntegratorPlant:
         """A pose whose controlled point is the state's position; heading follows the velocity."""
         if math.hypot(self.x[1], self.x[3]) > 1e-6:
             self.theta = math.atan2(self.x[3], self.x[1])
-        c, s = math.cos(self.theta), math.sin(self.theta)
-        return np.array([self.x[0] - self.lookahead * c, self.x[2] - self.lookahead * s, self.theta])
+        x, y = axle_centre(self.x[[0, 2]], self.theta, self.lookahead)
+        return np.array([x, y, self.theta])
 
     def state(self) -> Array:
         return self.x.copy()

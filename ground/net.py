@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import json
 import socket
+import string
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 LOOPBACK = "127.0.0.1"
@@ -80,3 +82,33 @@ class NetConfig:
         conf.insert_json5("scouting/multicast/enabled", "false")
         conf.insert_json5("transport/link/tx/lease", str(round(self.lease * 1000)))
         return conf
+
+
+class SecureConfigError(ValueError):
+    """A secure configuration cannot be built; the message names the field or file."""
+
+
+def render(template: str, values: dict[str, str]) -> str:
+    """Fill the ``${NAME}`` placeholders of a JSON5 template; every one must be given.
+
+    Values are escaped for a JSON string (the placeholders sit inside quotes)."""
+    try:
+        return string.Template(template).substitute({k: json.dumps(v)[1:-1] for k, v in values.items()})
+    except KeyError as e:
+        raise SecureConfigError(f"template: no value for ${{{e.args[0]}}} (--set {e.args[0]}=...)") from None
+    except ValueError as e:
+        raise SecureConfigError(f"template: {e}") from None
+
+
+def load_config(path: str | Path, values: dict[str, str] | None = None) -> Any:
+    """A ``zenoh.Config`` from a JSON5 file, its placeholders filled with ``values``."""
+    import zenoh
+
+    try:
+        text = Path(path).read_text()
+    except OSError as e:
+        raise SecureConfigError(f"config: {e}") from None
+    try:
+        return zenoh.Config.from_json5(render(text, values or {}))
+    except zenoh.ZError as e:
+        raise SecureConfigError(f"config: {path}: {e}") from None

@@ -25,7 +25,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from fleet.scenario import ConfigError, Scenario, load_scenario
+from ground.scenario import ConfigError, Scenario, load_scenario
 
 OPENCV_MISSING = "camera source needs OpenCV: pip install 'epuck-fleet[camera]'"
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp")

@@ -57,9 +57,12 @@ from typing import Any
 
 import numpy as np
 
-from agent.params import PRESETS, ControllerParams
-from agent.params import preset as _preset
+from ground.geometry import controlled_point
+from ground.params import PRESETS, ControllerParams
+from ground.params import preset as _preset
 
+GOAL_TOLERANCE = 0.02
+"""A robot has reached its goal when its controlled point is within this distance of it [m]."""
 DISTURBANCES = ("uniform", "adversarial", "none")
 """Accepted values of ``simulation.disturbance``."""
 PLANTS = ("unicycle", "double_integrator")
@@ -865,12 +868,6 @@ def load_scenario(path: str | Path, preset_override: str | None = None) -> Scena
 # --------------------------------------------------------------------------- geometry
 
 
-def controlled_point(start: Sequence[float] | np.ndarray, lookahead: float) -> np.ndarray:
-    """Controlled point (2,) [m] of a pose (x, y, θ): ``start[:2] + ℓ (cos θ, sin θ)``."""
-    x, y, th = float(start[0]), float(start[1]), float(start[2])
-    return np.array([x + lookahead * math.cos(th), y + lookahead * math.sin(th)])
-
-
 def _pair(a: float, b: float) -> tuple[str, str]:
     """Format two lengths with enough digits that they print differently."""
     for digits in range(3, 8):
@@ -961,3 +958,21 @@ def check_geometry(scn: Scenario, footprint: float) -> None:
                         f"{label} {_xy(pts[j])} is {sd} m from that of robots[{i}] ({scn.robots[i].id!r}), "
                         f"closer than their footprints allow (2 × {fp:.3f} = {sf} m)",
                     )
+
+
+def goal_problem(scn: Scenario, footprint: float, goal: np.ndarray, plans: Sequence[Any]) -> str | None:
+    """Why a goal (2,) [m] given at run time cannot be accepted, or None.
+
+    It must clear the walls and obstacles by the footprint radius [m] and park at least the two
+    footprints away from every other robot's current goal: ``plans`` are their latest
+    :class:`~ground.wire.Plan` (``robot``, ``goal`` (2,) [m], ``footprint`` [m])."""
+    try:
+        check_point(scn, goal, footprint, "goal")
+    except ConfigError as e:
+        return e.reason
+    for pl in plans:
+        d = float(np.linalg.norm(goal - pl.goal))
+        if d < footprint + pl.footprint:
+            need = footprint + pl.footprint
+            return f"{d:.3f} m from {pl.robot}'s goal, closer than the footprints allow ({need:.3f} m)"
+    return None

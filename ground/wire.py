@@ -39,8 +39,11 @@ import msgpack
 import numpy as np
 from numpy.typing import NDArray
 
-SCHEMA_VERSION = 2
-"""2: :class:`Command` carries the shifted candidate and :class:`Tick` what the robot side applied."""
+SCHEMA_VERSION = 3
+"""The version of every message's layout; a message of another version is rejected.
+
+2: :class:`Command` carries the shifted candidate and :class:`Tick` what the robot side applied;
+3: :class:`Command` carries the ancillary gain K, so the robot side needs no tube design."""
 MAX_PAYLOAD = 64 * 1024
 """Largest accepted message [bytes]."""
 MAX_HORIZON = 200
@@ -328,9 +331,9 @@ class Command(Message):
     ≥ 50 Hz on it; holding (v, ω) for a whole step instead costs about half of
     W (docs/runtime-notes.md).
 
-    ``x_next`` and ``v_next`` are the shifted candidate of the plan just made
-    (DESIGN §4): the nominal state at step ``step + 1`` and the nominal inputs
-    from there.  A robot side with a deadline (the simulated tracker in
+    ``x_next`` and ``v_next`` are the shifted candidate of the plan just made: the nominal
+    state at step ``step + 1`` and the nominal inputs from there, and ``K`` the gain the
+    agent plans with.  A robot side with a deadline (the simulated tracker in
     realtime) that has no command of step ``step + m`` in time applies the
     ancillary law on it instead, ``u = v̂ + K(x − x̂)`` with ``x̂`` propagated
     m steps by the nominal model, for as long as ``v_next`` lasts
@@ -347,6 +350,9 @@ class Command(Message):
     """Nominal state x̂ at step ``step + 1``, (4,) [px, vx, py, vy] in m, m/s, world frame."""
     v_next: NDArray[np.float64] = field(compare=False, default_factory=lambda: np.zeros((1, 2)))
     """Nominal inputs v̂ from step ``step + 1`` on, (m, 2) [m/s²], world frame, 1 ≤ m ≤ MAX_HORIZON."""
+    K: NDArray[np.float64] = field(compare=False, default_factory=lambda: np.zeros((2, 4)))
+    """The ancillary gain K (2, 4) [1/s², 1/s] of the law u = v̂ + K(x − x̂) that the agent
+    plans with, for the robot side to apply on the candidate."""
 
     @classmethod
     def _check(cls, d: dict[str, Any]) -> dict[str, Any]:
@@ -359,6 +365,7 @@ class Command(Message):
             "fallback": d["fallback"],
             "x_next": decode_array(d["x_next"], "x_next", (4,)),
             "v_next": decode_array(d["v_next"], "v_next", (None, 2)),
+            "K": decode_array(d["K"], "K", (2, 4)),
         }
 
 

@@ -1,0 +1,113 @@
+"""Which other robots an agent coordinates with this step, and which it keeps clear of as discs.
+
+A robot coordinates with a neighbour by the split rule (:func:`agent.coordination.split_halfplanes`)
+only when it has that neighbour's plan of the previous step and the neighbour is alive and its
+robot not braked.  Every other robot is a *hazard*: a static disc around its last known committed
+point, grown for every step its plans have been missing (:func:`agent.coordination.hazard_halfplanes`).
+:class:`Guard` sorts them, step by step (docs/method.md §6).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import numpy as np
+
+from agent.coordination import Hazard, NeighbourInfo
+from ground.params import ControllerParams
+from ground.wire import Plan
+
+
+def neighbour_of(plan: Plan) -> NeighbourInfo:
+    """What the controller uses of a neighbour's plan.  Its arrays are views of the received
+    plan's, which nothing changes (a copy each costs three calls per neighbour and step)."""
+    return NeighbourInfo(
+        plan.robot, plan.committed[-1], plan.footprint, plan.priority, plan.rank, plan.target, plan.goal,
+        plan.phase,
+    )  # fmt: skip
+
+
+class Guard:
+    """Sorts the other robots, each step, into neighbours and hazards (DESIGN §5, "Timing").
+
+    * A live robot whose plan of step k − 1 is in is a *neighbour*: the split rule.
+    * A live robot whose latest plan is m ≥ 1 steps older (lost or late) is a
+      *hazard*: a static disc around its last known committed point ĉ_j of
+      radius r_j + (m + 1)·√2·ε, since its appended point moves at most ε per
+      axis a step.
+    * A dead robot (liveliness gone; its robot side brakes it) is a hazard of
+      radius r_j + max(N, m + 1)·√2·ε + v_max²/(2 a_max): wherever its reference was
+      when it died is within that of ĉ_j, and braking adds the stopping distance.
+    * At step 0 every robot is a neighbour at its scenario start, as in
+      ``fleet simulate``.
+
+    The disc rule alone keeps the appended points R apart whatever the other
+    robot does, so mixing it with a neighbour's split rule is safe.  Changes
+    are logged the first time each, then only counted."""
+
+    def __init__(self, me: str, p: ControllerParams, log: Callable[[str], None]):
+        self.me = me
+        self.log = log
+        self.eps = math.sqrt(2.0) * p.epsilon
+        """Euclidean reach of one step [m]: ȳ moves at most ε per axis (the QP's ε box)."""
+        self.N = p.horizon
+        self.brake = p.v_max**2 / (2.0 * p.a_max)
+        self.hazard_steps = 0
+        self.transitions = 0
+        self._state: dict[str, str] = {}
+        self._logged: set[tuple[str, str, str]] = set()
+
+    def classify(
+        self, k: int, others: list[str], fresh: dict[str, Plan | None], last: dict[str, Plan | None],
+        live: set[str], starts: dict[str, NeighbourInfo], braked: frozenset[str] | set[str] = frozenset(),
+    ) -> tuple[list[NeighbourInfo], list[Hazard]]:  # fmt: skip
+        """(neighbours, hazards) for step k from the plans of step k − 1 (``fresh``),
+        the latest plans (``last``), the live set and the robots their robot side braked
+        over step k − 1 (Tick.braked): those have left their plans as a dead robot's has."""
+        nbs: list[NeighbourInfo] = []
+        hazards: list[Hazard] = []
+        for j in others:
+            pl = fresh.get(j)
+            if k == 0:
+                nbs.append(starts[j])
+                continue
+            if pl is not None and j in live and j not in braked:
+                nbs.append(neighbour_of(pl))
+                if self._state.get(j, "neighbour") != "neighbour":
+                    self._note(j, "neighbour", k)
+                continue
+            old = last.get(j)
+            centre, since, r_j = (
+                (starts[j].last_point, -1, starts[j].footprint) if old is None
+                else (old.committed[-1], old.step, old.footprint)
+            )  # fmt: skip
+            m = max(k - 1 - since, 0)
+            if j in live and j not in braked:
+                radius = r_j + (m + 1) * self.eps
+                info = neighbour_of(old) if old is not None else starts[j]
+                self._note(j, "stale", k)
+            else:
+                radius = r_j + max(self.N, m + 1) * self.eps + self.brake
+                info = None
+                self._note(j, "dead" if j not in live else "braked", k)
+            hazards.append(Hazard(j, np.array(centre, dtype=float), radius, info))
+        self.hazard_steps += len(hazards)
+        return nbs, hazards
+
+    def _note(self, j: str, state: str, k: int) -> None:
+        before = self._state.get(j, "neighbour")
+        self._state[j] = state
+        if state == before or (state == "stale" and before in ("dead", "braked")):
+            return
+        self.transitions += 1
+        if (j, state, before) in self._logged:
+            return  # each kind of change is logged once per neighbour, then counted
+        self._logged.add((j, state, before))
+        what = {
+            "neighbour": "coordinating again",
+            "stale": "its plan is late or lost; kept clear of as a growing static disc",
+            "dead": "not alive; kept clear of as a static obstacle while its robot stops",
+            "braked": "braked by its robot side; kept clear of as a static obstacle while it stops",
+        }[state]
+        self.log(f"step {k}: {j}: {what}")

@@ -1,0 +1,30 @@
+"""What an agent says after a controller step: its plan for everyone, its command for its robot.
+
+The agent process publishes these (:mod:`agent.node`), and ``fleet simulate`` hands the same
+plans to the safety judge (:mod:`fleet.simulate`), so that both judge the same messages.
+"""
+
+from __future__ import annotations
+
+from agent.controller import StepOutput, TubeMPC
+from ground.wire import Command, Plan
+
+
+def plan_message(robot: str, k: int, ctrl: TubeMPC, out: StepOutput) -> Plan:
+    """The plan ``robot`` committed at step ``k`` (``out``, the step's output of ``ctrl``)."""
+    Ts = ctrl.params.Ts
+    return Plan(
+        robot=robot, step=k, t0=(k + 1) * Ts, Ts=Ts, committed=out.committed, nominal=out.plan,
+        footprint=ctrl.r, priority=ctrl.priority, rank=ctrl.rank, phase=ctrl.phase, target=out.target,
+        goal=ctrl.goal, status=out.status, solve_time=out.solve_time, tube_ok=out.tube_ok,
+    )  # fmt: skip
+
+
+def command_message(robot: str, k: int, ctrl: TubeMPC, out: StepOutput, follow: bool = True) -> Command:
+    """The command of step ``k``: the acceleration u = v̂ + K(x − x̂), and the shifted candidate
+    with the gain K for the robot side to follow if later commands miss their deadline
+    (``follow`` False: nothing to follow, e.g. while the agent holds without poses)."""
+    return Command(
+        robot=robot, step=k, ax=float(out.a[0]), ay=float(out.a[1]), fallback=follow, x_next=out.x_next,
+        v_next=out.v_next, K=ctrl.design.K,
+    )  # fmt: skip

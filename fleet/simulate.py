@@ -1,0 +1,299 @@
+"""``fleet simulate``: the whole fleet in one process, closed loop, step by step.
+
+Each step, synchronously:
+
+1. every robot measures its state ``x = [px, vx, py, vy]`` (controlled point, world frame):
+   the camera's pose, off the plant's by :class:`~tracker.world.PoseNoise`, and the
+   odometry's velocity (exact in simulation);
+2. every agent steps its :class:`agent.controller.TubeMPC` against the neighbours' references
+   committed in the *previous* step (the synchronous exchange of docs/method.md §5);
+3. every plant integrates its acceleration for Ts and receives a disturbance ``w``
+   (:class:`~tracker.world.Disturbance`); with the pose noise, the measured state's one-step
+   error stays in ``f·W`` (``f`` = ``disturbance_fraction``; the rest of W is left for the inner
+   loop's discretisation error, which is measured);
+4. the safety judge (:class:`supervisor.judge.Judge`) takes the true poses and the plans, as
+   the supervisor does in a process run.
+
+The plants, the disturbances and the camera noise are the simulated tracker's
+(:mod:`tracker.world`), drawn in the same order from the same seeds, so a lockstep
+``fleet run`` of the same scenario and seed reproduces this run bit for bit.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from agent.controller import TUBE_TOL, StepOutput, TubeMPC
+from agent.messages import plan_message
+from agent.tube import TubeDesign, require_admissible, synthesize
+from epuck_link.robot_side import chain_input
+from ground.geometry import Array
+from ground.scenario import GOAL_TOLERANCE, Scenario
+from ground.wire import Plan
+from supervisor.judge import Judge
+from tracker.world import Disturbance, PoseNoise, make_plant, measure
+
+LATE_POLICIES = ("candidate", "hold")
+"""What the robot side does with a command that missed its deadline (:func:`run`'s ``late``)."""
+
+
+@dataclass
+class RobotTrace:
+    """Per-robot record of a run (lists over steps)."""
+
+    id: str
+    pose: list[Array] = field(default_factory=list)
+    """Axle-centre pose (x, y, θ) (3,) [m, m, rad] per sample, the initial one included."""
+    point: list[Array] = field(default_factory=list)
+    """Controlled point (2,) [m] per sample."""
+    committed_last: list[Array] = field(default_factory=list)
+    """ỹ_{t+N} (2,) [m] appended at each step."""
+    goal_error: list[float] = field(default_factory=list)
+    """Distance of the controlled point to the goal after each step [m]."""
+    modes: list[str] = field(default_factory=list)
+    """The navigator's mode at each step."""
+    ref_deviation: list[float] = field(default_factory=list)
+    """‖p_{t+1} − ỹ_{t+1}‖ per step [m]."""
+    w_ratio: list[float] = field(default_factory=list)
+    """max_j |w_j| / W_j of the realised one-step error of the measured state, per step."""
+    candidate_violation: list[float] = field(default_factory=list)
+    """The shifted candidate's constraint violation in each step's QP (0: feasible)."""
+    tube_ok: list[bool] = field(default_factory=list)
+    """x − x̂ ∈ Z for the x̂ the robot side applied, per step."""
+    fallback: list[bool] = field(default_factory=list)
+    """The step applied the shifted candidate instead of a solution."""
+
+
+@dataclass
+class RunResult:
+    """What :func:`run` returns: the traces, the controllers and the judge's figures."""
+
+    scenario: str
+    design: TubeDesign
+    judge: Judge
+    traces: dict[str, RobotTrace]
+    controllers: dict[str, TubeMPC]
+    steps: int
+    sim_time: float
+    """Simulated time [s]."""
+    wall_time: float
+    """Wall time of the run [s]."""
+    times: list[float]
+    """Time of each sample [s]."""
+
+    @property
+    def min_distance(self) -> float:
+        """Smallest distance between two true centres [m]."""
+        return self.judge.min_distance
+
+    @property
+    def collisions(self) -> int:
+        """Samples with two centres closer than two body radii."""
+        return self.judge.collisions
+
+    @property
+    def min_reference_separation(self) -> float:
+        """Smallest distance between two points committed for the same time [m]."""
+        return self.judge.min_ref
+
+    @property
+    def required_reference_separation(self) -> float:
+        """Two footprint radii [m]."""
+        return 2.0 * self.design.footprint
+
+    @property
+    def reference_violations(self) -> int:
+        return self.judge.ref_violations
+
+    @property
+    def obstacle_violations(self) -> int:
+        return self.judge.obstacle_violations
+
+    @property
+    def arena_violations(self) -> int:
+        return self.judge.arena_violations
+
+    @property
+    def all_reached(self) -> bool:
+        return all(self.judge.reached(r) for r in self.traces)
+
+    def summary(self) -> dict[str, Any]:
+        """``summary.json`` of the run (:meth:`supervisor.judge.Judge.summary`)."""
+        for rid, ctrl in self.controllers.items():
+            self.judge.repairs[rid] = ctrl.counters.repairs
+        return self.judge.summary(completed=True, wall_time=self.wall_time)
+
+
+def _unapplied(
+    ctrl: TubeMPC, design: TubeDesign, applied: tuple[int, StepOutput | None], k: int, x: Array,
+    a_prev: Array, policy: str,
+) -> tuple[Array, Array, str]:  # fmt: skip
+    """The robot side's acceleration (2,) [m/s²] when the command of step k is not applied,
+    the nominal state x̂ (4,) the tube error is then measured from, and what it did: "candidate",
+    "braked" or "held" (the previous acceleration, telling nobody)."""
+    if policy == "hold":
+        return a_prev, ctrl.xi[0:4].copy(), "held"
+    j, out = applied
+    a = (
+        None
+        if out is None
+        else chain_input(out.x_next, out.v_next, k - j - 1, x, design.A, design.B, design.K)
+    )
+    if a is None or not ctrl.rewind(1):
+        ctrl.reset(x[[0, 2]])  # nothing to follow: braked; the agent starts again where it is
+        p = design.params
+        return np.clip(-x[[1, 3]] / p.Ts, -p.a_max, p.a_max), x.copy(), "braked"
+    return a, ctrl.xi[0:4].copy(), "candidate"
+
+
+def run(
+    scenario: Scenario,
+    seed: int | None = None,
+    design: TubeDesign | None = None,
+    steps: int | None = None,
+    stop_when_done: bool = True,
+    solver_fault: Callable[[str, int], bool] | None = None,
+    extra_disturbance: Callable[[str, int], Array | None] | None = None,
+    late: Callable[[str, int], bool] | None = None,
+    late_policy: str = "candidate",
+) -> RunResult:
+    """Run ``scenario`` closed loop.
+
+    ``solver_fault(robot_id, step)`` returning True makes that solve count as
+    failed (fault injection).  ``extra_disturbance(robot_id, step)`` may return
+    an extra w (4,) that is added on top of the sampled one (to leave W).
+
+    ``late(robot_id, step)`` returning True makes that step's command miss its
+    deadline: the robot side does not apply it.  With ``late_policy="candidate"``
+    it applies the ancillary law on the shifted candidate of the last command it
+    applied (:func:`epuck_link.robot_side.chain_input`; braking once that is used up)
+    and the controller rewinds to it (:meth:`TubeMPC.rewind`), as the process runtime
+    does; ``"hold"`` holds the previous acceleration and tells nobody (the
+    runtime before the candidate fallback, for comparison)."""
+    if late_policy not in LATE_POLICIES:
+        raise ValueError(f"late_policy: {late_policy!r} is not one of {', '.join(LATE_POLICIES)}")
+    t_wall = time.perf_counter()
+    sim = scenario.simulation
+    seed = sim.seed if seed is None else seed
+    rng = np.random.default_rng(seed)
+    if design is None:
+        design = require_admissible(synthesize(scenario.controller, scenario.arena))
+    p = design.params
+    Ts = p.Ts
+    n_steps = steps if steps is not None else round(scenario.duration / Ts)
+    dist = Disturbance(sim.disturbance, p.W, sim.disturbance_fraction, rng, p.point_noise)
+    noise = PoseNoise(p.pose_noise, seed)
+    W4 = np.array([p.W[0], p.W[1], p.W[0], p.W[1]])
+    judge = Judge(scenario)
+    robots = list(scenario.robots)
+    plants, ctrls, traces, meas, cams = {}, {}, {}, {}, {}
+    applied: dict[str, tuple[int, StepOutput | None]] = {}
+    """Per robot: the step and output of the last command its robot side applied."""
+    last_a: dict[str, Array] = {}
+    for rank, rb in enumerate(robots):
+        plant = make_plant(sim.plant, np.array(rb.start, dtype=float), p)
+        start_pt = plant.state()[[0, 2]]
+        fault = None
+        if solver_fault is not None:
+            fault = (lambda rid: lambda k: solver_fault(rid, k))(rb.id)
+        ctrls[rb.id] = TubeMPC(
+            design,
+            start_pt,
+            np.array(rb.goal, dtype=float),
+            scenario.arena,
+            obstacles=scenario.obstacles,
+            priority=rb.priority,
+            rank=rank,
+            seed=seed * 1000 + rank,
+            solver_fault=fault,
+        )
+        plants[rb.id] = plant
+        applied[rb.id] = (-1, None)
+        last_a[rb.id] = np.zeros(2)
+        meas[rb.id], cams[rb.id] = measure(plant, noise, p.lookahead)
+        tr = RobotTrace(rb.id)
+        tr.pose.append(plant.pose.copy())
+        tr.point.append(start_pt)
+        traces[rb.id] = tr
+    ids = [rb.id for rb in robots]
+    times = [0.0]
+    k = 0
+    for k in range(n_steps):
+        # The sample the agents measure now, as the supervisor judges it: the true poses
+        # with the camera's.
+        judge.truth({rid: traces[rid].pose[-1] for rid in ids}, cams)
+        infos = {}
+        for rid in ids:
+            inf = ctrls[rid].info()
+            inf.id = rid
+            infos[rid] = inf
+        outs = {}
+        for rid in ids:
+            x = meas[rid]
+            nbs = [infos[j] for j in ids if j != rid]
+            out = ctrls[rid].step(x, nbs)
+            outs[rid] = (x, out)
+        plans: dict[str, Plan] = {}
+        unexecuted: list[str] = []
+        for rid in ids:
+            x, out = outs[rid]
+            plans[rid] = plan_message(rid, k, ctrls[rid], out)
+            plant = plants[rid]
+            a, x_hat = out.a, out.x_hat
+            if late is not None and late(rid, k):
+                a, x_hat, what = _unapplied(ctrls[rid], design, applied[rid], k, x, last_a[rid], late_policy)
+                if what != "held":  # the robot side says so in the next tick
+                    unexecuted.append(rid)
+                    judge.off_plan(rid, what)
+            else:
+                applied[rid] = (k, out)
+            last_a[rid] = a
+            plant.step(a, Ts)
+            w = dist.sample(x - x_hat)
+            if extra_disturbance is not None:
+                extra = extra_disturbance(rid, k)
+                if extra is not None:
+                    w = w + extra
+            plant.perturb(w)
+            xn = plant.state()
+            meas[rid], cams[rid] = measure(plant, noise, p.lookahead)
+            w_real = meas[rid] - (design.A @ x + design.B @ a)
+            tr = traces[rid]
+            tr.w_ratio.append(float(np.max(np.abs(w_real) / W4)))
+            tr.pose.append(plant.pose.copy())
+            pt = xn[[0, 2]]
+            tr.point.append(pt)
+            tr.committed_last.append(ctrls[rid].y_ref[-1].copy())
+            tr.goal_error.append(float(np.linalg.norm(pt - ctrls[rid].goal)))
+            tr.modes.append(out.mode)
+            tr.ref_deviation.append(float(np.linalg.norm(pt - ctrls[rid].y_ref[0])))
+            tr.candidate_violation.append(out.candidate_violation)
+            tr.tube_ok.append(
+                out.tube_ok if x_hat is out.x_hat else design.contains_error(x - x_hat, TUBE_TOL)
+            )
+            tr.fallback.append(out.fallback)
+            judge.simulated(rid, out.step_time * 1e3, tr.w_ratio[-1], out.candidate_violation)
+        judge.plans(plans, unexecuted)
+        times.append((k + 1) * Ts)
+        if stop_when_done and all(
+            traces[r].goal_error[-1] <= GOAL_TOLERANCE * 0.5 and ctrls[r].at_goal for r in ids
+        ):
+            break
+    n_done = k + 1 if n_steps > 0 else 0
+    judge.truth({rid: traces[rid].pose[-1] for rid in ids})  # the final sample: no camera pose used
+    return RunResult(
+        scenario=scenario.name,
+        design=design,
+        judge=judge,
+        traces=traces,
+        controllers=ctrls,
+        steps=n_done,
+        sim_time=n_done * Ts,
+        wall_time=time.perf_counter() - t_wall,
+        times=times,
+    )

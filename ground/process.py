@@ -1,0 +1,106 @@
+"""The prologue every fleet process shares: its common arguments, its readiness line, its log
+lines and its exit.
+
+A process prints one JSON line ``{"event": "ready", "role": ..., "pid": ...}`` on stdout once
+its subscriptions are declared (:func:`announce`); the launcher and the tests wait on that line
+(with a timeout) instead of sleeping.  Log lines go to stderr, one whole line at a time
+(:func:`log`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import os
+import sys
+from typing import Any, NoReturn
+
+from ground.faults import FaultPlan, FaultPlanError
+from ground.net import MODES, NetConfig, lease_seconds
+
+
+def lease_arg(text: str) -> float:
+    """argparse type of ``--lease``: seconds in :data:`ground.net.LEASE_RANGE`."""
+    try:
+        return lease_seconds(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def add_common_args(ap: argparse.ArgumentParser) -> None:
+    ap.add_argument("--scenario", required=True, help="scenario TOML file")
+    ap.add_argument("--fleet", default="lab", help="fleet name in the Zenoh keys (default lab)")
+    ap.add_argument("--listen", action="append", default=None, help="Zenoh endpoint to listen on")
+    ap.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
+    ap.add_argument(
+        "--faults", default=None, metavar="JSON",
+        help="fault plan (JSON text or file, ground/faults.py): drop or delay chosen received messages",
+    )  # fmt: skip
+    ap.add_argument(
+        "--zenoh-config", default=None, metavar="FILE",
+        help="Zenoh JSON5 configuration (secure deployment, deploy/README.md); replaces --listen/--connect",
+    )  # fmt: skip
+    ap.add_argument(
+        "--lease", type=lease_arg, default=None, metavar="SECONDS",
+        help=f"Zenoh transport lease [s] (default {NetConfig.lease:g}, or the --zenoh-config file's): how "
+        "soon a hung or cut-off peer is dropped and its liveliness token goes; a short lease costs "
+        "CPU (docs/design.md §8)",
+    )  # fmt: skip
+    ap.add_argument(
+        "--mode", choices=MODES, default=None,
+        help="Zenoh session mode (default peer): the star topology makes the hub a router and every "
+        "other process a client of it (docs/design.md §8, \"Topology\")",
+    )  # fmt: skip
+    ap.add_argument("--timeout", type=float, default=30.0, help="lockstep wait limit [s]")
+    ap.add_argument(
+        "--clock", choices=["lockstep", "realtime"], default="lockstep",
+        help="lockstep: step when every agent answered; realtime: wall-clock steps at Ts",
+    )  # fmt: skip
+    ap.add_argument(
+        "--exchange", choices=["mesh", "relay"], default="mesh",
+        help="plans: mesh, every agent subscribes to every plan; relay, the tracker sends each "
+        "agent one digest of a step's plans (docs/runtime-notes.md, \"Relayed plans\")",
+    )  # fmt: skip
+
+
+def fault_plan(args: argparse.Namespace) -> FaultPlan | None:
+    """The ``--faults`` plan of a process, or None; a bad plan is one line on stderr and exit 2."""
+    if not getattr(args, "faults", None):
+        return None
+    try:
+        return FaultPlan.parse(args.faults)
+    except FaultPlanError as e:
+        print(f"error: --faults: {e}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
+def announce(role: str, **info: Any) -> None:
+    """Freeze the start-up heap, then print the readiness line the launcher waits for.
+
+    ``gc.freeze`` moves every object alive now (modules, the tube design, the
+    solver, Zenoh's) out of the collector's reach, so a full collection during
+    the run scans only what the run allocated.  A full collection of an agent's
+    start-up heap took 20–40 ms, and agents started together would run theirs
+    at about the same step: on 2 cores, a step in which many miss the deadline."""
+    gc.collect()
+    gc.freeze()
+    print(json.dumps({"event": "ready", "role": role, "pid": os.getpid(), **info}), flush=True)
+
+
+def log(role: str, msg: str) -> None:
+    """One line on stderr, written whole: processes share the launcher's stderr, and
+    ``print`` writes the text and the newline separately, which interleaves lines."""
+    sys.stderr.write(f"[{role}] {msg}\n")
+    sys.stderr.flush()
+
+
+def exit_process(code: int) -> NoReturn:
+    """End a fleet process with ``code`` once its ``main`` has cleaned up.
+
+    Zenoh's Python callback threads are not daemons and have been seen to
+    outlive a closed session; at interpreter shutdown they kept a finished
+    agent alive for good.  ``os._exit`` after flushing cannot hang."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
