@@ -32,13 +32,13 @@ from agent.coordination import (
     RETURNING,
     UNDER_WAY,
     Hazard,
-    Navigator,
     NeighbourInfo,
     hazard_halfplanes,
     obstacle_halfplanes,
     polynomial_penalty,
     split_halfplanes,
 )
+from agent.navigator import Navigator
 from agent.qp import StepData, TubeQP
 from agent.sets import Array
 from agent.tube import TubeDesign

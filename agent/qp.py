@@ -28,16 +28,37 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import proxsuite
 
 from agent.sets import Array
 from agent.tube import TubeDesign
+from ground.params import ControllerParams
 
 _PX = proxsuite.proxqp
 INACTIVE = 1e9
 """Bound magnitude of an unused coordination row (the row never binds)."""
+
+
+def configure(s: Any, p: ControllerParams) -> None:
+    """Set a ProxSuite ``settings`` object to the settings every solve of this project uses
+    (docs/method.md §9): absolute tolerance 1e-5 with the duality-gap check, a strict
+    primal-infeasibility threshold (the default flags feasible QPs of this shape), the
+    iteration caps of ``p``, and a cold start from the previous result (the documented warm
+    start reuses a shrunken proximal parameter and reports false infeasibility)."""
+    s.eps_abs = 1e-5
+    s.eps_rel = 0.0
+    s.check_duality_gap = True
+    s.eps_duality_gap_abs = 1e-4
+    s.eps_duality_gap_rel = 0.0
+    s.default_mu_in = 1e-2
+    s.eps_primal_inf = 1e-9
+    s.max_iter = p.max_iter
+    s.max_iter_in = p.max_iter_in
+    s.initial_guess = _PX.InitialGuess.COLD_START_WITH_PREVIOUS_RESULT
+    s.verbose = False
 
 
 @dataclass
@@ -155,18 +176,7 @@ class TubeQP:
         self.qp = _PX.dense.QP(
             n, 4, self.n_in, True, _PX.dense.HessianType.Dense, _PX.dense.DenseBackend.PrimalDualLDLT
         )
-        s = self.qp.settings
-        s.eps_abs = 1e-5
-        s.eps_rel = 0.0
-        s.check_duality_gap = True
-        s.eps_duality_gap_abs = 1e-4
-        s.eps_duality_gap_rel = 0.0
-        s.default_mu_in = 1e-2
-        s.eps_primal_inf = 1e-9
-        s.max_iter = p.max_iter
-        s.max_iter_in = p.max_iter_in
-        s.initial_guess = _PX.InitialGuess.COLD_START_WITH_PREVIOUS_RESULT
-        s.verbose = False
+        configure(self.qp.settings, p)
         self._initialised = False
         self.time_budget = p.solve_time_budget
 

@@ -77,7 +77,7 @@ import proxsuite  # noqa: E402
 
 from agent.controller import TubeMPC  # noqa: E402
 from agent.coordination import UNDER_WAY, NeighbourInfo  # noqa: E402
-from agent.qp import TubeQP  # noqa: E402
+from agent.qp import TubeQP, configure  # noqa: E402
 from agent.tube import require_admissible, synthesize  # noqa: E402
 from fleet.scenes import scene_to_toml  # noqa: E402
 from ground.params import preset  # noqa: E402
@@ -260,19 +260,9 @@ def step_grid(steps: int, seed: int, log: Callable[[str], None]) -> tuple[list[d
 
 # ============================================================================ [2] solvers
 def _px_settings(qp: Any, p: Any, **over: Any) -> None:
-    """The settings of agent/qp.py (DESIGN §8), then ``over`` (attribute → value)."""
+    """The project's settings (:func:`agent.qp.configure`), then ``over`` (attribute → value)."""
     s = qp.settings
-    s.eps_abs = 1e-5
-    s.eps_rel = 0.0
-    s.check_duality_gap = True
-    s.eps_duality_gap_abs = 1e-4
-    s.eps_duality_gap_rel = 0.0
-    s.default_mu_in = 1e-2
-    s.eps_primal_inf = 1e-9
-    s.max_iter = p.max_iter
-    s.max_iter_in = p.max_iter_in
-    s.initial_guess = _PX.InitialGuess.COLD_START_WITH_PREVIOUS_RESULT
-    s.verbose = False
+    configure(s, p)
     for k, v in over.items():
         setattr(s, k, v)
 

@@ -63,7 +63,8 @@ if str(ROOT) not in sys.path:
 
 import agent.controller as controller_mod  # noqa: E402
 from agent.controller import TubeMPC  # noqa: E402
-from agent.coordination import UNDER_WAY, Navigator, NeighbourInfo  # noqa: E402
+from agent.coordination import UNDER_WAY, NeighbourInfo  # noqa: E402
+from agent.navigator import Navigator  # noqa: E402
 from agent.qp import TubeQP  # noqa: E402
 from agent.tube import require_admissible, synthesize  # noqa: E402
 from fleet import simulate as harness  # noqa: E402

@@ -320,8 +320,8 @@ class Link:
             f"stopped: zero speed {'sent' if sent else 'NOT sent'}; {self.port.reads} encoder reads, "
             f"{self.port.lost} link losses, {self.watchdog.events} watchdog stops, {self.odoms} odometry "
             f"messages, {self.drive.saturated_steps} saturated steps, "
-            f"{self.off_steps[CANDIDATE]} steps on the candidate, {self.off_steps[BRAKED]} braked by the deadline's rule, {self.inbox.rejects.total} "
-            "rejected payloads",
+            f"{self.off_steps[CANDIDATE]} steps on the candidate, {self.off_steps[BRAKED]} braked by the "
+            f"deadline's rule, {self.inbox.rejects.total} rejected payloads",
         )
         for s in self.subs:
             s.undeclare()

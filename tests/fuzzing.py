@@ -81,7 +81,7 @@ BOOLS: dict[str, tuple[str, ...]] = {
 ARRAYS: dict[str, dict[str, tuple[int | None, ...]]] = {
     "plan": {"committed": (None, 2), "nominal": (None, 2), "target": (2,), "goal": (2,)},
     "goal": {"goal": (2,)},
-    "cmd": {"x_next": (4,), "v_next": (None, 2)},
+    "cmd": {"x_next": (4,), "v_next": (None, 2), "K": (2, 4)},
     "digest": {"footprint": ("n",), "committed": ("n", None, 2), "target": ("n", 2), "goal": ("n", 2)},
 }
 """Array fields and their shapes (None: 1..MAX_HORIZON; "n": the digest's number of robots)."""
@@ -173,6 +173,7 @@ def realistic(name: str, robot: str, rng: np.random.Generator) -> Message:
         return Command(
             robot=robot, step=k, ax=u(-0.3, 0.3), ay=u(-0.3, 0.3), fallback=True,
             x_next=rng.uniform(-0.7, 0.7, 4), v_next=rng.uniform(-0.3, 0.3, (20, 2)),
+            K=rng.uniform(-50.0, 0.0, (2, 4)),
         )  # fmt: skip
     if name == "goal":
         return Goal(robot=robot, goal=rng.uniform(-0.7, 0.7, 2))

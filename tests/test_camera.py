@@ -27,6 +27,7 @@ from ground.scenario import ARUCO_DICTIONARIES, ConfigError, Fiducial, load_scen
 cv2 = pytest.importorskip("cv2")
 
 from tracker import camera as C  # noqa: E402
+from tracker import vision as V  # noqa: E402
 from tracker.calibrate import main as calibrate_main  # noqa: E402
 from tracker.synth import PinholeCamera, Renderer, marker_centre, marker_corners, write_video  # noqa: E402
 
@@ -219,12 +220,12 @@ def test_marker_geometry_is_exact_under_perspective(cam):
     for _ in range(200):
         x, y, th = rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-math.pi, math.pi)
         img = cam.project(marker_corners((x, y), th, SIZE))
-        cx, cy, theta, side, area = C.marker_pose(img, H)
+        cx, cy, theta, side, area = V.marker_pose(img, H)
         assert math.hypot(cx - x, cy - y) < 1e-9 and abs(wrap(theta - th)) < 1e-9
         assert side == pytest.approx(SIZE, rel=1e-9) and area == pytest.approx(SIZE**2, rel=1e-9)
-        assert np.allclose(C.image_centre(img), cam.project(np.array([[x, y]]))[0], atol=1e-9)
+        assert np.allclose(V.image_centre(img), cam.project(np.array([[x, y]]))[0], atol=1e-9)
         # the image centroid is not the projected centre under perspective
-        pose = C.axle_pose((cx, cy), theta, OFFSET)
+        pose = V.axle_pose((cx, cy), theta, OFFSET)
         assert np.allclose(marker_centre(pose, OFFSET), (x, y), atol=1e-12)
 
 
@@ -252,9 +253,9 @@ def _random_poses(rng: np.random.Generator, n: int) -> dict[int, tuple[float, fl
 
 def test_poses_of_60_random_robots_under_perspective_blur_and_noise(renderer):
     """12 images × 5 robots: every marker found, within 5 mm and 2° of the truth."""
-    det = C.make_detector()
+    det = V.make_detector()
     fids = [Fiducial(id=k, position=v) for k, v in FIDUCIALS.items()]
-    cal = C.calibrate([C.detect(renderer.render({}, seed=s), det) for s in range(3)], fids, IMAGE_SIZE)
+    cal = V.calibrate([V.detect(renderer.render({}, seed=s), det) for s in range(3)], fids, IMAGE_SIZE)
     assert cal.rms_error < 0.5e-3 and set(cal.image_points) == set(FIDUCIALS)
     rng = np.random.default_rng(2024)
     markers = {i: f"r{i}" for i in range(1, 6)}
@@ -262,7 +263,7 @@ def test_poses_of_60_random_robots_under_perspective_blur_and_noise(renderer):
     for k in range(12):
         truth = _random_poses(rng, 5)
         image = renderer.render(truth, blur=0.8, noise=2.0, seed=100 + k)
-        found = C.poses(C.detect(image, det), cal.H, markers, OFFSET, SIZE)
+        found = V.poses(V.detect(image, det), cal.H, markers, OFFSET, SIZE)
         assert set(found) == set(markers.values()), f"image {k}: found {sorted(found)}"
         for mid, (x, y, th) in truth.items():
             fx, fy, fth = found[markers[mid]]
@@ -277,7 +278,7 @@ def test_poses_of_60_random_robots_under_perspective_blur_and_noise(renderer):
 
 def test_edge_refinement_beats_subpixel_corners_alone(renderer, cam):
     """The edge-line fit on top of CORNER_REFINE_SUBPIX: smaller heading errors (measured, seeded)."""
-    det = C.make_detector()
+    det = V.make_detector()
     H = np.linalg.inv(cam.homography())
     rng = np.random.default_rng(7)
     err: dict[bool, list[float]] = {True: [], False: []}
@@ -285,9 +286,9 @@ def test_edge_refinement_beats_subpixel_corners_alone(renderer, cam):
         truth = _random_poses(rng, 5)
         image = renderer.render(truth, seed=k)
         for refine in (True, False):
-            found = C.detect(image, det, refine=refine)
+            found = V.detect(image, det, refine=refine)
             for mid, (_, _, th) in truth.items():
-                err[refine].append(abs(wrap(C.marker_pose(found[mid], H)[2] - th)))
+                err[refine].append(abs(wrap(V.marker_pose(found[mid], H)[2] - th)))
     assert np.mean(err[True]) < 0.75 * np.mean(err[False]), (np.mean(err[True]), np.mean(err[False]))
 
 
@@ -296,10 +297,10 @@ def test_edge_refinement_beats_subpixel_corners_alone(renderer, cam):
 
 def test_missing_unknown_duplicate_and_bad_frames_are_counted_not_fatal(renderer, cam):
     fids = [Fiducial(id=k, position=v) for k, v in FIDUCIALS.items()]
-    cal = C.calibrate([C.detect(renderer.render({}, seed=1), C.make_detector())], fids, IMAGE_SIZE)
+    cal = V.calibrate([V.detect(renderer.render({}, seed=1), V.make_detector())], fids, IMAGE_SIZE)
     spec = parse_scenario(scenario_dict()).camera
     logged: list[str] = []
-    trk = C.Tracker(spec, MARKERS, cal, report=logged.append)
+    trk = V.Tracker(spec, MARKERS, cal, report=logged.append)
     r1, r3, stranger = (-0.5, 0.2, 0.3), (0.4, -0.3, -2.0), (0.0, 0.5, 1.0)
     for k in range(2):  # r2's marker absent, id 7 belongs to nobody
         got = trk.process(renderer.render({1: r1, 3: r3, 7: stranger}, seed=k), label=str(k))
@@ -344,9 +345,9 @@ def test_missing_unknown_duplicate_and_bad_frames_are_counted_not_fatal(renderer
     got = trk.process(twin.render({1: r1, 3: r3}, seed=3))  # a second marker 1 lies on the floor
     assert set(got) == {"r3"} and c.duplicates == {1: 1} and c.gaps["r1"] == before + 1
     # A mirrored homography (fiducials in a left-handed frame) is caught, not published.
-    mirrored = C.Calibration(H=np.diag([1.0, -1.0, 1.0]) @ cal.H, image_points={}, world_points={},
+    mirrored = V.Calibration(H=np.diag([1.0, -1.0, 1.0]) @ cal.H, image_points={}, world_points={},
                              rms_error=0.0, max_error=0.0, image_size=IMAGE_SIZE)  # fmt: skip
-    trk2 = C.Tracker(spec, MARKERS, mirrored, report=logged.append)
+    trk2 = V.Tracker(spec, MARKERS, mirrored, report=logged.append)
     assert trk2.process(renderer.render({1: r1}, seed=2)) == {}
     assert trk2.counts.implausible == {1: 1} and any("mirrored" in m for m in logged)
 
@@ -502,7 +503,7 @@ def test_tracker_process_bad_input_gets_one_line_and_exit_2(tmp_path, video):
     no_camera = scenario_dict()
     del no_camera["camera"]
     plain = write_scenario(tmp_path / "plain.toml", no_camera)
-    small = C.Calibration(H=np.eye(3), image_points={}, world_points={}, rms_error=0.0, max_error=0.0,
+    small = V.Calibration(H=np.eye(3), image_points={}, world_points={}, rms_error=0.0, max_error=0.0,
                           image_size=(640, 480))  # fmt: skip
     small.save(tmp_path / "small.json")
     resized = write_scenario(tmp_path / "resized.toml", scenario_dict({"homography": "small.json"}))
@@ -560,13 +561,13 @@ def test_fleet_calibrate_writes_a_homography_that_maps_the_fiducials(tmp_path, r
     assert set(d["fiducials"]) == {str(k) for k in FIDUCIALS}
     for fid, v in d["fiducials"].items():
         assert v["world_m"] == list(FIDUCIALS[int(fid)])
-        assert np.linalg.norm(C.to_plane(H, np.array([v["image_px"]]))[0] - v["world_m"]) < 1e-3
+        assert np.linalg.norm(V.to_plane(H, np.array([v["image_px"]]))[0] - v["world_m"]) < 1e-3
     assert d["rms_error_m"] < 0.5e-3 and d["max_error_m"] < 1e-3
     # It is the camera's true floor homography: floor points map back to within 1 mm.
     pts = np.random.default_rng(0).uniform(-1.0, 1.0, (200, 2))
-    assert np.abs(C.to_plane(H, cam.project(pts)) - pts).max() < 1e-3
+    assert np.abs(V.to_plane(H, cam.project(pts)) - pts).max() < 1e-3
     # The tracker reads it back; a video calibrates too, averaging frames.
-    cal = C.Calibration.load(tmp_path / "h.json")
+    cal = V.Calibration.load(tmp_path / "h.json")
     assert np.allclose(cal.H, H) and cal.rms_error == d["rms_error_m"]
     assert (
         calibrate_main([str(scn), "--video", str(video), "--frames", "5", "--out", str(tmp_path / "v.json")])

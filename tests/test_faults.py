@@ -28,14 +28,14 @@ from procfs import children
 
 from agent.controller import TubeMPC
 from agent.coordination import Hazard, NeighbourInfo, hazard_halfplanes
-from agent.node import Guard
+from agent.hazards import Guard
 from agent.tube import synthesize
-from fleet.simulate import Disturbance, PoseNoise, make_plant, measure
 from ground.faults import DELIVER, DROP, FaultPlan, FaultPlanError
 from ground.geometry import controlled_point
 from ground.net import free_port, loopback
 from ground.scenario import load_scenario
 from ground.wire import Plan
+from tracker.world import Disturbance, PoseNoise, make_plant, measure
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENARIOS = ROOT / "scenarios"
@@ -136,8 +136,8 @@ def test_closed_loop_over_a_lossy_channel_keeps_every_guarantee(plan):
         goal = np.array(spec.goal, float)
         starts[spec.id] = NeighbourInfo(spec.id, pt, design.footprint, 0, i, goal.copy(), goal.copy())
         ctrls[spec.id] = TubeMPC(design, pt, goal, scn.arena, obstacles=scn.obstacles, rank=i, seed=i)
-        plants[spec.id] = make_plant("unicycle", np.array(spec.start, float), design)
-        guards[spec.id] = Guard(spec.id, design)
+        plants[spec.id] = make_plant("unicycle", np.array(spec.start, float), design.params)
+        guards[spec.id] = Guard(spec.id, design.params, print)
     sent: dict[tuple[str, int], Plan] = {}
     seen: dict[str, dict[str, Plan]] = {i: {} for i in ids}  # receiver → latest delivered plan per sender
     R = 2 * design.footprint
@@ -159,7 +159,7 @@ def test_closed_loop_over_a_lossy_channel_keeps_every_guarantee(plan):
                 fresh[j] = on_time if ok else None
                 lost += k > 0 and not ok
             nbs, hz = guards[i].classify(k, others, fresh, seen[i], set(ids), starts)
-            outs[i] = ctrls[i].step(measure(plants[i], noise, p.lookahead), nbs, hz)
+            outs[i] = ctrls[i].step(measure(plants[i], noise, p.lookahead)[0], nbs, hz)
         for rank, i in enumerate(ids):
             sent[(i, k)] = _plan(i, k, outs[i], design.footprint, rank, ctrls[i].goal)
             plants[i].step(outs[i].a, p.Ts)
@@ -182,7 +182,7 @@ def test_guard_grows_stale_discs_by_epsilon_and_caps_dead_ones():
     scn = load_scenario(SCENARIOS / "paper_three_robots.toml")
     design = synthesize(scn.controller, scn.arena)
     p = design.params
-    g = Guard("r1", design)
+    g = Guard("r1", design.params, print)
     starts = {
         j: NeighbourInfo(j, np.array([0.5 * n, 0.0]), design.footprint, 0, n)
         for n, j in enumerate(["r1", "r2", "r3"])

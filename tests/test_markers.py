@@ -28,7 +28,7 @@ from ground.scenario import load_scenario
 cv2 = pytest.importorskip("cv2")
 
 from tracker import markers as M  # noqa: E402
-from tracker.camera import make_detector  # noqa: E402
+from tracker.vision import make_detector  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 SCENARIO = ROOT / "deploy" / "lab_three_robots.toml"

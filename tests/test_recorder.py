@@ -36,7 +36,7 @@ def test_a_fleet_above_the_pair_limit_logs_each_robots_nearest_distance(tmp_path
     ids = [r.id for r in scn.robots]
     assert len(ids) > PAIR_SERIES_MAX
     rng = np.random.default_rng(4)
-    rec = Recorder(tmp_path / "r.rrd", scn, footprint=0.1, rho=0.01, radius=0.037)
+    rec = Recorder(tmp_path / "r.rrd", scn)
     truth_at, ends_at = {}, {}
     for k in range(3):
         pts = rng.uniform(-0.8, 0.8, (len(ids), 2))
@@ -107,7 +107,7 @@ def test_each_robot_s_plans_and_poses_land_at_their_own_steps(tmp_path):
     scn = load_scenario(ROOT / "scenarios" / "paper_three_robots.toml")
     ids = [r.id for r in scn.robots]
     rng = np.random.default_rng(7)
-    rec = Recorder(tmp_path / "r.rrd", scn, footprint=0.1, rho=0.01, radius=0.037)
+    rec = Recorder(tmp_path / "r.rrd", scn)
     sent: dict[tuple[str, str], dict[int, np.ndarray]] = {}
     for k in range(4):
         truth = {r: Pose(robot=r, seq=k, t=0.1 * k, x=float(x), y=float(y), theta=0.0)

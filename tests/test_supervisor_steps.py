@@ -97,7 +97,7 @@ def test_a_plan_whose_command_was_not_applied_is_not_what_is_checked() -> None:
     from pathlib import Path
 
     from ground.scenario import load_scenario
-    from supervisor.monitor import Monitor
+    from supervisor.judge import Judge
 
     scn = load_scenario(Path(__file__).resolve().parent.parent / "scenarios" / "paper_two_robots.toml")
 
@@ -106,7 +106,7 @@ def test_a_plan_whose_command_was_not_applied_is_not_what_is_checked() -> None:
         return Plan(**{**pl.__dict__, "committed": np.tile(end, (20, 1)), "footprint": 0.1})
 
     for unexecuted, violations in ((set(), 1), ({"r2"}, 0)):
-        mon = Monitor(scn, 0.1, 0.03, 0.035)
+        mon = Judge(scn)
         mon.plans({"r1": plan("r1", 0, (0.0, 0.0)), "r2": plan("r2", 0, (0.5, 0.0))})
         mon.plans({"r1": plan("r1", 1, (0.0, 0.0)), "r2": plan("r2", 1, (0.05, 0.0))}, unexecuted)
         assert mon.ref_violations == violations
@@ -115,13 +115,13 @@ def test_a_plan_whose_command_was_not_applied_is_not_what_is_checked() -> None:
 
 def test_a_committed_reference_is_only_ever_extended() -> None:
     """``continues``: the next executed plan keeps every reference point its predecessor
-    committed, with "stay put" over steps that were not executed; ``Monitor`` counts a break
+    committed, with "stay put" over steps that were not executed; the judge counts a break
     (a restart, or an agent and a robot side that disagree on what was executed), but only
     where the ticks account for every step in between (a plan lost on its way is no break)."""
     from pathlib import Path
 
     from ground.scenario import load_scenario
-    from supervisor.monitor import Monitor, continues
+    from supervisor.judge import Judge, continues
 
     def plan(step: int, committed: np.ndarray) -> Plan:
         return Plan(**{**_plan("r1", step).__dict__, "committed": committed})
@@ -138,7 +138,7 @@ def test_a_committed_reference_is_only_ever_extended() -> None:
     assert not continues(p0, plan(1, np.tile(path[0], (20, 1))))  # started again where it is
 
     scn = load_scenario(Path(__file__).resolve().parent.parent / "scenarios" / "paper_two_robots.toml")
-    mon = Monitor(scn, 0.1, 0.03, 0.035)
+    mon = Judge(scn)
     other = {"r2": plan(0, np.tile([0.9, 0.9], (20, 1)))}
     mon.plans({"r1": p0, **other})
     mon.plans({"r1": plan(1, path[2:22]), **other}, {"r1"})  # made, not executed

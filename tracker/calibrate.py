@@ -7,7 +7,7 @@ position ``world_m`` and its reprojection error ``error_m``, the RMS and
 largest reprojection errors [m], the image size [px], the frames averaged,
 the source and a UTC timestamp.  With a video or a device, each fiducial's
 image centre is averaged over up to ``--frames`` frames (at most
-:data:`tracker.camera.CALIBRATION_TRIES` are read).
+:data:`tracker.vision.CALIBRATION_TRIES` are read).
 
 The output goes to ``--out``, else to ``camera.homography`` (relative to the
 scenario file), else next to the scenario as ``<stem>.homography.json``.
@@ -26,16 +26,14 @@ from pathlib import Path
 from typing import Any
 
 from ground.scenario import ConfigError, Scenario, load_scenario
+from tracker.vision import CALIBRATION_FRAMES, CALIBRATION_TRIES, OPENCV_MISSING, calibrate_from, quiet_opencv
 
-OPENCV_MISSING = "camera source needs OpenCV: pip install 'epuck-fleet[camera]'"
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp")
 """File suffixes that :func:`calibrate` reads as a still image rather than a video."""
 
 
 def add_arguments(ap: argparse.ArgumentParser) -> None:
     """The arguments of ``fleet calibrate`` (for a subcommand parser)."""
-    from tracker.camera import CALIBRATION_FRAMES
-
     ap.add_argument("scenario", help="scenario TOML with a [camera] table")
     src = ap.add_mutually_exclusive_group(required=True)
     src.add_argument("--image", help="a still image of the fiducials")
@@ -75,12 +73,12 @@ def calibrate(
     kind: str | None = None,
 ) -> Any:
     """Fit and write the homography of ``scenario_path``'s camera; returns the
-    :class:`tracker.camera.Calibration`.
+    :class:`tracker.vision.Calibration`.
 
     ``source``: a device index (int), or the path of an image (suffix in
     :data:`IMAGE_SUFFIXES`) or a video; ``kind`` ("image" | "video" |
     "device") overrides the guess.  ``frames``: video/device frames to
-    average (default :data:`tracker.camera.CALIBRATION_FRAMES`).
+    average (default :data:`tracker.vision.CALIBRATION_FRAMES`).
     ``out_path``: see :func:`default_out`.  Raises :class:`ConfigError` for
     bad input (no OpenCV, no ``[camera]`` table, an unreadable source, too few
     fiducials seen)."""
@@ -88,8 +86,6 @@ def calibrate(
         import cv2
     except ImportError:
         raise ConfigError("camera", OPENCV_MISSING) from None
-    from tracker.camera import CALIBRATION_FRAMES, CALIBRATION_TRIES, calibrate_from
-
     scn = load_scenario(scenario_path)
     if scn.camera is None:
         raise ConfigError("camera", "missing [camera] table (fiducials and their positions)")
@@ -159,8 +155,6 @@ def run(args: argparse.Namespace) -> int:
     except ImportError:
         print(f"fleet: error: {OPENCV_MISSING}", file=sys.stderr)
         return 2
-    from tracker.camera import quiet_opencv
-
     quiet_opencv(cv2)
     if args.image is not None:
         source: str | int = args.image

@@ -1,98 +1,71 @@
-"""The ArUco camera tracker: robot poses from an overhead camera (DESIGN §7).
+"""The ArUco camera tracker process: an overhead camera's frames in, robot poses and the clock out.
 
-``python -m tracker --scenario S --source camera [--device N | --video FILE
-[--rate R]] [--steps N] [--wait-agents] [--fleet F] [--listen E] [--connect E]``
+``python -m tracker --scenario S --source camera [--device N | --video FILE [--rate R]]
+[--steps N] [--wait-agents] [--fleet F] [--listen E] [--connect E]``
 
-Model.  The fiducials' centres, at known world positions p_j (m), and their
-image centres q_j (px) give the plane homography H (3×3, image px → world m,
-:func:`fit_homography`, least squares over ≥ 4 fiducials).  A robot marker's
-four image corners c_0..c_3 (ArUco order: corner 0 at the marker's top left,
-corner 0 → 1 along its x axis) map to w_i = H(c_i) on the plane.  Then
+Each frame is turned into poses by :class:`tracker.vision.Tracker` (detection, floor homography,
+marker offset).  Every Ts = ``controller.Ts`` (step k, time k·Ts) the process publishes one
+:class:`ground.wire.Pose` per robot whose marker was found, ``seq = k`` and ``t`` = the capture
+time [s] of the frame used, then ``Tick(robot="tracker", step=k, t=k·Ts, stop=False)``: the
+simulated tracker's messages and keys, without Odom (on hardware ``epuck_link`` publishes the
+odometry).  The tick's ``fallback`` and ``braked`` come from the links'
+:class:`ground.wire.Applied` reports of step k − 1 (:mod:`tracker.reports`; ``misses`` counts
+them); the same pose goes on the truth key too, as the supervisor's best ground truth on real
+robots.  Clocks:
 
-* marker centre  m = mean(w_0..w_3)  (exact for a square under any homography,
-  unlike H applied to the image centroid, which is biased under perspective);
-* heading  θ = atan2 of d = (w_1 − w_0) + (w_2 − w_3) + R(−90°)[(w_0 − w_3) + (w_1 − w_2)],
-  the mean of the two x edges and the two y edges turned onto x, world frame,
-  counter-clockwise from +x;
-* axle centre  (x, y) = m − R(θ)·o, o = ``camera.marker_offset`` (robot frame).
+* ``--video FILE``: frame i was captured at t = i / fps [s]; step k uses the last frame with
+  t ≤ k·Ts and is published at wall time k·Ts / ``--rate`` after the start.  The end of the file
+  ends the run with ``Tick(stop=True)``.
+* ``--device N``: t = ``time.monotonic()`` when ``read()`` returned the frame, minus that of the
+  first frame [s] (so it includes the driver's latency); step k uses the newest frame at wall
+  time k·Ts, unless it is older than ``STALE_STEPS``·Ts.  The run ends after ``--steps``
+  (default: the scenario's duration) with ``Tick(stop=True)``, or with exit code 1 when the
+  device stops delivering frames.
 
-Corners come from OpenCV's detector with CORNER_REFINE_SUBPIX, then
-:func:`refine_edges` fits straight lines to the four outer edges.  The
-homography maps the plane of the fiducials; robot markers must lie in that
-plane (see :class:`ground.scenario.CameraSpec`).  Lens distortion is not
-modelled: undistort a distorting camera's images first, or the reprojection
-error of :class:`Calibration` shows it.  Markers should span ≥ 18 px in the
-image (3 px per bit for 4×4): at 14–22 px about 1 % of them were missed.
-
-Accuracy on synthetic frames (``tests/test_camera.py``: 1600×1200 px, 30°
-oblique view, 5 cm markers of 18–28 px, Gaussian blur σ 0.8 px, noise σ 2
-grey levels, fitted homography): position error ≤ 0.4 mm, heading ≤ 0.7°.
-
-Process. It publishes, every Ts = ``controller.Ts`` (step k, time k·Ts), one
-:class:`ground.wire.Pose` per robot whose marker was found, ``seq = k`` and ``t`` = the
-capture time [s] of the frame used, then ``Tick(robot="tracker", step=k, t=k·Ts,
-stop=False)``: the simulated tracker's messages and keys, without Odom (on hardware
-``epuck_link`` publishes the odometry). The tick's ``fallback`` and ``braked`` come from
-the links' :class:`ground.wire.Applied` reports of step k − 1 (``misses`` counts them);
-the same pose goes on the truth key too, as the supervisor's best ground truth on real
-robots. Clocks:
-
-* ``--video FILE``: frame i was captured at t = i / fps [s]; step k uses the
-  last frame with t ≤ k·Ts and is published at wall time k·Ts / ``--rate``
-  after the start.  The end of the file ends the run with ``Tick(stop=True)``.
-* ``--device N``: t = ``time.monotonic()`` when ``read()`` returned the frame,
-  minus that of the first frame [s] (so it includes the driver's latency);
-  step k uses the newest frame at wall time k·Ts, unless it is older than
-  ``STALE_STEPS``·Ts.  The run ends after ``--steps`` (default: the
-  scenario's duration) with ``Tick(stop=True)``, or with exit code 1 when
-  the device stops delivering frames.
-
-SIGINT/SIGTERM end either run at the next step with ``Tick(stop=True)`` and
-exit code 0.  ``--wait-agents`` holds step 0 until every robot's agent and
-the supervisor are alive (as the simulated tracker does).  Exit codes: 0
-done, 1 failed (calibration, agents not up, device lost), 2 bad input (one
-line ``tracker: error: <field>: <reason>``).  ``--clock`` and ``--timeout``,
-common to the fleet's processes, are accepted and ignored: a camera cannot
-wait, so this source always runs on the wall clock.
-
-A missing marker means no pose for that robot at that step (a *gap*,
-counted per robot); an id that is neither a robot nor a fiducial is ignored
-(counted, logged once); a frame that cannot be read or decoded is skipped
-(counted); an id seen twice in a frame or a detection whose size or
-handedness on the plane is implausible is dropped (counted).  A summary of
-the counts is logged at exit.  Without ``camera.homography`` the tracker
-calibrates from the fiducials of the first frames (at most
-``CALIBRATION_TRIES`` frames) or exits 1.
+SIGINT/SIGTERM end either run at the next step with ``Tick(stop=True)`` and exit code 0.
+``--wait-agents`` holds step 0 until every robot's agent and the supervisor are alive (as the
+simulated tracker does).  Exit codes: 0 done, 1 failed (calibration, agents not up, device
+lost), 2 bad input (one line ``tracker: error: <field>: <reason>``).  ``--clock`` and
+``--timeout``, common to the fleet's processes, are accepted and ignored: a camera cannot wait,
+so this source always runs on the wall clock.  Without ``camera.homography`` the tracker
+calibrates from the fiducials of the first frames (at most ``CALIBRATION_TRIES`` frames) or
+exits 1.  A summary of the tracker's counts is logged at exit.
 """
 
 from __future__ import annotations
 
 import argparse
-import datetime as _dt
-import json
 import math
 import signal
 import sys
 import threading
 import time
-from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from ground.scenario import CameraSpec, ConfigError, Fiducial, Scenario, load_scenario
+from ground.bus import Inbox, open_session, publisher
+from ground.geometry import wrap_angle
+from ground.process import add_common_args, announce, log
+from ground.scenario import CameraSpec, ConfigError, Scenario, load_scenario
+from ground.wire import Applied, Keys, Pose, Tick, Truth
+from tracker.reports import REPORT_WAIT, Reports
+from tracker.vision import (
+    CALIBRATION_FRAMES,
+    CALIBRATION_TRIES,
+    OPENCV_MISSING,
+    Calibration,
+    Tracker,
+    calibrate_from,
+    camera_setup,
+    cv2_module,
+    quiet_opencv,
+)
 
 ROLE = "tracker"
-OPENCV_MISSING = "camera source needs OpenCV: pip install 'epuck-fleet[camera]'"
-CALIBRATION_FRAMES = 10
-"""Frames whose fiducial centres are averaged for a calibration."""
-CALIBRATION_TRIES = 100
-"""Frames read at most while looking for the fiducials."""
-SIZE_TOLERANCE = 0.25
-"""A marker whose mean side on the plane is off ``marker_size`` by more than
-this fraction is rejected as implausible."""
 MAX_BAD_IN_A_ROW = 50
 """Failed reads in a row taken as the end of a video, or as a lost device."""
 FIRST_FRAME_TIMEOUT = 10.0
@@ -101,516 +74,272 @@ STALE_STEPS = 2.0
 """A device frame older than this many Ts is not used (the step gets no poses)."""
 PROGRESS_EVERY = 100
 """Steps between progress lines on stderr."""
-HOMOGRAPHY_FORMAT = "epuck-fleet homography"
-"""The ``format`` field of a calibration file."""
 
 
-class BadFrame(ValueError):
-    """A frame that cannot be used (missing, empty, wrong type or shape, undecodable)."""
-
-
-def _cv2() -> Any:
-    import cv2
-
-    return cv2
-
-
-# --------------------------------------------------------------------------- detection
-
-
-def make_detector(dictionary: str = "DICT_4X4_50") -> Any:
-    """An ``cv2.aruco.ArucoDetector`` for ``dictionary`` with sub-pixel corner refinement.
-
-    Bits are read from the central 40 % of each cell, sampled at 8 px per cell.
-    On 240 synthetic 5 cm markers of 14–22 px (30° oblique view, blur, noise,
-    JPEG) OpenCV's defaults (13 % margin, 4 px per cell) missed 8 and these
-    settings 2; at 18–28 px neither missed any."""
-    cv2 = _cv2()
-    params = cv2.aruco.DetectorParameters()
-    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
-    params.perspectiveRemovePixelPerCell = 8
-    params.perspectiveRemoveIgnoredMarginPerCell = 0.3
-    return cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary)), params)
-
-
-def _gray(image: object) -> np.ndarray:
-    """A uint8 grey image (H, W) from a grey (H, W), (H, W, 1), BGR or BGRA frame; BadFrame otherwise."""
-    if image is None:
-        raise BadFrame("no image")
-    if not isinstance(image, np.ndarray):
-        raise BadFrame(f"expected an image array, got {type(image).__name__}")
-    if image.dtype != np.uint8:
-        raise BadFrame(f"expected 8-bit pixels, got dtype {image.dtype}")
-    if image.ndim == 3 and image.shape[2] == 1:
-        image = image[:, :, 0]
-    if image.ndim == 2:
-        if min(image.shape) < 8:
-            raise BadFrame(f"image of {image.shape[1]}×{image.shape[0]} px is too small")
-        return image
-    if image.ndim == 3 and image.shape[2] in (3, 4):
-        if min(image.shape[:2]) < 8:
-            raise BadFrame(f"image of {image.shape[1]}×{image.shape[0]} px is too small")
-        cv2 = _cv2()
-        code = cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
-        return np.asarray(cv2.cvtColor(image, code))
-    raise BadFrame(f"expected a grey or BGR image, got shape {image.shape}")
-
-
-def refine_edges(gray: np.ndarray, corners: np.ndarray, bits: int = 6, iterations: int = 2) -> np.ndarray:
-    """Corners (4, 2) [px] re-estimated as the intersections of straight lines fitted to
-    the marker's four outer edges.
-
-    Along the middle 70 % of each edge, the grey profile across the edge
-    (half a bit in and out, at 0.25 px, bilinear) gives the point where it
-    crosses halfway between the black border and the white quiet zone; a
-    total-least-squares line through those points is the edge.  ``bits`` is the
-    marker's side in cells, black border included (6 for 4×4).  Measured on
-    60 synthetic markers (30° oblique view, blur σ 0.8 px, noise σ 2, exact
-    homography), largest errors with CORNER_REFINE_SUBPIX alone → with this:
-    1280×960 px (markers 14–22 px) corner 1.42 → 0.65 px, heading 2.5° → 0.84°,
-    position 1.1 → 0.3 mm; 1600×1200 px corner 2.1 → 0.40 px, heading 3.3° →
-    0.46°, position 1.4 → 0.22 mm.  Returns the input corners when an edge
-    lacks contrast (no quiet zone) or a corner would move by more than
-    max(1 bit, 2 px)."""
-    cv2 = _cv2()
-    start = np.asarray(corners, dtype=float).reshape(4, 2)
-    c = start.copy()
-    img = np.asarray(gray, dtype=np.float32)
-    side = float(np.mean(np.linalg.norm(c - np.roll(c, -1, axis=0), axis=1)))
-    bit = side / bits
-    reach = float(np.clip(0.5 * bit, 1.0, 4.0))
-    offs = np.arange(-reach, reach + 1e-9, 0.25)
-    for _ in range(iterations):
-        lines = []
-        for i in range(4):
-            a, b = c[i], c[(i + 1) % 4]
-            e = b - a
-            length = float(np.linalg.norm(e))
-            if length < 4.0:
-                return start
-            n = np.array([e[1], -e[0]]) / length  # outward: corners run clockwise in the image
-            s = np.linspace(0.15, 0.85, max(6, int(length)))
-            base = a + s[:, None] * e
-            pts = (base[:, None, :] + offs[None, :, None] * n).astype(np.float32)
-            prof = cv2.remap(img, pts[..., 0], pts[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-            lo, hi = prof[:, :2].mean(axis=1), prof[:, -2:].mean(axis=1)
-            mid = (lo + hi) / 2.0
-            above = prof >= mid[:, None]
-            k = np.argmax(above, axis=1)
-            ok = (hi - lo > 20.0) & (k > 0) & above.any(axis=1)
-            if ok.sum() < 3:
-                return start
-            rows = np.flatnonzero(ok)
-            k = k[rows]
-            p0, p1 = prof[rows, k - 1], prof[rows, k]
-            frac = (mid[rows] - p0) / np.maximum(p1 - p0, 1e-6)
-            d = offs[k - 1] + frac * (offs[k] - offs[k - 1])
-            g = base[rows] + d[:, None] * n
-            mu = g.mean(axis=0)
-            _, _, vt = np.linalg.svd(g - mu)
-            lines.append((mu, vt[0]))
-        new = np.empty_like(c)
-        for i in range(4):
-            (p1_, d1), (p2_, d2) = lines[(i - 1) % 4], lines[i]
-            A = np.column_stack([d1, -d2])
-            if abs(np.linalg.det(A)) < 1e-6:
-                return start
-            st = np.linalg.solve(A, p2_ - p1_)
-            new[i] = p1_ + st[0] * d1
-        c = new
-    if np.max(np.linalg.norm(c - start, axis=1)) > max(bit, 2.0):
-        return start
-    return c
-
-
-def detect_markers(image: object, detector: Any, refine: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """All markers in ``image``: ids (N,) int and corners (N, 4, 2) [px, image frame,
-    ArUco order], duplicates kept; ``refine``: :func:`refine_edges` on each.
-    Raises :class:`BadFrame` for an unusable image."""
-    cv2 = _cv2()
-    gray = _gray(image)
+def main(argv: list[str] | None = None) -> int:
+    """``python -m tracker --source camera``; returns the exit code (0 done, 1 failed, 2 bad input)."""
+    ap = argparse.ArgumentParser(
+        prog="python -m tracker --source camera", description="ArUco camera tracker (see tracker/camera.py)"
+    )
+    add_common_args(ap)
+    ap.add_argument("--source", choices=["camera"], default="camera", help="pose source")
+    src = ap.add_mutually_exclusive_group()
+    src.add_argument("--device", type=int, default=None, help="video device N (default: camera.device or 0)")
+    src.add_argument("--video", default=None, help="play a video file instead of a camera")
+    ap.add_argument(
+        "--rate", type=float, default=1.0, help="--video: play R× faster than real time (default 1)"
+    )
+    ap.add_argument(
+        "--steps", type=int, default=None, help="stop after N steps (default: end of video / duration)"
+    )
+    ap.add_argument(
+        "--wait-agents", action="store_true", help="wait for every agent and the supervisor first"
+    )
+    ap.add_argument("--start-timeout", type=float, default=60.0, help="--wait-agents: wait limit [s]")
+    ap.add_argument("--calibration-frames", type=int, default=CALIBRATION_FRAMES,
+                    help="without camera.homography: frames averaged for the calibration")  # fmt: skip
+    args = ap.parse_args(argv)
     try:
-        corners, ids, _ = detector.detectMarkers(gray)
-    except cv2.error as e:  # OpenCV rejects the frame: report it, do not guess
-        raise BadFrame(f"detector failed: {str(e).strip().splitlines()[-1]}") from None
-    if ids is None or len(corners) == 0:
-        return np.zeros(0, dtype=int), np.zeros((0, 4, 2))
-    flat = np.asarray(ids).reshape(-1).astype(int)  # (N,) in OpenCV 5, (N, 1) in 4.x
-    pts = np.asarray([np.asarray(c, dtype=float).reshape(4, 2) for c in corners])
-    if refine:
-        bits = int(detector.getDictionary().markerSize) + 2
-        pts = np.asarray([refine_edges(gray, p, bits) for p in pts])
-    return flat, pts
-
-
-def detect(
-    image: object, detector: Any = None, dictionary: str = "DICT_4X4_50", refine: bool = True
-) -> dict[int, np.ndarray]:
-    """Markers in ``image`` (grey or BGR uint8): id → corners (4, 2) [px, image frame,
-    ArUco order].  An id seen more than once is left out (ambiguous).  Raises
-    :class:`BadFrame` for an unusable image."""
-    det = detector if detector is not None else make_detector(dictionary)
-    ids, pts = detect_markers(image, det, refine)
-    uniq, counts = np.unique(ids, return_counts=True)
-    once = {int(u) for u, c in zip(uniq, counts, strict=True) if c == 1}
-    return {int(i): p for i, p in zip(ids, pts, strict=True) if int(i) in once}
-
-
-def image_centre(corners: np.ndarray) -> np.ndarray:
-    """Image (2,) [px] of a marker's centre: the intersection of the diagonals of its
-    corners (4, 2) [px], exact under perspective (the centroid is not)."""
-    c = np.asarray(corners, dtype=float).reshape(4, 2)
-    d1, d2 = c[2] - c[0], c[3] - c[1]
-    den = d1[0] * d2[1] - d1[1] * d2[0]
-    if abs(den) < 1e-12:
-        return np.asarray(c.mean(axis=0))
-    r = c[1] - c[0]
-    s = (r[0] * d2[1] - r[1] * d2[0]) / den
-    return np.asarray(c[0] + s * d1)
-
-
-# --------------------------------------------------------------------------- homography
-
-
-def to_plane(H: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Apply the homography H (3, 3) to points (N, 2) [px]: their plane points (N, 2)
-    [m, world frame].  Raises ValueError for a point on the horizon line."""
-    p = np.asarray(points, dtype=float).reshape(-1, 2)
-    q = np.column_stack([p, np.ones(len(p))]) @ np.asarray(H, dtype=float).T
-    if np.any(np.abs(q[:, 2]) < 1e-12):
-        raise ValueError("point on the homography's horizon line")
-    return np.asarray(q[:, :2] / q[:, 2:3])
-
-
-@dataclass(frozen=True)
-class Calibration:
-    """A fitted floor-plane homography with the points it was fitted to."""
-
-    H: np.ndarray = field(compare=False)
-    """Homography (3, 3), image px (u right, v down, pixel centres at integers) →
-    world plane m, normalised so ``H[2, 2] = 1``."""
-    image_points: dict[int, tuple[float, float]]
-    """Fiducial id → image centre (u, v) [px] used in the fit."""
-    world_points: dict[int, tuple[float, float]]
-    """Fiducial id → world position (x, y) [m] used in the fit."""
-    rms_error: float
-    """Root mean square of |H(q_j) − p_j| over the fiducials [m]."""
-    max_error: float
-    """Largest |H(q_j) − p_j| [m]."""
-    image_size: tuple[int, int]
-    """Image (width, height) [px] the homography belongs to."""
-    frames: int = 1
-    """Frames whose fiducial centres were averaged."""
-
-    def errors(self) -> dict[int, float]:
-        """Fiducial id → reprojection error |H(q_j) − p_j| [m]."""
-        ids = sorted(self.image_points)
-        q = np.array([self.image_points[i] for i in ids], dtype=float).reshape(-1, 2)
-        p = np.array([self.world_points[i] for i in ids], dtype=float).reshape(-1, 2)
-        e = np.linalg.norm(to_plane(self.H, q) - p, axis=1)
-        return {i: float(x) for i, x in zip(ids, e, strict=True)}
-
-    def to_json(self, **meta: Any) -> dict[str, Any]:
-        """The calibration file's content (``meta``: extra top-level fields)."""
-        errs = self.errors()
-        return {
-            "format": HOMOGRAPHY_FORMAT,
-            "version": 1,
-            "homography": [[float(v) for v in row] for row in self.H],
-            "homography_maps": "image px (u right, v down, pixel centres at integers) -> world m",
-            "image_size": list(self.image_size),
-            "fiducials": {
-                str(i): {
-                    "image_px": list(self.image_points[i]),
-                    "world_m": list(self.world_points[i]),
-                    "error_m": errs[i],
-                }
-                for i in sorted(self.image_points)
-            },
-            "rms_error_m": self.rms_error,
-            "max_error_m": self.max_error,
-            "frames": self.frames,
-            "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
-            **meta,
-        }
-
-    def save(self, path: str | Path, **meta: Any) -> None:
-        """Write :meth:`to_json` to ``path`` (JSON)."""
-        Path(path).write_text(json.dumps(self.to_json(**meta), indent=2) + "\n")
-
-    @staticmethod
-    def load(path: str | Path, field_name: str = "camera.homography") -> Calibration:
-        """Read a calibration file; raises :class:`ConfigError` naming ``field_name``."""
-        p = Path(path)
+        import cv2
+    except ImportError:
+        print(f"tracker: error: {OPENCV_MISSING}", file=sys.stderr)
+        return 2
+    quiet_opencv(cv2)
+    try:
+        scn, camera, markers, calibration, source = _checked(args)
+    except ConfigError as e:
+        print(f"tracker: error: {e}", file=sys.stderr)
+        return 2
+    try:
+        if calibration is None:
+            try:
+                calibration = _calibrate_source(source, camera, args.calibration_frames)
+            except ConfigError as e:
+                print(f"tracker: error: {e}", file=sys.stderr)
+                return 1
+            log(
+                ROLE,
+                f"calibrated from {len(calibration.image_points)} fiducials over {calibration.frames} "
+                f"frames: RMS {calibration.rms_error * 1000:.2f} mm, "
+                f"max {calibration.max_error * 1000:.2f} mm",
+            )
+        _check_noise(scn, camera, calibration)
+        tracker = Tracker(camera, markers, calibration, report=_log)
+        session = open_session(args)
+        run = CameraRun(args, scn, source, tracker, session)
         try:
-            d = json.loads(p.read_text())
-        except FileNotFoundError:
-            raise ConfigError(field_name, f"{p}: no such file (write it with fleet calibrate)") from None
-        except (OSError, UnicodeDecodeError) as e:
-            raise ConfigError(field_name, f"{p}: cannot read ({e})") from None
-        except json.JSONDecodeError as e:
-            raise ConfigError(field_name, f"{p}: invalid JSON ({e})") from None
-        try:
-            if not isinstance(d, dict) or d.get("format") != HOMOGRAPHY_FORMAT or d.get("version") != 1:
-                raise ValueError(f"not a version 1 {HOMOGRAPHY_FORMAT!r} file")
-            H = np.array(d["homography"], dtype=float)
-            if H.shape != (3, 3) or not np.all(np.isfinite(H)) or abs(np.linalg.det(H)) < 1e-300:
-                raise ValueError("homography must be a finite, invertible 3×3 matrix")
-            w, h = (int(v) for v in d["image_size"])
-            if w <= 0 or h <= 0:
-                raise ValueError("image_size must be positive")
-            fids = d["fiducials"]
-            img = {int(k): (float(v["image_px"][0]), float(v["image_px"][1])) for k, v in fids.items()}
-            wld = {int(k): (float(v["world_m"][0]), float(v["world_m"][1])) for k, v in fids.items()}
-            rms, mx = float(d["rms_error_m"]), float(d["max_error_m"])
-            frames = int(d.get("frames", 1))
-        except (KeyError, TypeError, ValueError, IndexError, AttributeError) as e:
-            reason = str(e) if isinstance(e, ValueError) else f"missing or malformed field {e}"
-            raise ConfigError(field_name, f"{p}: {reason}") from None
-        return Calibration(
-            H=H / H[2, 2], image_points=img, world_points=wld, rms_error=rms, max_error=mx,
-            image_size=(w, h), frames=frames,
-        )  # fmt: skip
+            return run.run()
+        finally:
+            run.close()
+            session.close()
+    finally:
+        source.close()
 
 
-def fit_homography(
-    image_points: Mapping[int, Sequence[float]],
-    world_points: Mapping[int, Sequence[float]],
-    image_size: tuple[int, int],
-    frames: int = 1,
-) -> Calibration:
-    """Least-squares homography (image px → world m) through the fiducials seen.
-
-    ``image_points``: fiducial id → image centre (u, v) [px]; ``world_points``:
-    id → position (x, y) [m].  Uses the ids in both; needs ≥ 4 of them, no
-    three of some four on a line.  Raises :class:`ConfigError`
-    (``camera.fiducials``)."""
-    cv2 = _cv2()
-    ids = sorted(set(image_points) & set(world_points))
-    if len(ids) < 4:
-        seen = ", ".join(map(str, ids)) or "none"
+def _checked(
+    args: argparse.Namespace,
+) -> tuple[Scenario, CameraSpec, dict[int, str], Calibration | None, Any]:
+    """The scenario, its camera, the robots' markers, the calibration file's homography if any,
+    and the opened frame source; ConfigError names the bad option (nothing is left open)."""
+    if args.exchange == "relay":
         raise ConfigError(
-            "camera.fiducials",
-            f"{len(ids)} of {len(world_points)} fiducials seen (ids {seen}); need at least 4",
+            "--exchange", "relay needs the simulated tracker; the camera tracker relays no plans"
         )
-    q = np.array([image_points[i] for i in ids], dtype=float)
-    p = np.array([world_points[i] for i in ids], dtype=float)
-    H, _ = cv2.findHomography(q, p, 0)
-    if H is None or not np.all(np.isfinite(H)) or abs(H[2, 2]) < 1e-12:
-        raise ConfigError("camera.fiducials", f"no homography through fiducials {ids} (degenerate layout)")
-    H = H / H[2, 2]
-    try:
-        err = np.linalg.norm(to_plane(H, q) - p, axis=1)
-    except ValueError:
-        raise ConfigError("camera.fiducials", f"degenerate homography through fiducials {ids}") from None
-    return Calibration(
-        H=H, image_points={i: (float(a), float(b)) for i, (a, b) in zip(ids, q, strict=True)},
-        world_points={i: (float(a), float(b)) for i, (a, b) in zip(ids, p, strict=True)},
-        rms_error=float(np.sqrt(np.mean(err**2))), max_error=float(err.max()),
-        image_size=(int(image_size[0]), int(image_size[1])), frames=frames,
-    )  # fmt: skip
+    if not (math.isfinite(args.rate) and args.rate > 0):
+        raise ConfigError("--rate", f"must be > 0, got {args.rate}")
+    if args.steps is not None and args.steps < 1:
+        raise ConfigError("--steps", f"must be >= 1, got {args.steps}")
+    if args.calibration_frames < 1:
+        raise ConfigError("--calibration-frames", f"must be >= 1, got {args.calibration_frames}")
+    scn = load_scenario(args.scenario)
+    camera, markers = camera_setup(scn)
+    calibration = Calibration.load(camera.homography) if camera.homography is not None else None
+    source: VideoSource | DeviceSource
+    if args.video is not None:
+        source = VideoSource(args.video)
+    else:
+        source = DeviceSource.open(args.device if args.device is not None else (camera.device or 0))
+    size = frame_size(source.cap)
+    if calibration is not None and size is not None and size != calibration.image_size:
+        source.close()
+        w, h = calibration.image_size
+        raise ConfigError(
+            "camera.homography",
+            f"{camera.homography} is for {w}×{h} px images, the source gives {size[0]}×{size[1]} px "
+            "(calibrate again with fleet calibrate)",
+        )
+    return scn, camera, markers, calibration, source
 
 
-def calibrate(
-    detections: Sequence[Mapping[int, np.ndarray]], fiducials: Sequence[Fiducial], image_size: tuple[int, int]
-) -> Calibration:
-    """Fit the homography to the fiducials of several frames' detections (id → corners
-    (4, 2) [px]), averaging each fiducial's image centre over the frames that saw
-    it.  Raises :class:`ConfigError` (``camera.fiducials``)."""
-    world = {f.id: f.position for f in fiducials}
-    sums: dict[int, list[np.ndarray]] = {}
-    for det in detections:
-        for fid, corners in det.items():
-            if fid in world:
-                sums.setdefault(fid, []).append(image_centre(corners))
-    centres = {fid: tuple(np.mean(v, axis=0)) for fid, v in sums.items()}
-    return fit_homography(centres, world, image_size, frames=len(detections))
+def _calibrate_source(source: VideoSource | DeviceSource, camera: CameraSpec, want: int) -> Calibration:
+    if isinstance(source, VideoSource):
+        # The frames stay in the file: the run starts again from frame 0.
+        cal = calibrate_from((f.image for f in source.frames()), camera, want=want, tries=CALIBRATION_TRIES)
+        source.rewind()
+        return cal
+
+    def reads() -> Iterator[np.ndarray | None]:
+        for _ in range(CALIBRATION_TRIES):
+            yield source.read_now()
+
+    return calibrate_from(reads(), camera, want=want, tries=CALIBRATION_TRIES)
 
 
-# --------------------------------------------------------------------------- poses
-
-
-def marker_pose(corners: np.ndarray, H: np.ndarray) -> tuple[float, float, float, float, float]:
-    """Plane pose of one marker from its image corners (4, 2) [px]: centre x, y [m],
-    heading θ [rad] of its x axis (world frame, CCW from +x, in (−π, π]), mean
-    side [m] and signed area [m²] (> 0 for a marker seen from above through a
-    non-mirroring H)."""
-    w = to_plane(H, corners)
-    cx, cy = w.mean(axis=0)
-    ex = (w[1] - w[0]) + (w[2] - w[3])
-    ey = (w[0] - w[3]) + (w[1] - w[2])
-    d = ex + np.array([ey[1], -ey[0]])
-    theta = math.atan2(float(d[1]), float(d[0]))
-    side = float(np.mean(np.linalg.norm(w - np.roll(w, -1, axis=0), axis=1)))
-    # corners go clockwise seen from above: the shoelace sum is negative
-    area = -0.5 * float(np.sum(w[:, 0] * np.roll(w[:, 1], -1) - np.roll(w[:, 0], -1) * w[:, 1]))
-    return float(cx), float(cy), theta, side, area
-
-
-def axle_pose(
-    centre: Sequence[float], theta: float, offset: Sequence[float] = (0.0, 0.0)
-) -> tuple[float, float, float]:
-    """Axle-centre pose (x [m], y [m], θ [rad]) of a robot whose marker centre (x, y) [m]
-    sits at ``offset`` (robot frame: x forward, y left) [m]: ``centre − R(θ)·offset``."""
-    c, s = math.cos(theta), math.sin(theta)
-    ox, oy = float(offset[0]), float(offset[1])
-    return (float(centre[0]) - (c * ox - s * oy), float(centre[1]) - (s * ox + c * oy), float(theta))
-
-
-def poses(
-    corners: Mapping[int, np.ndarray],
-    H: np.ndarray,
-    markers: Mapping[int, str],
-    offset: Sequence[float] = (0.0, 0.0),
-    marker_size: float | None = None,
-) -> dict[str, tuple[float, float, float]]:
-    """Robot poses from detected corners: robot id → axle-centre (x [m], y [m], θ [rad]),
-    world frame.  ``corners``: marker id → (4, 2) [px]; ``H``: image px → world m;
-    ``markers``: marker id → robot id; ``offset``: marker centre in the robot frame
-    [m].  With ``marker_size`` [m], detections of implausible size (off by more
-    than ``SIZE_TOLERANCE``) or handedness are left out.  Other ids are ignored."""
-    out: dict[str, tuple[float, float, float]] = {}
-    for mid, c in corners.items():
-        robot = markers.get(int(mid))
-        if robot is None:
-            continue
-        try:
-            cx, cy, th, side, area = marker_pose(c, H)
-        except ValueError:
-            continue
-        if marker_size is not None and _implausible(side, area, marker_size) is not None:
-            continue
-        out[robot] = axle_pose((cx, cy), th, offset)
-    return out
-
-
-def _implausible(side: float, area: float, size: float) -> str | None:
-    if area <= 0:
-        return "mirrored on the plane (are the fiducial positions in a right-handed frame?)"
-    if abs(side / size - 1.0) > SIZE_TOLERANCE:
-        return f"side {side * 1000:.1f} mm on the plane, marker_size is {size * 1000:.1f} mm"
-    return None
-
-
-@dataclass
-class Counts:
-    """What the tracker skipped, for the summary at exit."""
-
-    frames: int = 0
-    """Frames processed, the unusable ones included (one per step)."""
-    bad_frames: int = 0
-    """Steps without a usable frame: unreadable or undecodable, of the wrong size, or
-    (device) older than STALE_STEPS·Ts."""
-    gaps: dict[str, int] = field(default_factory=dict)
-    """Robot id → processed frames without a pose for it (any reason)."""
-    unknown: dict[int, int] = field(default_factory=dict)
-    """Marker id (neither robot nor fiducial) → frames it was seen in."""
-    duplicates: dict[int, int] = field(default_factory=dict)
-    """Marker id → frames it was seen more than once in (dropped)."""
-    implausible: dict[int, int] = field(default_factory=dict)
-    """Robot marker id → detections dropped for size or handedness."""
-
-    def summary(self) -> str:
-        def fmt(d: Mapping[Any, int]) -> str:
-            return ", ".join(f"{k}: {v}" for k, v in sorted(d.items(), key=lambda kv: str(kv[0]))) or "none"
-
-        return (
-            f"{self.frames} frames, {self.bad_frames} unusable; gaps per robot {{{fmt(self.gaps)}}}; "
-            f"unknown ids {{{fmt(self.unknown)}}}; duplicate ids {{{fmt(self.duplicates)}}}; "
-            f"implausible {{{fmt(self.implausible)}}}"
+def _check_noise(scn: Scenario, camera: CameraSpec, cal: Calibration) -> None:
+    """Compare the calibration and the camera's claimed noise bounds with the design."""
+    bound_p, bound_th = scn.controller.pose_noise
+    if camera.position_noise is not None:
+        if cal.rms_error > camera.position_noise:
+            log(
+                ROLE,
+                f"calibration RMS {cal.rms_error * 1000:.2f} mm exceeds camera.position_noise "
+                f"{camera.position_noise * 1000:.2f} mm",
+            )
+        if camera.position_noise > bound_p:
+            log(
+                ROLE,
+                f"camera.position_noise {camera.position_noise * 1000:.2f} mm exceeds "
+                f"controller.pose_noise[0] {bound_p * 1000:.2f} mm the tube is designed for",
+            )
+    if camera.heading_noise is not None and camera.heading_noise > bound_th:
+        log(
+            ROLE,
+            f"camera.heading_noise {camera.heading_noise:.4f} rad exceeds controller.pose_noise[1] "
+            f"{bound_th:.4f} rad the tube is designed for",
         )
 
 
-class Tracker:
-    """Frames → robot poses, with the counting and the once-only logging.
-
-    No Zenoh: the process of :func:`main` and the tests both drive it."""
+class CameraRun:
+    """The camera tracker on the bus: one step every Ts until the end of the video, ``--steps``
+    or a signal (see the module docstring)."""
 
     def __init__(
-        self, camera: CameraSpec, markers: Mapping[int, str], calibration: Calibration, report: Any = None
-    ) -> None:
-        self.camera = camera
-        self.markers = dict(markers)
-        """Marker id → robot id."""
-        self.fiducials = {f.id for f in camera.fiducials}
-        self.calibration = calibration
-        self.detector = make_detector(camera.dictionary)
-        self.counts = Counts(gaps={r: 0 for r in self.markers.values()})
-        self._report = report
-        self._told: set[str] = set()
+        self, args: argparse.Namespace, scn: Scenario, source: VideoSource | DeviceSource, tracker: Tracker,
+        session: Any,
+    ):  # fmt: skip
+        self.args, self.scn, self.source, self.tracker = args, scn, source, tracker
+        self.Ts = scn.controller.Ts
+        self.ids = ids = [r.id for r in scn.robots]
+        keys = Keys(args.fleet)
+        self.stopping = threading.Event()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: self.stopping.set())
+        self.inbox = inbox = Inbox(keys, ROLE)
+        # What each robot's epuck_link applied over a step (its command, its candidate, or the
+        # brake), for the next tick: the agents and their neighbours then agree on which plans
+        # were executed (docs/runtime-notes.md, "Missed deadlines").
+        self.subs = [
+            inbox.watch_liveliness(session),
+            inbox.subscribe(session, keys.applied(), Applied, keep=True),
+        ]
+        self.pubs = {rid: publisher(session, keys.pose(rid)) for rid in ids}
+        # On hardware the camera is the best ground truth there is: the supervisor's safety
+        # monitor reads it on the truth key (not express: nobody waits on it).
+        self.truths = {rid: publisher(session, keys.truth(rid), express=False) for rid in ids}
+        self.clock = publisher(session, keys.clock)
+        self.video = isinstance(source, VideoSource)
+        self.limit = args.steps
+        if self.limit is None and not self.video:
+            self.limit = round(scn.duration / self.Ts)
+        self.reports = Reports(ids)
+        self.late = self.misses = 0
+        self.last: Frame | None = None
 
-    def _once(self, key: str, msg: str) -> None:
-        if key not in self._told:
-            self._told.add(key)
-            if self._report is not None:
-                self._report(msg)
+    def run(self) -> int:
+        """Announce, wait for the fleet and the first frame, then step; the exit code."""
+        args, inbox, source, Ts = self.args, self.inbox, self.source, self.Ts
+        announce(ROLE, robots=self.ids, source="camera", steps=self.limit)
+        if args.wait_agents:
+            expected = {*self.ids, "supervisor"}
+            if not inbox.wait(lambda: expected <= inbox.live, args.start_timeout):
+                log(ROLE, f"not up within {args.start_timeout} s: {', '.join(sorted(expected - inbox.live))}")
+                return 1
+        if isinstance(source, DeviceSource):
+            source.start()
+            if not source.wait_first(FIRST_FRAME_TIMEOUT):
+                log(ROLE, f"{source.name}: no frame within {FIRST_FRAME_TIMEOUT:g} s")
+                return 1
+        pace = Ts / args.rate if self.video else Ts
+        t_start = time.monotonic()
+        k, code = 0, 0
+        fallback: dict[str, int] = {}
+        braked: dict[str, int] = {}
+        while not self.stopping.is_set() and (self.limit is None or k < self.limit):
+            wait = t_start + k * pace - time.monotonic()
+            if wait > 0:
+                if self.stopping.wait(wait):
+                    break
+            elif -wait > pace:
+                self.late += 1
+            frame, lost = self._frame(k)
+            if lost:
+                code = 1
+                break
+            if frame is False:
+                break  # end of the file
+            self._publish(k, frame)
+            if k > 0:
+                fallback, braked, missed = self.reports.for_tick(inbox, k, REPORT_WAIT * Ts, _log)
+                self.misses += len(missed)
+            inbox.prune(k - Reports.LOOKBACK)
+            self.clock.put(
+                Tick(
+                    robot=ROLE,
+                    step=k,
+                    t=k * Ts,
+                    stop=False,
+                    misses=self.misses,
+                    fallback=fallback,
+                    braked=braked,
+                ).encode()
+            )
+            if k % PROGRESS_EVERY == 0 and k:
+                log(ROLE, f"step {k}")
+            k += 1
+        self.clock.put(Tick(robot=ROLE, step=k, t=k * Ts, stop=True, misses=self.misses).encode())
+        why = "step limit" if self.limit is not None and k >= self.limit else "end of video"
+        if self.stopping.is_set():
+            why = "signal"
+        log(ROLE, f"run ended at step {k} ({why}); {self.late} late steps; {self.tracker.counts.summary()}")
+        return code
 
-    def skip(self, reason: str) -> None:
-        """Count a step without a usable frame (a bad frame: every robot gets a gap)."""
-        self.counts.frames += 1
-        self.counts.bad_frames += 1
-        for r in self.counts.gaps:
-            self.counts.gaps[r] += 1
-        self._once("bad", f"unusable frame: {reason} (skipped; further ones are counted)")
+    def _frame(self, k: int) -> tuple[Frame | bool | None, bool]:
+        """(The frame of step k, None if there is none to use, False at the end of a video;
+        whether the device was lost)."""
+        source, t_k = self.source, k * self.Ts
+        if isinstance(source, VideoSource):
+            index = math.floor(t_k * source.fps + 1e-6)
+            last = self.last
+            frame = last if last is not None and index <= last.index else source.frame_at(index)
+            return (False if frame is None else frame), False
+        if not source.alive():
+            log(ROLE, f"{source.name}: stopped delivering frames ({source.failed_reads} failed reads)")
+            return None, True
+        frame, age = source.newest()
+        if frame is not None and age > STALE_STEPS * self.Ts:
+            self.tracker.skip(f"the newest frame of {source.name} is {age:.2f} s old")
+            frame = None
+        return frame, False
 
-    def process(self, frame: object, label: str = "") -> dict[str, tuple[float, float, float]]:
-        """Poses in one frame: robot id → axle-centre (x [m], y [m], θ [rad]), world frame.
+    def _publish(self, k: int, frame: Frame | None) -> None:
+        """Step k's poses (and truths) of every robot found in ``frame``."""
+        if frame is None:
+            return
+        self.last = frame
+        found = self.tracker.process(frame.image, label=f"{frame.index} (step {k})")
+        for rid, (x, y, th) in found.items():
+            th = wrap_angle(th)
+            self.pubs[rid].put(Pose(robot=rid, seq=k, t=frame.t, x=x, y=y, theta=th).encode())
+            self.truths[rid].put(Truth(robot=rid, seq=k, t=frame.t, x=x, y=y, theta=th).encode())
 
-        Never raises for a bad frame or an odd detection: it counts them (see
-        :class:`Counts`).  ``label`` names the frame in log lines."""
-        c = self.counts
-        try:
-            gray = _gray(frame)
-            size = (gray.shape[1], gray.shape[0])
-            if size != self.calibration.image_size:
-                raise BadFrame(
-                    f"frame of {size[0]}×{size[1]} px, the homography is for "
-                    f"{self.calibration.image_size[0]}×{self.calibration.image_size[1]} px"
-                )
-            ids, pts = detect_markers(gray, self.detector)
-        except BadFrame as e:
-            self.skip(f"frame {label}: {e}")
-            return {}
-        c.frames += 1
-        uniq, n = np.unique(ids, return_counts=True)
-        seen = {int(u): int(k) for u, k in zip(uniq, n, strict=True)}
-        out: dict[str, tuple[float, float, float]] = {}
-        for mid, corners in zip(ids, pts, strict=True):
-            mid = int(mid)
-            if mid in self.fiducials:
-                continue
-            robot = self.markers.get(mid)
-            if robot is None or seen[mid] > 1:
-                continue
-            try:
-                cx, cy, th, side, area = marker_pose(corners, self.calibration.H)
-            except ValueError:
-                why: str | None = "on the homography's horizon"
-            else:
-                why = _implausible(side, area, self.camera.marker_size)
-            if why is not None:
-                c.implausible[mid] = c.implausible.get(mid, 0) + 1
-                self._once(f"implausible {mid}", f"marker {mid} ({robot}) dropped in frame {label}: {why}")
-                continue
-            out[robot] = axle_pose((cx, cy), th, self.camera.marker_offset)
-        for mid, k in seen.items():
-            if mid not in self.markers and mid not in self.fiducials:
-                c.unknown[mid] = c.unknown.get(mid, 0) + 1
-                self._once(f"unknown {mid}", f"marker id {mid} in frame {label} is no robot's; ignored")
-            elif k > 1 and mid not in self.fiducials:
-                c.duplicates[mid] = c.duplicates.get(mid, 0) + 1
-                self._once(f"dup {mid}", f"marker id {mid} seen {k} times in frame {label}; dropped")
-        for mid, robot in self.markers.items():
-            if robot not in out:
-                c.gaps[robot] += 1
-                if mid not in seen:
-                    self._once(
-                        f"gap {robot}", f"{robot}: marker {mid} not seen in frame {label} (gaps counted)"
-                    )
-        return out
+    def close(self) -> None:
+        for s in self.subs:
+            s.undeclare()
 
 
-# --------------------------------------------------------------------------- frame sources
+def _log(msg: str) -> None:
+    """The tracker's log line (what :class:`tracker.reports.Reports` reports)."""
+    log(ROLE, msg)
 
 
 @dataclass
@@ -628,7 +357,7 @@ class VideoSource:
     """Frames of a video file; frame i was captured at t = i / fps [s]."""
 
     def __init__(self, path: str) -> None:
-        cv2 = _cv2()
+        cv2 = cv2_module()
         if not Path(path).is_file():
             raise ConfigError("--video", f"{path}: no such file")
         self.path = path
@@ -678,7 +407,7 @@ class VideoSource:
 
     def rewind(self) -> None:
         """Start again from frame 0 (the file is reopened: seeking is not reliable for every codec)."""
-        cv2 = _cv2()
+        cv2 = cv2_module()
         self.cap.release()
         self.cap = cv2.VideoCapture(self.path)
         if not self.cap.isOpened():
@@ -719,7 +448,7 @@ class DeviceSource:
     @staticmethod
     def open(device: int) -> DeviceSource:
         """Open ``/dev/video<device>``; ConfigError (``--device``) if it cannot be opened."""
-        cv2 = _cv2()
+        cv2 = cv2_module()
         cap = cv2.VideoCapture(device)
         if not cap.isOpened():
             raise ConfigError("--device", f"cannot open video device {device}")
@@ -786,302 +515,8 @@ class DeviceSource:
 # --------------------------------------------------------------------------- the process
 
 
-def camera_setup(scn: Scenario) -> tuple[CameraSpec, dict[int, str]]:
-    """The scenario's camera table and marker id → robot id; ConfigError if the
-    camera source cannot run on it."""
-    if scn.camera is None:
-        raise ConfigError("camera", "missing [camera] table: the camera source needs the fiducials")
-    markers: dict[int, str] = {}
-    for i, r in enumerate(scn.robots):
-        if r.marker is None:
-            raise ConfigError(f"robots[{i}].marker", "missing: the camera source needs each robot's ArUco id")
-        markers[r.marker] = r.id
-    return scn.camera, markers
-
-
-def calibrate_from(
-    frames: Iterator[np.ndarray | None], camera: CameraSpec, *, want: int, tries: int
-) -> Calibration:
-    """Calibrate from the fiducials of up to ``want`` frames that show them all,
-    reading at most ``tries`` frames; with fewer, from what was seen (≥ 4 in
-    general position).  Raises :class:`ConfigError` (``camera.fiducials``)."""
-    detector = make_detector(camera.dictionary)
-    fids = {f.id for f in camera.fiducials}
-    dets: list[dict[int, np.ndarray]] = []
-    size: tuple[int, int] | None = None
-    read = 0
-    complete = 0
-    for image in frames:
-        read += 1
-        try:
-            det = detect(image, detector)
-        except BadFrame:
-            det = None
-        if det is not None and image is not None:
-            frame_size = (int(image.shape[1]), int(image.shape[0]))
-            if size is None or frame_size == size:
-                size = frame_size
-                seen = {k: v for k, v in det.items() if k in fids}
-                if seen:
-                    dets.append(seen)
-                    complete += seen.keys() == fids
-        if complete >= want or read >= tries:
-            break
-    if size is None:
-        raise ConfigError("camera.fiducials", f"no readable frame in the first {read} frames")
-    try:
-        return calibrate(dets, camera.fiducials, size)
-    except ConfigError as e:
-        raise ConfigError(e.field, f"{e.reason}, in {read} frames") from None
-
-
-def quiet_opencv(cv2: Any) -> None:
-    """Keep OpenCV's own warnings (e.g. a V4L2 device that cannot be opened) off stderr,
-    where a process's errors are one line each; this process's counts and log
-    lines report what went wrong instead."""
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
-
-
 def frame_size(cap: Any) -> tuple[int, int] | None:
     """(width, height) [px] an opened ``cv2.VideoCapture`` reports, None if it does not say."""
-    cv2 = _cv2()
+    cv2 = cv2_module()
     w, h = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
     return (w, h) if w > 0 and h > 0 else None
-
-
-def _wrap(theta: float) -> float:
-    """Angle in (−π, π] [rad]."""
-    return math.atan2(math.sin(theta), math.cos(theta))
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m tracker --source camera``; returns the exit code (0 done, 1 failed, 2 bad input)."""
-    ap = argparse.ArgumentParser(
-        prog="python -m tracker --source camera", description="ArUco camera tracker (see tracker/camera.py)"
-    )
-    from ground.process import add_common_args
-
-    add_common_args(ap)
-    ap.add_argument("--source", choices=["camera"], default="camera", help="pose source")
-    src = ap.add_mutually_exclusive_group()
-    src.add_argument("--device", type=int, default=None, help="video device N (default: camera.device or 0)")
-    src.add_argument("--video", default=None, help="play a video file instead of a camera")
-    ap.add_argument(
-        "--rate", type=float, default=1.0, help="--video: play R× faster than real time (default 1)"
-    )
-    ap.add_argument(
-        "--steps", type=int, default=None, help="stop after N steps (default: end of video / duration)"
-    )
-    ap.add_argument(
-        "--wait-agents", action="store_true", help="wait for every agent and the supervisor first"
-    )
-    ap.add_argument("--start-timeout", type=float, default=60.0, help="--wait-agents: wait limit [s]")
-    ap.add_argument("--calibration-frames", type=int, default=CALIBRATION_FRAMES,
-                    help="without camera.homography: frames averaged for the calibration")  # fmt: skip
-    args = ap.parse_args(argv)
-    try:
-        import cv2
-    except ImportError:
-        print(f"tracker: error: {OPENCV_MISSING}", file=sys.stderr)
-        return 2
-    quiet_opencv(cv2)
-    from ground.process import announce, log
-
-    def report(msg: str) -> None:
-        log(ROLE, msg)
-
-    source: VideoSource | DeviceSource | None = None
-    try:
-        if args.exchange == "relay":
-            raise ConfigError(
-                "--exchange", "relay needs the simulated tracker; the camera tracker relays no plans"
-            )
-        if not (math.isfinite(args.rate) and args.rate > 0):
-            raise ConfigError("--rate", f"must be > 0, got {args.rate}")
-        if args.steps is not None and args.steps < 1:
-            raise ConfigError("--steps", f"must be >= 1, got {args.steps}")
-        if args.calibration_frames < 1:
-            raise ConfigError("--calibration-frames", f"must be >= 1, got {args.calibration_frames}")
-        scn = load_scenario(args.scenario)
-        camera, markers = camera_setup(scn)
-        calibration = Calibration.load(camera.homography) if camera.homography is not None else None
-        if args.video is not None:
-            source = VideoSource(args.video)
-        else:
-            source = DeviceSource.open(args.device if args.device is not None else (camera.device or 0))
-        size = frame_size(source.cap)
-        if calibration is not None and size is not None and size != calibration.image_size:
-            w, h = calibration.image_size
-            raise ConfigError(
-                "camera.homography",
-                f"{camera.homography} is for {w}×{h} px images, the source gives {size[0]}×{size[1]} px "
-                "(calibrate again with fleet calibrate)",
-            )
-    except ConfigError as e:
-        print(f"tracker: error: {e}", file=sys.stderr)
-        if source is not None:
-            source.close()
-        return 2
-    Ts = scn.controller.Ts
-    try:
-        if calibration is None:
-            try:
-                calibration = _calibrate_source(source, camera, args.calibration_frames)
-            except ConfigError as e:
-                print(f"tracker: error: {e}", file=sys.stderr)
-                return 1
-            report(
-                f"calibrated from {len(calibration.image_points)} fiducials over "
-                f"{calibration.frames} frames: RMS {calibration.rms_error * 1000:.2f} mm, "
-                f"max {calibration.max_error * 1000:.2f} mm"
-            )
-        _check_noise(scn, camera, calibration, report)
-        tracker = Tracker(camera, markers, calibration, report=report)
-        return _run(args, scn, source, tracker, Ts, report, announce)
-    finally:
-        source.close()
-
-
-def _calibrate_source(source: VideoSource | DeviceSource, camera: CameraSpec, want: int) -> Calibration:
-    if isinstance(source, VideoSource):
-        # The frames stay in the file: the run starts again from frame 0.
-        cal = calibrate_from((f.image for f in source.frames()), camera, want=want, tries=CALIBRATION_TRIES)
-        source.rewind()
-        return cal
-
-    def reads() -> Iterator[np.ndarray | None]:
-        for _ in range(CALIBRATION_TRIES):
-            yield source.read_now()
-
-    return calibrate_from(reads(), camera, want=want, tries=CALIBRATION_TRIES)
-
-
-def _check_noise(scn: Scenario, camera: CameraSpec, cal: Calibration, report: Any) -> None:
-    """Compare the calibration and the camera's claimed noise bounds with the design."""
-    bound_p, bound_th = scn.controller.pose_noise
-    if camera.position_noise is not None:
-        if cal.rms_error > camera.position_noise:
-            report(
-                f"calibration RMS {cal.rms_error * 1000:.2f} mm exceeds camera.position_noise "
-                f"{camera.position_noise * 1000:.2f} mm"
-            )
-        if camera.position_noise > bound_p:
-            report(
-                f"camera.position_noise {camera.position_noise * 1000:.2f} mm exceeds "
-                f"controller.pose_noise[0] {bound_p * 1000:.2f} mm the tube is designed for"
-            )
-    if camera.heading_noise is not None and camera.heading_noise > bound_th:
-        report(
-            f"camera.heading_noise {camera.heading_noise:.4f} rad exceeds controller.pose_noise[1] "
-            f"{bound_th:.4f} rad the tube is designed for"
-        )
-
-
-def _run(
-    args: argparse.Namespace,
-    scn: Scenario,
-    source: VideoSource | DeviceSource,
-    tracker: Tracker,
-    Ts: float,
-    report: Any,
-    announce: Any,
-) -> int:
-    """Open Zenoh, announce, step until the end of the video, ``--steps`` or a signal."""
-    from ground.bus import Inbox, open_session, publisher
-    from ground.wire import Applied, Keys, Pose, Tick, Truth
-    from tracker.reports import REPORT_WAIT, Reports
-
-    ids = [r.id for r in scn.robots]
-    keys = Keys(args.fleet)
-    stopping = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stopping.set())
-    session = open_session(args)
-    inbox = Inbox(keys, ROLE)
-    # What each robot's epuck_link applied over a step (its command, its candidate, or the
-    # brake), for the next tick: the agents and their neighbours then agree on which plans
-    # were executed (docs/runtime-notes.md, "Missed deadlines").
-    subs = [inbox.watch_liveliness(session), inbox.subscribe(session, keys.applied(), Applied, keep=True)]
-    pubs = {rid: publisher(session, keys.pose(rid)) for rid in ids}
-    # On hardware the camera is the best ground truth there is: the supervisor's
-    # safety monitor reads it on the truth key (not express: nobody waits on it).
-    truths = {rid: publisher(session, keys.truth(rid), express=False) for rid in ids}
-    clock = publisher(session, keys.clock)
-    video = isinstance(source, VideoSource)
-    limit = args.steps
-    if limit is None and not video:
-        limit = round(scn.duration / Ts)
-    announce(ROLE, robots=ids, source="camera", steps=limit)
-    k = 0
-    late = 0
-    misses = 0
-    reports = Reports(ids)
-    fallback: dict[str, int] = {}
-    braked: dict[str, int] = {}
-    code = 0
-    try:
-        if args.wait_agents:
-            expected = {*ids, "supervisor"}
-            if not inbox.wait(lambda: expected <= inbox.live, args.start_timeout):
-                report(f"not up within {args.start_timeout} s: {', '.join(sorted(expected - inbox.live))}")
-                return 1
-        if isinstance(source, DeviceSource):
-            source.start()
-            if not source.wait_first(FIRST_FRAME_TIMEOUT):
-                report(f"{source.name}: no frame within {FIRST_FRAME_TIMEOUT:g} s")
-                return 1
-        pace = Ts / args.rate if video else Ts
-        t_start = time.monotonic()
-        last: Frame | None = None
-        while not stopping.is_set() and (limit is None or k < limit):
-            t_k = k * Ts
-            wait = t_start + k * pace - time.monotonic()
-            if wait > 0:
-                if stopping.wait(wait):
-                    break
-            elif -wait > pace:
-                late += 1
-            frame: Frame | None
-            if isinstance(source, VideoSource):
-                index = math.floor(t_k * source.fps + 1e-6)
-                frame = last if last is not None and index <= last.index else source.frame_at(index)
-                if frame is None:
-                    break  # end of the file
-            else:
-                if not source.alive():
-                    report(f"{source.name}: stopped delivering frames ({source.failed_reads} failed reads)")
-                    code = 1
-                    break
-                frame, age = source.newest()
-                if frame is not None and age > STALE_STEPS * Ts:
-                    tracker.skip(f"the newest frame of {source.name} is {age:.2f} s old")
-                    frame = None
-            found: dict[str, tuple[float, float, float]] = {}
-            if frame is not None:
-                last = frame
-                found = tracker.process(frame.image, label=f"{frame.index} (step {k})")
-                for rid, (x, y, th) in found.items():
-                    pubs[rid].put(Pose(robot=rid, seq=k, t=frame.t, x=x, y=y, theta=_wrap(th)).encode())
-                    truths[rid].put(Truth(robot=rid, seq=k, t=frame.t, x=x, y=y, theta=_wrap(th)).encode())
-            if k > 0:
-                fallback, braked, missed = reports.for_tick(inbox, k, REPORT_WAIT * Ts, report)
-                misses += len(missed)
-            inbox.prune(k - Reports.LOOKBACK)
-            clock.put(
-                Tick(
-                    robot=ROLE, step=k, t=t_k, stop=False, misses=misses, fallback=fallback, braked=braked
-                ).encode()
-            )
-            if k % PROGRESS_EVERY == 0 and k:
-                report(f"step {k}")
-            k += 1
-        clock.put(Tick(robot=ROLE, step=k, t=k * Ts, stop=True, misses=misses).encode())
-        why = "step limit" if limit is not None and k >= limit else "end of video"
-        if stopping.is_set():
-            why = "signal"
-        report(f"run ended at step {k} ({why}); {late} late steps; {tracker.counts.summary()}")
-    finally:
-        for s in subs:
-            s.undeclare()
-        session.close()
-    return code

@@ -30,7 +30,8 @@ from typing import Any
 
 import numpy as np
 
-OPENCV_MISSING = "camera source needs OpenCV: pip install 'epuck-fleet[camera]'"
+from tracker.vision import OPENCV_MISSING, cv2_module
+
 SUPERSAMPLE = 2
 """Rendering resolution factor before the area-averaging downscale."""
 BODY_RADIUS = 0.037
@@ -38,12 +39,6 @@ BODY_RADIUS = 0.037
 
 PoseFn = Callable[[float], tuple[float, float, float]]
 """A trajectory: time t [s] → axle-centre pose (x [m], y [m], θ [rad]), world frame."""
-
-
-def _cv2() -> Any:
-    import cv2
-
-    return cv2
 
 
 @dataclass(frozen=True)
@@ -154,7 +149,7 @@ def marker_image(marker_id: int, dictionary: str = "DICT_4X4_50", bit_px: int = 
 
     ``bits`` is the dictionary's marker size (4 for 4×4) plus its black
     border; the black square spans pixels [bit_px, S − bit_px)."""
-    cv2 = _cv2()
+    cv2 = cv2_module()
     d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
     inner = (d.markerSize + 2) * bit_px
     m = cv2.aruco.generateImageMarker(d, int(marker_id), inner, borderBits=1)
@@ -216,14 +211,14 @@ class Renderer:
         self._work = self._static.copy()
         """Supersampled scratch image: robots are pasted into it, their regions are
         downsampled into the frame, then restored from ``_static``."""
-        self._small = _cv2().resize(
-            self._static, (camera.width, camera.height), interpolation=_cv2().INTER_AREA
+        self._small = cv2_module().resize(
+            self._static, (camera.width, camera.height), interpolation=cv2_module().INTER_AREA
         )
         """The static scene at the camera's resolution, float32."""
 
     def _render_floor(self, seed: int) -> np.ndarray:
         """Grey floor with low-frequency shading and tile seams every 0.5 m, float32 (H·ss, W·ss)."""
-        cv2 = _cv2()
+        cv2 = cv2_module()
         rng = np.random.default_rng(seed)
         w, h = self.size
         coarse = rng.normal(0.0, 1.0, (h // 96 + 2, w // 96 + 2)).astype(np.float32)
@@ -255,7 +250,7 @@ class Renderer:
     ) -> None:
         """Warp marker ``marker_id`` (side ``size`` [m], x axis at ``angle`` [rad], centre
         (x, y) [m]) into ``img`` (float32, supersampled) with an anti-aliased alpha."""
-        cv2 = _cv2()
+        cv2 = cv2_module()
         src = self._marker_src(marker_id)
         n = src.shape[0]
         bits = n / 24 - 2  # marker bits including the black border
@@ -289,7 +284,7 @@ class Renderer:
 
     def _paste_body(self, img: np.ndarray, pose: Sequence[float]) -> None:
         """The robot's dark body disc (radius BODY_RADIUS [m]) under its marker."""
-        cv2 = _cv2()
+        cv2 = cv2_module()
         a = np.linspace(0.0, 2.0 * math.pi, 96, endpoint=False)
         ring = np.column_stack([pose[0] + BODY_RADIUS * np.cos(a), pose[1] + BODY_RADIUS * np.sin(a)])
         poly = np.round(_apply(self.H, ring) * 16).astype(np.int32).reshape(-1, 1, 2)
@@ -320,7 +315,7 @@ class Renderer:
         """One frame (height, width) uint8 with the robots at ``robots``: marker id →
         axle-centre pose (x [m], y [m], θ [rad], world frame).  ``blur`` is the
         Gaussian σ [px] (0: none), ``noise`` the additive noise σ [grey levels]."""
-        cv2 = _cv2()
+        cv2 = cv2_module()
         ss = SUPERSAMPLE
         out = self._small.copy()
         rois = []
@@ -360,7 +355,7 @@ def write_video(
     t < ``duration`` [s].  Returns the number of frames, after checking that
     the file reads back with that many frames of the camera's size.
     Raises OSError if the file cannot be written or read back."""
-    cv2 = _cv2()
+    cv2 = cv2_module()
     n = max(1, math.ceil(duration * fps - 1e-9))
     size = (renderer.camera.width, renderer.camera.height)
     out = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), float(fps), size, True)
@@ -455,7 +450,7 @@ def main(argv: list[str] | None = None) -> int:
     traj = straight_lines(scn)
     if args.image:
         frame = renderer.render({m: fn(0.0) for m, fn in traj.items()}, seed=args.seed)
-        if not _cv2().imwrite(args.image, frame):
+        if not cv2_module().imwrite(args.image, frame):
             print(f"tracker: error: --image: {args.image}: cannot write", file=sys.stderr)
             return 2
         print(f"wrote {args.image}")

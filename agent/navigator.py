@@ -1,0 +1,336 @@
+"""The navigator: where the goal term of a robot's QP points this step (shaping only).
+
+The split rule (:mod:`agent.coordination`) keeps robots apart but lets a symmetric crowd stall,
+since "stay put" is always feasible.  The navigator picks the target of the goal term
+``‖ȳ − target‖²_T`` so that robots get home; it changes the cost, never a constraint, so
+whatever it does cannot break a guarantee (docs/method.md §7).
+
+* :class:`GridPlanner` — shortest paths on a grid over the arena, around walls, obstacles and
+  parked robots; the robot follows a carrot along its path.
+* :class:`Navigator` — *precedence yielding*: robots are totally ordered by (phase, priority,
+  rank); a robot inside the corridor that a nearby robot of higher precedence still has to
+  sweep steps out of it to the best free point around it, and a progress watchdog sends a
+  stalled robot to a clearance-seeking escape point for a while.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import dijkstra
+
+from agent.coordination import PARKED, NeighbourInfo, order_key
+from agent.sets import Array
+
+
+def point_segment_distance(p: Array, a: Array, b: Array) -> float:
+    """Euclidean distance from point p to segment ab [m]."""
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    L2 = dx * dx + dy * dy
+    t = 0.0 if L2 < 1e-12 else min(1.0, max(0.0, ((p[0] - a[0]) * dx + (p[1] - a[1]) * dy) / L2))
+    return math.hypot(p[0] - a[0] - t * dx, p[1] - a[1] - t * dy)
+
+
+class GridPlanner:
+    """Shortest paths on an 8-connected grid over the arena (cell size ``h`` [m]).
+
+    Cell costs: 1 in free space, ``BLOCKED`` inside walls ⊕ r, static
+    obstacles ⊕ r and parked robots ⊕ (r_i + r_j), and ``1 + soft`` near
+    moving robots.  Large finite costs instead of infinities keep a path
+    defined even when the robot itself sits in a costly cell."""
+
+    BLOCKED = 1e4
+
+    def __init__(
+        self,
+        arena: tuple[float, float, float, float],
+        footprint: float,
+        obstacles: Sequence[Any],
+        h: float = 0.05,
+    ):
+        xmin, xmax, ymin, ymax = arena
+        self.h = h
+        self.nx = max(2, math.ceil((xmax - xmin) / h))
+        self.ny = max(2, math.ceil((ymax - ymin) / h))
+        self.x0, self.y0 = xmin, ymin
+        xs = xmin + (np.arange(self.nx) + 0.5) * (xmax - xmin) / self.nx
+        ys = ymin + (np.arange(self.ny) + 0.5) * (ymax - ymin) / self.ny
+        self.hx = (xmax - xmin) / self.nx
+        self.hy = (ymax - ymin) / self.ny
+        self.xs, self.ys = xs, ys
+        X, Y = np.meshgrid(xs, ys, indexing="ij")
+        self.centres = np.column_stack([X.ravel(), Y.ravel()])
+        r = footprint
+        static = np.ones(self.nx * self.ny)
+        out = (
+            (X.ravel() < xmin + r) | (X.ravel() > xmax - r) | (Y.ravel() < ymin + r) | (Y.ravel() > ymax - r)
+        )
+        static[out] = self.BLOCKED
+        for ob in obstacles:
+            d = np.array([ob.distance(c) for c in self.centres])
+            static[d < r + 0.01] = self.BLOCKED
+        self.static = static
+        # Fixed 8-connected edge list (both directions).
+        idx = np.arange(self.nx * self.ny).reshape(self.nx, self.ny)
+        src, dst, length = [], [], []
+        for dx, dy in ((1, 0), (0, 1), (1, 1), (1, -1)):
+            # Pair each cell (i, j) with (i + dx, j + dy) where both exist.
+            j0, j1 = max(0, -dy), self.ny - max(0, dy)
+            a = idx[: self.nx - dx, j0:j1]
+            b = idx[dx:, j0 + dy : j1 + dy]
+            a, b = a.ravel(), b.ravel()
+            ln = math.hypot(dx * self.hx, dy * self.hy)
+            src += [a, b]
+            dst += [b, a]
+            length += [np.full(a.size, ln), np.full(a.size, ln)]
+        src_a, dst_a, len_a = np.concatenate(src), np.concatenate(dst), np.concatenate(length)
+        # Sorted by (src, dst) once, so each plan builds its CSR matrix without sorting.
+        order = np.lexsort((dst_a, src_a))
+        self.src, self.dst, self.length = src_a[order], dst_a[order], len_a[order]
+        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(self.src, minlength=self.nx * self.ny))])
+
+    def add_discs(self, cost: Array, centres: list[Array], radii: list[float], extras: list[float]) -> None:
+        """Add ``extras[k]`` to every cell whose centre lies within ``radii[k]`` of ``centres[k]``.
+
+        Works on the bounding block of each disc only."""
+        grid = cost.reshape(self.nx, self.ny)
+        for (px, py), r, extra in zip(centres, radii, extras, strict=True):
+            i0 = max(0, int((px - r - self.x0) / self.hx))
+            i1 = min(self.nx, int((px + r - self.x0) / self.hx) + 1)
+            j0 = max(0, int((py - r - self.y0) / self.hy))
+            j1 = min(self.ny, int((py + r - self.y0) / self.hy) + 1)
+            if i0 >= i1 or j0 >= j1:
+                continue
+            dx = self.xs[i0:i1, None] - px
+            dy = self.ys[None, j0:j1] - py
+            grid[i0:i1, j0:j1] += extra * (dx * dx + dy * dy < r * r)
+
+    def cell(self, p: Array) -> int:
+        i = min(self.nx - 1, max(0, int((p[0] - self.x0) / self.hx)))
+        j = min(self.ny - 1, max(0, int((p[1] - self.y0) / self.hy)))
+        return i * self.ny + j
+
+    def field(self, goal: Array, cost: Array) -> Array:
+        """Predecessor array of shortest paths *to* ``goal`` under cell ``cost``."""
+        n = self.nx * self.ny
+        w = self.length * 0.5 * (cost[self.src] + cost[self.dst])
+        G = csr_matrix((w, self.dst, self.indptr), shape=(n, n))
+        _, pred = dijkstra(G, directed=True, indices=self.cell(goal), return_predecessors=True)
+        return np.asarray(pred)
+
+    def carrot(self, pred: Array, start: Array, goal: Array, lookahead: float) -> Array:
+        """Point ``lookahead`` [m] along the path from ``start`` towards ``goal``."""
+        c = self.cell(start)
+        gcell = self.cell(goal)
+        travelled = 0.0
+        prev = start
+        for _ in range(self.nx * self.ny):
+            if c == gcell:
+                return goal
+            nxt = int(pred[c])
+            if nxt < 0:
+                return goal
+            p = self.centres[nxt]
+            travelled += math.hypot(p[0] - prev[0], p[1] - prev[1])
+            prev = p
+            c = nxt
+            if travelled >= lookahead:
+                return p.copy()
+        return goal
+
+
+@dataclass
+class Navigator:
+    """Chooses the target of the goal term (shaping only; see module docstring).
+
+    Every ``replan_steps`` it plans a grid path to the goal around walls and
+    static obstacles (hard), parked robots (expensive) and the moving robots
+    that go first (cheaper), ignoring those that go after it, and follows a
+    carrot point ``lookahead`` ahead.  On top of
+    that, the yielding rule: a robot inside the corridor of a nearby robot
+    that goes first (the segment to that robot's carrot, widened by
+    r_i + r_j + ``corridor_margin``) moves to the best free point out of it.
+    Precedence is (phase, priority, rank): robots under way (goal never
+    reached) go first, then robots returning to a goal they were displaced
+    from, then parked robots, which step aside when they block a path and
+    return afterwards.  Parked robots never need to yield to each other, and
+    the first robot in precedence never waits on a robot that can move."""
+
+    footprint: float
+    arena: tuple[float, float, float, float]
+    obstacles: Sequence[Any] = ()
+    priority: int = 0
+    rank: int = 0
+    conflict_range: float = 0.35
+    """Extra distance beyond r_i + r_j within which a higher robot is yielded to [m]."""
+    corridor_margin: float = 0.05
+    """Extra corridor half-width beyond r_i + r_j [m]."""
+    lookahead: float = 0.3
+    """Carrot distance along the planned path [m]."""
+    replan_steps: int = 10
+    """Steps between grid replans; robot of rank r replans at the steps ≡ −r (mod this) after its first."""
+    soft_cost: float = 8.0
+    """Extra cost per metre inside the footprint disc of a moving robot."""
+    parked_cost: float = 40.0
+    """Extra cost per metre inside the footprint disc of a parked robot."""
+    hold_steps: int = 15
+    stall_steps: int = 60
+    """Steps without 2 cm of progress before the watchdog escape."""
+    seed: int = 0
+    phase: int = 0
+    """This robot's precedence class (set by the controller each step)."""
+    _grid: GridPlanner | None = None
+    _ring: Array = field(default_factory=lambda: np.zeros((0, 2)))
+    _ring_norm: Array = field(default_factory=lambda: np.zeros(0))
+    _pred: Array | None = None
+    _since_plan: int = 10**9
+    _escape: Array | None = None
+    _escape_left: int = 0
+    _rng: np.random.Generator | None = None
+    _best_dist: float = math.inf
+    _stall: int = 0
+
+    def __post_init__(self) -> None:
+        self._grid = GridPlanner(self.arena, self.footprint, self.obstacles)
+        ang = np.linspace(0.0, 2.0 * math.pi, 24, endpoint=False)
+        unit = np.column_stack([np.cos(ang), np.sin(ang)])
+        self._ring = np.vstack([0.5 * unit, unit])
+        self._ring_norm = np.linalg.norm(self._ring, axis=1)
+        self._rng = np.random.default_rng(self.seed)
+
+    def reset_goal(self) -> None:
+        """Forget the plan and the watchdog state (new goal)."""
+        self._pred = None
+        self._escape = None
+        self._best_dist = math.inf
+        self._stall = 0
+
+    def _plan(self, c: Array, goal: Array, neighbours: Sequence[NeighbourInfo]) -> None:
+        g = self._grid
+        assert g is not None
+        cost = g.static.copy()
+        me = (self.phase, *order_key(self.priority, self.rank))
+        pts, radii, extras = [], [], []
+        for nb in neighbours:
+            if nb.phase == PARKED:
+                extras.append(self.parked_cost)
+            elif (nb.phase, *order_key(nb.priority, nb.rank)) < me:
+                extras.append(self.soft_cost)  # goes first: plan around it
+            else:
+                continue  # goes after this robot: it yields, so plan through it
+            pts.append(nb.last_point)
+            radii.append(self.footprint + nb.footprint)
+        if pts:
+            g.add_discs(cost, pts, radii, extras)
+        self._pred = g.field(goal, cost)
+        self._since_plan = 0
+
+    def waypoint(self, c: Array, goal: Array, neighbours: Sequence[NeighbourInfo] = ()) -> Array:
+        """Carrot point on the planned path from ``c`` to ``goal``."""
+        if self._pred is None or self._since_plan >= self.replan_steps:
+            first = self._pred is None
+            self._plan(c, goal, neighbours)
+            if first:
+                # Robots replan in turn, not all at the same step: a replan costs a few
+                # milliseconds, and 16 at once on 2 cores missed the realtime deadline.
+                self._since_plan = self.rank % self.replan_steps
+        self._since_plan += 1
+        assert self._grid is not None and self._pred is not None
+        if float(np.linalg.norm(goal - c)) <= self.lookahead:
+            return goal
+        return self._grid.carrot(self._pred, c, goal, self.lookahead)
+
+    def target(self, c: Array, goal: Array, neighbours: Sequence[NeighbourInfo]) -> tuple[Array, str]:
+        """Target of the goal term and the mode (``goal``, ``path``, ``yield``, ``escape``)."""
+        wp = self.waypoint(c, goal, neighbours)
+        mode = "goal" if wp is goal else "path"
+        me = order_key(self.priority, self.rank)
+        corridors = []
+        for nb in neighbours:
+            # Yield to lower phases; within a phase, to the higher-ordered.
+            if nb.phase == PARKED or (nb.phase, *order_key(nb.priority, nb.rank)) > (self.phase, *me):
+                continue
+            R = self.footprint + nb.footprint
+            q = nb.last_point
+            if math.hypot(q[0] - c[0], q[1] - c[1]) > R + self.conflict_range:
+                continue
+            end = nb.target if nb.target is not None else nb.last_point
+            corridors.append((nb.last_point, end, R + self.corridor_margin))
+        blocked = [cd for cd in corridors if point_segment_distance(c, cd[0], cd[1]) < cd[2]]
+        if blocked:
+            self._escape = self._escape_point(c, wp, corridors, neighbours)
+            self._escape_left = self.hold_steps
+            self._stall = 0
+            return self._escape, "yield"
+
+        # Progress watchdog: no progress for long → a clearance-seeking escape
+        # point, held for a while (DESIGN §5).  Time spent yielding or escaping
+        # does not count as a stall.
+        if self._escape is not None and self._escape_left > 0:
+            self._escape_left -= 1
+            if np.linalg.norm(self._escape - c) > 0.02:
+                return self._escape, "escape"
+        if self._escape is not None:
+            self._escape = None
+            self._best_dist = math.inf
+            self._stall = 0
+        dgoal = float(np.linalg.norm(goal - c))
+        if dgoal < self._best_dist - 0.02 or dgoal < 0.005:
+            self._best_dist = min(dgoal, self._best_dist)
+            self._stall = 0
+        else:
+            self._stall += 1
+        if self._stall > self.stall_steps:
+            self._escape = self._escape_point(c, wp, corridors, neighbours, radius=0.5)
+            self._escape_left = 40
+            return self._escape, "escape"
+        return wp, mode
+
+    def _escape_point(
+        self,
+        c: Array,
+        wp: Array,
+        corridors: list[tuple[Array, Array, float]],
+        neighbours: Sequence[NeighbourInfo],
+        radius: float = 0.4,
+    ) -> Array:
+        """Best free point near ``c``: outside the corridors, clear of others, towards ``wp``.
+
+        48 candidates on two rings around ``c``, scored (all at once) by the
+        distance travelled, the distance left to ``wp``, corridor penetration
+        and lack of clearance from the neighbours' committed points."""
+        assert self._grid is not None
+        g = self._grid
+        P = c + self._ring * radius  # (48, 2)
+        ix = np.clip(((P[:, 0] - g.x0) / g.hx).astype(int), 0, g.nx - 1)
+        iy = np.clip(((P[:, 1] - g.y0) / g.hy).astype(int), 0, g.ny - 1)
+        free = g.static[ix * g.ny + iy] < GridPlanner.BLOCKED
+        if not np.any(free):
+            return c.copy()
+        score = 0.5 * radius * self._ring_norm + 0.2 * np.hypot(wp[0] - P[:, 0], wp[1] - P[:, 1])
+        for a, b, w in corridors:
+            dseg = _points_segment_distance(P, a, b)
+            score += np.where(dseg < w, 10.0 + 5.0 * (w - dseg), 0.0)
+        if neighbours:
+            Q = np.array([nb.last_point for nb in neighbours])
+            R = self.footprint + np.array([nb.footprint for nb in neighbours])
+            clear = np.hypot(P[:, 0, None] - Q[None, :, 0], P[:, 1, None] - Q[None, :, 1]) - R[None, :]
+            score += 2.0 * np.maximum(0.1 - clear, 0.0).sum(axis=1)
+        score[~free] = np.inf
+        return P[int(np.argmin(score))].copy()
+
+
+def _points_segment_distance(P: Array, a: Array, b: Array) -> Array:
+    """Distances (k,) from points P (k, 2) to segment ab [m]."""
+    dx, dy = float(b[0] - a[0]), float(b[1] - a[1])
+    L2 = dx * dx + dy * dy
+    ex, ey = P[:, 0] - a[0], P[:, 1] - a[1]
+    if L2 < 1e-12:
+        return np.hypot(ex, ey)
+    t = np.minimum(np.maximum((ex * dx + ey * dy) / L2, 0.0), 1.0)
+    return np.hypot(ex - t * dx, ey - t * dy)

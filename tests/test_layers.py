@@ -1,0 +1,215 @@
+"""The house's layers, read from the source: who may import whom, and what starts without what.
+
+The packages stand in layers, the contract at the bottom:
+
+    ground                              the contract: wire, schema, geometry, model, bus
+    agent, epuck_link                   the math of one robot; the robot side
+    tracker, supervisor                 the world and its camera; the judge and the recording
+    fleet                               the command line, the launcher, simulate, bench
+
+A module imports only from its own package and from the packages :data:`ALLOWED` lists for it,
+all of a lower layer: ``tracker`` may use ``epuck_link``'s plant and robot side; only ``fleet``
+may use the agent's math beside the agent itself, so that nothing else loads the QP solver.
+Every import counts, those inside functions too.
+"""
+
+from __future__ import annotations
+
+import ast
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+LAYERS = {"ground": 0, "agent": 1, "epuck_link": 1, "tracker": 2, "supervisor": 2, "fleet": 3}
+ALLOWED = {
+    "ground": set(),
+    "agent": {"ground"},
+    "epuck_link": {"ground"},
+    "tracker": {"ground", "epuck_link"},
+    "supervisor": {"ground"},
+    "fleet": {"ground", "agent", "epuck_link", "tracker", "supervisor"},
+}
+"""The packages each package may import besides itself."""
+OURS = set(LAYERS) | {"benchmarks", "tests"}
+MATH = ("agent.sets", "agent.tube", "agent.qp", "agent.coordination", "agent.navigator", "agent.hazards",
+        "agent.controller")  # fmt: skip
+"""The math of one robot: no transport, no logging, no plotting."""
+IO = ("zenoh", "rerun", "matplotlib", "ground.bus", "ground.process", "ground.net", "cv2")
+"""What the math must not import."""
+
+
+def _modules() -> dict[str, Path]:
+    """Every module of the packages: dotted name → file."""
+    out = {}
+    for pkg in LAYERS:
+        for f in sorted((ROOT / pkg).rglob("*.py")):
+            rel = f.relative_to(ROOT).with_suffix("")
+            parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+            out[".".join(parts)] = f
+    return out
+
+
+MODULES = _modules()
+
+
+def _imports(path: Path) -> set[str]:
+    """The modules ``path`` imports (absolute names; every import statement, at any depth)."""
+    got: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            got.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            got.add(node.module)
+            got.update(f"{node.module}.{a.name}" for a in node.names if f"{node.module}.{a.name}" in MODULES)
+    return got
+
+
+GRAPH = {m: {i for i in _imports(f) if i.split(".")[0] in OURS} for m, f in MODULES.items()}
+
+
+def test_the_packages_are_found():
+    """The walk sees the whole house (a test of the test: an empty graph passes every rule)."""
+    assert {m.split(".")[0] for m in MODULES} == set(LAYERS)
+    assert len(MODULES) > 40 and sum(len(v) for v in GRAPH.values()) > 100
+
+
+@pytest.mark.parametrize("module", sorted(MODULES))
+def test_every_module_imports_only_what_its_layer_allows(module):
+    pkg = module.split(".")[0]
+    bad = sorted(i for i in GRAPH[module] if i.split(".")[0] not in {pkg, *ALLOWED[pkg]})
+    assert not bad, f"{module} imports {bad}; {pkg} may import {sorted(ALLOWED[pkg]) or 'nothing of ours'}"
+
+
+def test_each_allowed_import_goes_down():
+    """The allowed imports themselves go to lower layers only (so they can make no loop)."""
+    for pkg, allowed in ALLOWED.items():
+        assert all(LAYERS[a] < LAYERS[pkg] for a in allowed), pkg
+
+
+def test_ground_imports_nothing_of_ours_but_ground():
+    bad = {
+        m: sorted(i for i in deps if not i.startswith("ground"))
+        for m, deps in GRAPH.items()
+        if m.startswith("ground")
+    }
+    assert not any(bad.values()), bad
+
+
+def test_no_import_loops():
+    """No module reaches itself through the imports of others (at module granularity)."""
+    edges = {
+        m: {i if i in MODULES else i.rsplit(".", 1)[0] for i in deps} & set(MODULES)
+        for m, deps in GRAPH.items()
+    }
+    for m in edges:
+        edges[m].discard(m)
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(m: str) -> None:
+        state[m] = 1
+        stack.append(m)
+        for n in sorted(edges[m]):
+            if state.get(n) == 1:
+                raise AssertionError("import loop: " + " → ".join([*stack[stack.index(n) :], n]))
+            if n not in state:
+                visit(n)
+        stack.pop()
+        state[m] = 2
+
+    for m in sorted(edges):
+        if m not in state:
+            visit(m)
+
+
+@pytest.mark.parametrize("module", MATH)
+def test_the_math_imports_no_transport_logging_or_plotting(module):
+    deps = _imports(MODULES[module])
+    bad = sorted(i for i in deps if any(i == x or i.startswith(x + ".") for x in IO))
+    assert not bad, f"{module} imports {bad}"
+
+
+BLOCKER = """
+import runpy, sys
+class _Refuse:
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in ("proxsuite", "agent", "scipy"):
+            raise ImportError(f"{name} is refused in this interpreter")
+        return None
+sys.meta_path.insert(0, _Refuse())
+sys.argv = [sys.argv[1], *sys.argv[2:]]
+runpy.run_module(sys.argv[0], run_name="__main__", alter_sys=True)
+"""
+"""Runs ``python -m <module> args`` in an interpreter where proxsuite, scipy and the agent
+package cannot be imported."""
+
+
+@pytest.mark.parametrize(
+    "module, args",
+    [
+        ("tracker", ["--start-timeout", "30"]),
+        ("supervisor", ["--out", "{tmp}"]),
+        ("epuck_link", ["--robot", "r1", "--link", "emulator"]),
+    ],
+)
+def test_the_robot_side_tracker_and_supervisor_start_without_the_solver(module, args, tmp_path):
+    """``python -m tracker``, ``epuck_link`` and ``supervisor`` come up (their readiness line)
+    in a fresh interpreter where proxsuite, scipy and the agent package cannot be imported:
+    none of them loads the QP solver or synthesises the tube."""
+    from ground.net import free_port, loopback
+
+    scn = ROOT / "scenarios" / "paper_two_robots.toml"
+    argv = [
+        module,
+        "--scenario",
+        str(scn),
+        "--listen",
+        loopback(free_port()),
+        *(a.format(tmp=tmp_path) for a in args),
+    ]
+    env = {**os.environ, "RERUN_ANALYTICS": "0", "PYTHONPATH": str(ROOT)}
+    proc = subprocess.Popen(
+        [sys.executable, "-c", BLOCKER, *argv], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert proc.stdout is not None
+        line = proc.stdout.readline()  # the readiness line, or nothing if it died
+        ready = json.loads(line) if line.startswith("{") else {}
+    finally:
+        proc.terminate()
+        try:
+            _, err = proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            _, err = proc.communicate(timeout=30)
+    assert ready.get("event") == "ready", err[-2000:]
+    assert "refused in this interpreter" not in err
+
+
+def test_the_blocker_refuses_the_agent():
+    """A test of the test: the agent, which needs the solver, does not start under the blocker."""
+    from ground.net import free_port, loopback
+
+    scn = ROOT / "scenarios" / "paper_two_robots.toml"
+    argv = [
+        "agent",
+        "--scenario",
+        str(scn),
+        "--robot",
+        "r1",
+        "--listen",
+        loopback(free_port()),
+        "--timeout",
+        "1",
+    ]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    res = subprocess.run(
+        [sys.executable, "-c", BLOCKER, *argv], cwd=ROOT, env=env, capture_output=True, text=True, timeout=60
+    )
+    assert res.returncode != 0 and "refused in this interpreter" in res.stderr
