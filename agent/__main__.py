@@ -2,7 +2,7 @@
 
 import os
 
-os.environ.setdefault("OMP_NUM_THREADS", "1")  # ProxSuite links libgomp (DESIGN §8)
+os.environ.setdefault("OMP_NUM_THREADS", "1")  # ProxSuite links libgomp (docs/method.md §9)
 
 from agent.node import main
 from ground.process import exit_process

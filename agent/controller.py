@@ -1,6 +1,6 @@
 """One robot's tube MPC: the state machine an agent process runs each step.
 
-Per step t (DESIGN §4):
+Per step t (docs/method.md §5):
 
 1. Build the QP from the measured state ``x_t`` (4,), the committed
    reference ``ỹ_t … ỹ_{t+N−1}`` and its reference states, the neighbours'
@@ -254,14 +254,13 @@ class TubeMPC:
         """Choose the next step's target now, between steps.
 
         The realtime agent calls it once its neighbours' plans of this step are in,
-        in the half step after its deadline, and so takes the navigator (0.4 ms a
-        step at 32 robots, a grid re-plan of 1.5 ms every 10 steps) off the path from
-        tick to command.  The next :meth:`step` takes the choice only if the committed
-        reference is still the one it was chosen for: a :meth:`rewind`, :meth:`reset`,
-        :meth:`hold` or :meth:`set_goal` in between drops it, and the step steers
-        itself (the navigator's counters then advance twice in that step).  Taking it
-        anyway would be as safe, since the target only shapes the cost, but at 24
-        robots it missed more deadlines: 0.56 and 1.01 % against 0.14 and 0.21 %."""
+        in the half step after its deadline, and so takes the navigator (with its periodic
+        grid re-plan) off the path from tick to command.  The next :meth:`step` takes the
+        choice only if the committed reference is still the one it was chosen for: a
+        :meth:`rewind`, :meth:`reset`, :meth:`hold` or :meth:`set_goal` in between drops
+        it, and the step steers itself (the navigator's counters then advance twice in that
+        step).  Taking it anyway would be as safe, since the target only shapes the cost,
+        but a fleet that falls behind then misses more deadlines."""
         self._ahead = (self.y_ref, *self.steer(known))
 
     def step(

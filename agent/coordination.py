@@ -1,4 +1,4 @@
-"""Coordination terms of the QP (DESIGN §5): safety constraints and shaping.
+"""Coordination terms of the QP (docs/method.md §6): safety constraints and shaping.
 
 Safety (hard, recursively feasible).  Before appending, agents i and j both
 know ``c_i = ỹ^i_{t+N−1}`` and ``c_j = ỹ^j_{t+N−1}`` with
@@ -140,7 +140,7 @@ class Hazard:
     dead agent) cannot take its share of the split rule with fresh data, so i
     keeps its own appended point clear of every place the neighbour's can be:
     j's last known committed point grown by ε per step it may have moved
-    since (DESIGN §5, "Timing")."""
+    since (docs/method.md §6)."""
 
     id: str
     centre: Array

@@ -29,7 +29,7 @@ def neighbour_of(plan: Plan) -> NeighbourInfo:
 
 
 class Guard:
-    """Sorts the other robots, each step, into neighbours and hazards (DESIGN §5, "Timing").
+    """Sorts the other robots, each step, into neighbours and hazards (docs/method.md §6).
 
     * A live robot whose plan of step k − 1 is in is a *neighbour*: the split rule.
     * A live robot whose latest plan is m ≥ 1 steps older (lost or late) is a

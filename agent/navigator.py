@@ -269,7 +269,7 @@ class Navigator:
             return self._escape, "yield"
 
         # Progress watchdog: no progress for long → a clearance-seeking escape
-        # point, held for a while (DESIGN §5).  Time spent yielding or escaping
+        # point, held for a while (docs/method.md §7).  Time spent yielding or escaping
         # does not count as a stall.
         if self._escape is not None and self._escape_left > 0:
             self._escape_left -= 1

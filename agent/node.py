@@ -10,7 +10,7 @@ command and its plan for step k (:mod:`agent.messages`).  A neighbour whose plan
 does not arrive in time is kept clear of as a growing disc (:class:`agent.hazards.Guard`).  When
 the tick says the robot side did not apply the agent's last commands, the agent takes the plan
 the robot executed (:meth:`TubeMPC.rewind`) or, if the robot braked, starts again where it is
-(docs/runtime-notes.md, "Missed deadlines").
+(docs/design.md, "Missed deadlines").
 """
 
 from __future__ import annotations
@@ -307,7 +307,7 @@ class _Link:
         # two wake-ups and GIL hand-overs a step fewer in the race to the deadline.  The digest
         # of step k − 1 comes half a step before tick k, once the tracker has the commands of
         # k − 1, and is decoded by callback then, while the cores are idle
-        # (docs/runtime-notes.md, "Relayed plans").
+        # (docs/design.md, "Relayed plans").
         drained = self.drained = args.clock == "realtime" and args.exchange == "relay"
         self.subs = [
             inbox.subscribe(self.session, keys.pose(me), Pose, keep=True, drained=drained),

@@ -1,4 +1,4 @@
-"""The per-step QP of one agent (DESIGN §4; paper eqs. 12–13, 19–32).
+"""The per-step QP of one agent (docs/method.md §5; paper eqs. 12–13, 19–32).
 
 Decision vector ``ξ = [x̂_t (4), v̂_t … v̂_{t+N−1} (2N), ȳ (2)]`` (n = 2N + 6).
 With the committed reference ``ỹ_t … ỹ_{t+N−1}`` and its reference states
@@ -11,16 +11,16 @@ With the committed reference ``ỹ_t … ỹ_{t+N−1}`` and its reference state
          |C(x̂_k − x̃_k)|∞ ≤ δ                    (tracking tube Δ^z)
          x̂_{t+N} = x̃_{t+N}(ȳ) = (A − BK_r) x̃_{t+N−1} + B K_r E ȳ
          |ȳ − ỹ_{t+N−1}|∞ ≤ ε,  ȳ ∈ arena ⊖ r_i
-         coordination half-planes  nᵀ ȳ ≥ b      (DESIGN §5)
+         coordination half-planes  nᵀ ȳ ≥ b      (docs/method.md §6)
 
 ``ũ_{t+N−1}`` is affine in ȳ, so its cost term couples v̂_{t+N−1} and ȳ.
 The Hessian and all but the coordination rows of the constraint matrix are
 constant: they are built once, and each step only updates vectors (and the
 few coordination rows).  The state and tube rows share one two-sided row per
-position (DESIGN §8: merging saves 20 %).
+position (one row instead of two per bound).
 
 ProxSuite (dense, box constraints, PrimalDualLDLT) solves it with the
-settings of DESIGN §8; every call returns its status, and anything but
+settings of :func:`configure` (docs/method.md §9); every call returns its status, and anything but
 ``PROXQP_SOLVED`` is a failure for the caller to handle.
 """
 
@@ -312,7 +312,7 @@ class TubeQP:
 
 
 def daqp_solve(prob: dict[str, Array]) -> tuple[Array | None, int]:
-    """Solve ``prob`` with DAQP, a dual active-set solver (DESIGN §8).
+    """Solve ``prob`` with DAQP, a dual active-set solver (the cross-check of the tests and the benchmark).
 
     Used as the second solver in cross-checks and as the benchmark yardstick;
     needs the optional ``daqp`` package (``pip install -e '.[test]'``).

@@ -3,7 +3,7 @@
 A zonotope is ``Z = {c + G λ : ‖λ‖∞ ≤ 1}`` with centre ``c`` (n,) and
 generators ``G`` (n, m).  Its support function is
 ``h_Z(d) = dᵀc + Σ_i |dᵀ G_i|``, which gives every constraint tightening
-without vertex enumeration (DESIGN §2).
+without vertex enumeration (docs/method.md §3).
 
 The mRPI outer approximation follows Raković et al. (2005), "Invariant
 approximations of the minimal robust positively invariant set", IEEE TAC:

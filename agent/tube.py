@@ -1,6 +1,6 @@
-"""Offline tube synthesis (Mayne et al. 2005; paper §III.A; DESIGN §2–§4).
+"""Offline tube synthesis (Mayne et al. 2005; paper §III.A; docs/method.md §2–§4).
 
-Nominal model per robot (DESIGN §1), sampled at Ts with zero-order hold::
+Nominal model per robot (:mod:`ground.model`), sampled at Ts with zero-order hold::
 
     x = [px, vx, py, vy]   [m, m/s, m, m/s], world frame
     u = [ax, ay]           [m/s²]
@@ -240,7 +240,7 @@ def synthesize(
             failures.append(
                 f"Û is empty: a_max {p.a_max:.4g} m/s² − h_KZ {KZ[j]:.4g} m/s² = {u_hat[j]:.4g} m/s²"
             )
-    # Stay-put admissibility (DESIGN §3): Ψ's velocity part in X̂ and the
+    # Stay-put admissibility (docs/method.md §4): Ψ's velocity part in X̂ and the
     # reference input K_r(Ψ ⊕ E B_ε) in Û, both strictly, with a margin.
     hPsi_v = float(Pr.Z.support(eye[1]))
     ref_u = Pr.Z.minkowski_sum(Zonotope(np.zeros(4), E @ np.diag([eps, eps])))

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Scale and performance benchmark of the fleet (issue 5): ``fleet bench``.
+"""Scale and performance benchmark of the fleet: ``fleet bench``.
 
 Run from the repository root::
 

@@ -37,7 +37,7 @@ Linux keeps retransmitting unacknowledged data for about 15 minutes
 (``tcp_retries2 = 15``).  The router then keeps the cut host's liveliness
 tokens until the cable is back.  ``tcp_retries2 = 5`` gives up after about
 13 s, so the cut host is dropped (its tokens withdrawn) about 14 s after the
-cut; ``tests/test_multihost.py`` sets it on every host.
+cut; ``tests/system/test_multihost.py`` sets it on every host.
 
 By hand, from one root shell in the project directory (``$$`` is that
 shell's pid, the default owner)::
@@ -71,7 +71,7 @@ touches only names ``efleet-<pid>-<host>`` whose ``<pid>`` is no longer
 running.
 
 The functions (:func:`create`, :func:`destroy`, :func:`clean`,
-:func:`unavailable`, :class:`Topology`) are what ``tests/test_multihost.py``
+:func:`unavailable`, :class:`Topology`) are what ``tests/system/test_multihost.py``
 uses.
 """
 

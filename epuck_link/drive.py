@@ -18,7 +18,7 @@ from ground.params import WheelGeometry
 from ground.wire import Wheels
 
 MIN_RATE = 50.0
-"""Slowest inner loop allowed [Hz] (docs/runtime-notes.md: the prediction error grows below)."""
+"""Slowest inner loop allowed [Hz] (docs/design.md, "Where the inner loop runs")."""
 MAX_DT = 0.1
 """Longest inner-loop step [s]; a stalled loop does not integrate more than this at once."""
 

@@ -20,7 +20,7 @@ Out:
 * with every encoder read, :class:`~ground.wire.Wheels` on ``fleet/F/wheels/R``:
   the unwrapped counts and (v, ω) from their deltas.
 
-Deadline (docs/runtime-notes.md, "Missed deadlines"): step k starts when the
+Deadline (docs/design.md, "Missed deadlines"): step k starts when the
 link receives tick k on ``fleet/F/clock``, and its command must come within
 ``--deadline``·Ts (0.5 by default, as for simulated robots).  Without it, the
 link follows the shifted candidate of the last command it applied, with the

@@ -1,4 +1,4 @@
-"""The e-puck's wire protocols, as pure functions (DESIGN §7).
+"""The e-puck's wire protocols, as pure functions (docs/lab.md for the hardware).
 
 Checked against the e-puck2 main-processor firmware (``src/epuck1x/Asercom2.c``,
 ``src/motors.h``) and GCtronic's e-puck2 PC-side documentation.

@@ -3,7 +3,7 @@
 Shared by the simulated tracker (:mod:`tracker.sim`, which is the robot side of simulated
 robots) and by ``epuck_link`` (the robot side of an e-puck), so that a robot behaves the same
 whether it is simulated or real when its agent's command misses the deadline
-(docs/runtime-notes.md, "Missed deadlines").
+(docs/design.md, "Missed deadlines").
 """
 
 from __future__ import annotations
@@ -41,8 +41,8 @@ def chain_input(x_next: Array, v_next: Array, m: int, x: Array, A: Array, B: Arr
 
 
 class RobotSide:
-    """What a robot side applies to one robot each step (DESIGN §4 and
-    docs/runtime-notes.md, "Missed deadlines"): the agent's command when it came in time;
+    """What a robot side applies to one robot each step (docs/method.md §6 and
+    docs/design.md, "Missed deadlines"): the agent's command when it came in time;
     else the ancillary law on the shifted candidate of the last command applied; braking
     when the agent is dead, has not been heard from for ``watchdog`` [s], or the candidate
     is used up.  The simulated tracker keeps one per robot; so does ``epuck_link``, through

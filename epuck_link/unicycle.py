@@ -8,7 +8,7 @@ centre in the world frame, inputs ``v`` [m/s] (forward speed) and ``ω``
 
 Two inner loops turn the MPC's acceleration ``a = (ax, ay)`` [m/s²] into
 ``(v, ω)`` so that a point of the robot behaves as the double integrator
-``p̈ = a`` of DESIGN §1:
+``p̈ = a`` of :mod:`ground.model`:
 
 * :class:`PaperInnerLoop` — paper eq. 3, dynamic extension of ``v``::
 
@@ -28,7 +28,7 @@ Two inner loops turn the MPC's acceleration ``a = (ax, ay)`` [m/s²] into
   rest: the singularity is removed rather than regularised.  The body disc
   around ``p`` grows by ℓ (see ``TubeDesign.body_radius``).
 
-Wheel speeds (E-puck, DESIGN §7): ``left = (v − ω L/2)/m``,
+Wheel speeds (E-puck, :class:`ground.params.WheelGeometry`): ``left = (v − ω L/2)/m``,
 ``right = (v + ω L/2)/m`` [steps/s] with ``m`` the rim travel per step.
 Saturation scales both wheels by the same factor, which preserves the
 curvature ``ω/v``.

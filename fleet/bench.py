@@ -1,4 +1,4 @@
-"""``fleet bench``: the scale and performance benchmark (issue 5).
+"""``fleet bench``: the scale and performance benchmark.
 
 The harness is ``benchmarks/bench_scale.py`` in the source tree (it shares its
 instrumentation with ``benchmarks/bench_step.py``); this module is the command's

@@ -359,13 +359,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--lease", metavar="SECONDS", type=lease_arg,
         help="Zenoh transport lease of every process [s] (default 10 in the mesh, 1 in the star): how "
         "soon neighbours see a hung agent as not alive; at 1 s the keep-alives of a 16-robot mesh "
-        "take a third of a core, of a star a few %% (docs/design.md §8)",
+        "take a third of a core, of a star a few %% (docs/design.md, \"Liveliness lease\")",
     )  # fmt: skip
     r.add_argument(
         "--topology", choices=TOPOLOGIES, default="mesh",
         help="how the processes link: mesh (every one a Zenoh peer, default) or star (the tracker a "
         "router, the others its clients: one link each, and a 1 s lease; with --exchange relay, the "
-        "lightest for large realtime fleets, docs/design.md §8)",
+        "lightest for large realtime fleets; docs/design.md, \"Topology\")",
     )  # fmt: skip
     r.set_defaults(func=cmd_run)
     g = sub.add_parser("goal", help="give a running agent a new goal and wait until it takes it")

@@ -5,7 +5,7 @@ inherited; never a bare fork after Zenoh is open): the tracker listens on a
 free loopback port, the supervisor and one agent per robot connect to it.  In
 the mesh topology every process is a Zenoh peer and the peers link to each
 other; in the star topology the tracker's session is a router and every other
-process a client with one link, to it (docs/design.md §8, "Topology").
+process a client with one link, to it (docs/design.md, "Topology").
 Readiness is each process's ``{"event": "ready"}`` line, waited on with a
 timeout.  The run ends when the tracker exits; everything still running is
 then stopped by pid (SIGTERM, then SIGKILL).
@@ -30,10 +30,9 @@ from ground.net import NetConfig, free_port, loopback
 TOPOLOGIES = ("mesh", "star")
 """How ``fleet run`` links its processes: a mesh of Zenoh peers, or a star around the tracker."""
 STAR_LEASE = 1.0
-"""Default Zenoh lease in the star [s]: DESIGN's "about 1 s".  The mesh keeps 10 s, because
-there a 1 s lease costs a third of a core at 16 robots; in the star, 4 % of a core more than
-10 s when idle, and no difference beyond the noise of 16-robot realtime runs
-(docs/runtime-notes.md, "Topology")."""
+"""Default Zenoh lease in the star [s]: a hung agent is "not alive" within about a second.  The
+mesh keeps 10 s: there a 1 s lease's keep-alives cost CPU in proportion to the n(n − 1)/2 links,
+while the star's n links make it cheap (docs/design.md, "Liveliness lease")."""
 
 
 @dataclass
@@ -129,7 +128,7 @@ def run_fleet(
     ``hub`` is the tracker's listening endpoint (default: a free loopback port).
     ``faults`` is a fault plan (:mod:`ground.faults`) handed to every process.
     ``exchange`` is how plans travel: ``mesh`` (agent to agent) or ``relay``
-    (the tracker's digest, docs/runtime-notes.md).
+    (the tracker's digest, docs/design.md, "Relayed plans").
     ``lease`` is every process's Zenoh transport lease [s] (default 10 s in the mesh,
     :data:`STAR_LEASE` in the star).
     ``topology``: ``mesh`` (every process a Zenoh peer) or ``star`` (the tracker a

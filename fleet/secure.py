@@ -1,4 +1,4 @@
-"""Secure deployment: mutual TLS and access control on the fleet's Zenoh network (issue 5).
+"""Secure deployment: mutual TLS and access control on the fleet's Zenoh network.
 
 Topology.  One Zenoh router, on the lab computer, listens on a ``tls/``
 endpoint.  Every fleet process (agents, ``epuck_link``, tracker, supervisor,

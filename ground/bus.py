@@ -113,8 +113,8 @@ def publisher(session: Any, key: str, express: bool = True) -> Any:
 
     Lockstep correctness needs every plan, pose and tick delivered; the default
     congestion control drops samples under load.  ``express`` sends at once
-    (a write per put, 30–100 µs of the caller's time); without it Zenoh batches,
-    which suits messages nobody waits on (ground truth for the supervisor)."""
+    (a write per put, paid in the caller's time); without it Zenoh batches, which
+    suits messages nobody waits on (ground truth for the supervisor)."""
     import zenoh
 
     return session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK, express=express)
@@ -164,7 +164,7 @@ class Inbox:
         Zenoh queues the samples and :meth:`drain` takes them in the caller's
         thread.  Each callback wakes a Python thread of zenoh's and takes the GIL
         from the main loop: for the commands the realtime tracker reads at its
-        deadline, draining once is cheaper (docs/runtime-notes.md, "Realtime
+        deadline, draining once is cheaper (docs/design.md, "Realtime
         clock").  No callback wakes a waiter for a drained sample: use it for
         messages read at a known time, and :meth:`drain_until` (bounded polls)
         for one that may be a little late."""

@@ -1,4 +1,4 @@
-"""Fault injection on the receiving side of a process's subscriptions (issue 5).
+"""Fault injection on the receiving side of a process's subscriptions.
 
 A fault plan drops or delays chosen messages, seeded and reproducible:
 whether the message of step k on key K is lost for receiver R depends only on

@@ -1,4 +1,4 @@
-"""Zenoh session configuration for the fleet's processes (DESIGN §6).
+"""Zenoh session configuration for the fleet's processes (docs/design.md).
 
 The embedded default is peer-to-peer on loopback: no router, multicast
 scouting off (its defaults listen on every interface), explicit
@@ -9,7 +9,7 @@ those links lets the peers find each other: a full mesh, n(n − 1)/2 links.
 
 The star topology (``fleet run --topology star``) makes the hub's session a
 Zenoh router and every other process a client of it: one link per process,
-and no process but the hub listens (docs/design.md §8, "Topology").
+and no process but the hub listens (docs/design.md, "Topology").
 """
 
 from __future__ import annotations
@@ -67,7 +67,7 @@ class NetConfig:
     lease: float = 10.0
     """Zenoh transport lease [s]: a peer silent this long (a hung process, a cut link)
     is dropped, and its liveliness tokens with it.  Keeping the links of the peer mesh
-    alive costs CPU in proportion to 1/lease (docs/design.md §8)."""
+    alive costs CPU in proportion to 1/lease (docs/design.md, "Liveliness lease")."""
 
     def zenoh(self) -> Any:
         """A ``zenoh.Config`` for this process (imports zenoh lazily)."""

@@ -1,7 +1,7 @@
 """Controller parameter set: the ``[controller]`` table of a scenario file.
 
 Every field is SI (m, s, rad).  Per-axis quantities apply identically to the x
-and y axes of the double-integrator nominal model (DESIGN §1): state
+and y axes of the double-integrator nominal model (:mod:`ground.model`): state
 ``x = [px, vx, py, vy]``, input ``u = [ax, ay]``.
 
 Two presets exist:
@@ -22,7 +22,7 @@ PRESETS = ("epuck", "paper")
 
 @dataclass(frozen=True)
 class WheelGeometry:
-    """E-puck differential drive geometry (DESIGN §7)."""
+    """E-puck differential-drive geometry (GCtronic's e-puck figures; docs/lab.md)."""
 
     wheel_radius: float = 0.0205
     """Wheel radius [m]."""
@@ -61,7 +61,7 @@ class ControllerParams:
     horizon: int = 20
     """Prediction horizon N [steps]."""
 
-    # MPC cost (DESIGN §4): diagonals of Q (4), R (2) and T (2); gamma scalar.
+    # MPC cost (docs/method.md §5): diagonals of Q (4), R (2) and T (2); gamma scalar.
     Q: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0)
     """Weight on x̂_k − x̃_k, diagonal over [px, vx, py, vy]."""
     R: tuple[float, ...] = (20.0, 20.0)
@@ -71,13 +71,13 @@ class ControllerParams:
     T: tuple[float, ...] = (50.0, 50.0)
     """Weight on ȳ − y_goal, diagonal over [x, y]."""
 
-    # Ancillary gain K (kept separate from the MPC weights, DESIGN §2).
+    # Ancillary gain K (kept separate from the MPC weights, docs/method.md §3).
     K_Q: tuple[float, ...] = (400.0, 10.0, 400.0, 10.0)
     """LQR state weight that defines K."""
     K_R: tuple[float, ...] = (1.0, 1.0)
     """LQR input weight that defines K."""
 
-    # Reference generator K_r (DESIGN §3).
+    # Reference generator K_r (docs/method.md §4).
     ref_Q: tuple[float, ...] = (100.0, 10.0, 100.0, 10.0)
     ref_R: tuple[float, ...] = (0.3, 0.3)
 
@@ -118,20 +118,20 @@ class ControllerParams:
     mrpi_max_terms: int = 500
     """Cap on the number of Minkowski terms s of an mRPI approximation."""
     admissibility_margin: float = 0.05
-    """Relative margin every admissibility check must keep (DESIGN §5 trap 2)."""
+    """Relative margin every admissibility check must keep: a borderline design makes QPs fail."""
 
-    # Solver caps (DESIGN §8).
+    # Solver caps (docs/method.md §9).
     max_iter: int = 25
     """ProxSuite outer-iteration cap.  Feasible QPs of this shape need ≤ 4."""
     max_iter_in: int = 40
     """ProxSuite inner-iteration cap per outer iteration.  With max_iter this
-    bounds an infeasible solve to 1000 inner iterations (≈ 40 ms here)
-    instead of the seconds that an uncapped one takes (DESIGN §4)."""
+    bounds an infeasible solve to 1000 inner iterations, tens of milliseconds,
+    instead of the seconds that an uncapped one takes."""
     solve_time_budget: float | None = None
     """Wall-time budget of one solve [s]; a slower solve is discarded and the
     fallback applied.  None disables the check (deterministic runs)."""
 
-    # Coordination (DESIGN §5).
+    # Coordination (docs/method.md §6–§8).
     priority_share: float = 0.8
     """Share of the slack σ taken by the robot with the higher priority."""
     deadlock: bool = True

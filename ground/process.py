@@ -45,12 +45,12 @@ def add_common_args(ap: argparse.ArgumentParser) -> None:
         "--lease", type=lease_arg, default=None, metavar="SECONDS",
         help=f"Zenoh transport lease [s] (default {NetConfig.lease:g}, or the --zenoh-config file's): how "
         "soon a hung or cut-off peer is dropped and its liveliness token goes; a short lease costs "
-        "CPU (docs/design.md §8)",
+        "CPU (docs/design.md, \"Liveliness lease\")",
     )  # fmt: skip
     ap.add_argument(
         "--mode", choices=MODES, default=None,
         help="Zenoh session mode (default peer): the star topology makes the hub a router and every "
-        "other process a client of it (docs/design.md §8, \"Topology\")",
+        "other process a client of it (docs/design.md, \"Topology\")",
     )  # fmt: skip
     ap.add_argument("--timeout", type=float, default=30.0, help="lockstep wait limit [s]")
     ap.add_argument(
@@ -60,7 +60,7 @@ def add_common_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument(
         "--exchange", choices=["mesh", "relay"], default="mesh",
         help="plans: mesh, every agent subscribes to every plan; relay, the tracker sends each "
-        "agent one digest of a step's plans (docs/runtime-notes.md, \"Relayed plans\")",
+        "agent one digest of a step's plans (docs/design.md, \"Relayed plans\")",
     )  # fmt: skip
 
 
@@ -81,8 +81,8 @@ def announce(role: str, **info: Any) -> None:
     ``gc.freeze`` moves every object alive now (modules, the tube design, the
     solver, Zenoh's) out of the collector's reach, so a full collection during
     the run scans only what the run allocated.  A full collection of an agent's
-    start-up heap took 20–40 ms, and agents started together would run theirs
-    at about the same step: on 2 cores, a step in which many miss the deadline."""
+    start-up heap takes tens of milliseconds, and agents started together would
+    run theirs at about the same step: a step in which many miss the deadline."""
     gc.collect()
     gc.freeze()
     print(json.dumps({"event": "ready", "role": role, "pid": os.getpid(), **info}), flush=True)

@@ -231,7 +231,7 @@ class CameraSpec:
     """The ``[camera]`` table: the overhead ArUco camera tracker.
 
     The tracker maps image pixels to the world plane z = h of the robots'
-    markers with a homography fitted to the fiducials' centres (DESIGN §7), so
+    markers with a homography fitted to the fiducials' centres (:mod:`tracker.vision`), so
     the fiducials must sit at the markers' height h above the floor: a
     marker at height Δh off that plane appears displaced by Δh/H_cam times its
     distance from the camera's nadir.  Robot marker frame = robot frame: x

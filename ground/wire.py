@@ -1,4 +1,4 @@
-"""The wire contract: Zenoh key expressions and msgpack message schemas (DESIGN §6).
+"""The wire contract: Zenoh key expressions and msgpack message schemas.
 
 Every message is a msgpack map ``{"schema": SCHEMA_VERSION, "type": <name>, ...fields}``.
 Arrays travel as ``{"dtype": "<f8", "shape": [...], "data": <raw bytes>}``, about
@@ -129,7 +129,7 @@ def decode_array(obj: Any, name: str, shape: tuple[int | None, ...]) -> NDArray[
     """Strictly decode an array; ``None`` in ``shape`` is a free dimension (≤ MAX_HORIZON).
 
     This runs for every plan a process receives (n − 1 plans a step per agent),
-    so it avoids numpy's Python-level wrappers: 3–4 µs for a (20, 2) array."""
+    so it avoids numpy's Python-level wrappers."""
     if type(obj) is not dict or obj.keys() != _ARRAY_KEYS:
         raise WireError(f"{name}: expected an array map with dtype, shape, data")
     code = obj["dtype"]
@@ -329,7 +329,7 @@ class Command(Message):
 
     The robot side (simulated tracker or ``epuck_link``) runs the inner loop at
     ≥ 50 Hz on it; holding (v, ω) for a whole step instead costs about half of
-    W (docs/runtime-notes.md).
+    W (docs/design.md, "Relayed plans").
 
     ``x_next`` and ``v_next`` are the shifted candidate of the plan just made: the nominal
     state at step ``step + 1`` and the nominal inputs from there, and ``K`` the gain the
@@ -337,7 +337,7 @@ class Command(Message):
     realtime) that has no command of step ``step + m`` in time applies the
     ancillary law on it instead, ``u = v̂ + K(x − x̂)`` with ``x̂`` propagated
     m steps by the nominal model, for as long as ``v_next`` lasts
-    (docs/runtime-notes.md, "Missed deadlines")."""
+    (docs/design.md, "Missed deadlines")."""
 
     TYPE: ClassVar[str] = "cmd"
     step: int
@@ -458,7 +458,7 @@ class Digest(Message):
     """Tracker → agents (``--exchange relay``): the plans of one step, in one message.
 
     The tracker already receives every plan; relaying them lets each agent take
-    one message a step instead of n − 1 (docs/runtime-notes.md, "Relayed
+    one message a step instead of n − 1 (docs/design.md, "Relayed
     plans").  Row i is robot ``ids[i]``'s newest plan, of step ``steps[i]`` ≤
     ``step``, as the tracker received it on that robot's own key, with what a
     neighbour uses of it: the whole committed reference, footprint, precedence
@@ -595,7 +595,7 @@ class Applied(Message):
     The camera tracker, and the tracker of emulated robots, put it in the next tick
     (:attr:`Tick.fallback`, :attr:`Tick.braked`), so that the agent takes the same
     candidate and its neighbours skip the plan that was never executed, as with
-    simulated robots (docs/runtime-notes.md, "Missed deadlines")."""
+    simulated robots (docs/design.md, "Missed deadlines")."""
 
     TYPE: ClassVar[str] = "applied"
     step: int
@@ -684,8 +684,8 @@ def _checked(cls: type[M], **values: Any) -> M:
     """A ``cls`` of values already checked, made without the dataclass ``__init__``.
 
     Every field must be given (a ``ValueError`` otherwise).  A frozen dataclass's
-    ``__init__`` sets each field through ``object.__setattr__``: 7 µs a plan, and
-    an agent takes n − 1 relayed plans a step."""
+    ``__init__`` sets each field through ``object.__setattr__``, and an agent takes
+    n − 1 relayed plans a step."""
     expected = _field_names(cls)[1]
     if values.keys() != expected:
         raise ValueError(f"{cls.__name__}: fields {sorted(values)}, expected {sorted(expected)}")

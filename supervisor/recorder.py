@@ -1,4 +1,4 @@
-"""Rerun logging of the fleet (the supervisor is the only logger; DESIGN §6).
+"""Rerun logging of the fleet (the supervisor is the only logger).
 
 Entity paths (2-D, world frame, metres):
 
@@ -43,13 +43,12 @@ PALETTE = [
 
 PAIR_SERIES_MAX = 8
 """Most robots whose separations are logged pair by pair [robots]: 28 series.  Beyond, each
-robot's nearest distance (n series in one entity): at 16 robots the 240 pair series cost the
-supervisor a third of a core in ``send_columns`` alone, and no one reads 120 lines."""
+robot's nearest distance (n series in one entity): the pair series grow as n², each costs a
+``send_columns`` call per flush, and no one reads a hundred lines."""
 FLUSH_ROBOTS = 8
 """The recording is flushed every 0.25 s per this many robots: each entity costs a
-``send_columns`` call per flush, whatever its number of rows (16 robots, 128 entities: a
-flush of 5 steps took 92 ms, 58–67 ms once the entities shared their time columns and the
-strips went as one array; 0.3 ms of each call is rerun's native ``send_arrow_chunk``)."""
+``send_columns`` call per flush, whatever its number of rows, so larger fleets flush less
+often (a live viewer lags by at most the flush period)."""
 
 
 def robot_colour(rank: int) -> tuple[int, int, int]:
@@ -133,10 +132,10 @@ class Recorder:
 
     def flush(self) -> None:
         """Send the queued rows: one ``send_columns`` per entity instead of one ``log`` per value
-        (a log call costs 60–160 µs; at 40 values per step it was the runtime's bottleneck)."""
+        (a log call per value would cost more than the rest of the supervisor's work)."""
         rr = self.rr
         indexes: dict[tuple[tuple[int, float], ...], list[Any]] = {}
-        """Time columns by (step, time) rows: most entities share them (0.1 ms each to make)."""
+        """Time columns by (step, time) rows: most entities share them, so each is made once."""
         for entity, (archetype, rows) in self.pending.items():
             at = tuple((r[0], r[1]) for r in rows)
             index = indexes.get(at)

@@ -1,4 +1,4 @@
-"""Hostile-payload generators for the fuzz tests (``tests/test_fuzz_live.py``).
+"""Hostile-payload generators for the fuzz tests (``tests/system/test_fuzz_live.py``).
 
 ``Generator(name, rng).make(robot)`` returns one :class:`Payload` aimed at the decoder of
 the message type ``name`` (``pose``, ``truth``, ``odom``, ``plan``, ``cmd``, ``goal``,

@@ -227,7 +227,7 @@ class CameraRun:
         self.inbox = inbox = Inbox(keys, ROLE)
         # What each robot's epuck_link applied over a step (its command, its candidate, or the
         # brake), for the next tick: the agents and their neighbours then agree on which plans
-        # were executed (docs/runtime-notes.md, "Missed deadlines").
+        # were executed (docs/design.md, "Missed deadlines").
         self.subs = [
             inbox.watch_liveliness(session),
             inbox.subscribe(session, keys.applied(), Applied, keep=True),

@@ -4,7 +4,7 @@ The camera tracker, and the tracker of emulated robots, do not apply the agents'
 robot's ``epuck_link`` does, by its own clock (:class:`epuck_link.robot_side.LinkDeadline`), and
 reports what it applied (:class:`~ground.wire.Applied`).  The tracker puts those reports into its
 next tick (:attr:`~ground.wire.Tick.fallback`, :attr:`~ground.wire.Tick.braked`) so that the
-agent and its neighbours take the plan the robot executed (docs/runtime-notes.md, "Missed
+agent and its neighbours take the plan the robot executed (docs/design.md, "Missed
 deadlines").
 """
 

@@ -214,7 +214,7 @@ class SimTracker:
                 if self.realtime:
                     # Out now, in the second half of the step, when the commands are in and the
                     # cores idle: the agents decode it before the tick, not in the race to the
-                    # next deadline (docs/runtime-notes.md).
+                    # next deadline (docs/design.md, "Relayed plans").
                     self.relay.put(self.digest)
         if self.realtime:
             _until(self.t_start + t)
@@ -311,7 +311,7 @@ class SimTracker:
             # when the fleet takes its cores: a tick then goes out late, and a deadline counted
             # from the tick's time would have passed before the agents heard of the step.  A tick
             # more than LAG_LIMIT·Ts late starts the clock over from it: the simulated world then
-            # runs slower than the wall clock, which is logged (docs/runtime-notes.md, "Realtime
+            # runs slower than the wall clock, which is logged (docs/design.md, "Realtime
             # clock").
             lag = sent - (self.t_start + t)
             if lag > LAG_LIMIT * p.Ts:

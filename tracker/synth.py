@@ -35,7 +35,7 @@ from tracker.vision import OPENCV_MISSING, cv2_module
 SUPERSAMPLE = 2
 """Rendering resolution factor before the area-averaging downscale."""
 BODY_RADIUS = 0.037
-"""Radius of the drawn E-puck body [m] (DESIGN §7: diameter 70–75 mm)."""
+"""Radius of the drawn E-puck body [m] (the e-puck's body is 70–75 mm across)."""
 
 PoseFn = Callable[[float], tuple[float, float, float]]
 """A trajectory: time t [s] → axle-centre pose (x [m], y [m], θ [rad]), world frame."""

@@ -19,7 +19,7 @@ not modelled: undistort a distorting camera's images first, or the reprojection 
 :class:`Calibration` shows it.  Markers should span ≥ 18 px in the image (3 px per bit for
 4×4): at 14–22 px about 1 % of them were missed.
 
-Accuracy on synthetic frames (``tests/test_camera.py``: 1600×1200 px, 30° oblique view, 5 cm
+Accuracy on synthetic frames (``tests/tracker/test_camera.py``: 1600×1200 px, 30° oblique view, 5 cm
 markers of 18–28 px, Gaussian blur σ 0.8 px, noise σ 2 grey levels, fitted homography):
 position error ≤ 0.4 mm, heading ≤ 0.7°.
 

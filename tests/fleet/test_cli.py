@@ -19,7 +19,7 @@ import pytest
 
 from ground.params import preset
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SCENARIOS = ROOT / "scenarios"
 TIMEOUT = 300  # generous: a two-robot run takes a few seconds
 
@@ -89,7 +89,7 @@ def test_design_json_keys_and_consistency():
     assert 0 < tight["velocity_m_s"] < p.v_max
     assert 0 < tight["acceleration_m_s2"] < p.a_max
     assert d["epsilon_m"] == pytest.approx(p.epsilon, rel=1e-12)
-    # A usable tube (DESIGN §2): centimetre-sized, far from the paper's 0.35 m.
+    # A usable tube (docs/method.md §3): centimetre-sized, far from the paper's 0.35 m.
     assert 0 < zh["position_m"] < 0.03
     assert 0 < zh["velocity_m_s"] < p.v_max
     assert 0 < ph["position_m"] and 0 < ph["velocity_m_s"] < tight["velocity_m_s"]
@@ -127,7 +127,7 @@ def test_design_paper_preset_fails_and_says_why():
     assert d["admissible"] is False
     assert d["failures"]
     assert any("velocity" in f for f in d["failures"])
-    # DESIGN §2: the paper's K with W = ±1 cm gives a ≈ 0.35 m mRPI position half-width.
+    # docs/method.md §3: the paper's K with W = ±1 cm gives a ≈ 0.35 m mRPI position half-width.
     assert 0.30 <= d["Z_half_widths"]["position_m"] <= 0.40
     assert d["tightened"]["velocity_m_s"] < 0
     assert d["tightened"]["velocity_m_s"] == pytest.approx(
@@ -222,7 +222,7 @@ def test_simulate_two_robots_succeeds_with_full_summary(two_robot_run):
     assert s["sim_time_s"] == pytest.approx(s["steps"] * preset("epuck").Ts, rel=1e-9)
     assert s["sim_time_s"] <= 60.0 + 1e-9  # the scenario's duration
     assert s["wall_time_s"] > 0
-    # The coordination guarantee (DESIGN §5): committed references at least R apart, so the
+    # The coordination guarantee (docs/method.md §6): committed references at least R apart, so the
     # bodies never touch.
     assert s["min_reference_separation_m"] >= s["required_reference_separation_m"] - 1e-9
     assert s["required_reference_separation_m"] > 2 * preset("epuck").robot_radius

@@ -12,7 +12,7 @@ from fleet.scenes import random_scene
 from fleet.simulate import GOAL_TOLERANCE, run
 from ground.scenario import load_scenario, parse_scenario
 
-SCENARIOS = Path(__file__).parent.parent / "scenarios"
+SCENARIOS = Path(__file__).resolve().parents[2] / "scenarios"
 
 
 def _safe(result):

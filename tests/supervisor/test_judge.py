@@ -4,7 +4,7 @@ A robot's own certificate lets it publish any step on its own plan key; the
 wire format accepts steps up to 2**62.  Before the clock bound, one plan of
 step 10**12 made every later step look "skipped" by that robot, and the
 supervisor's loop counted empty plan steps towards 10**12 under the inbox lock
-(found by tests/test_secure_fleet.py's attacker)."""
+(found by tests/system/test_secure_fleet.py's attacker)."""
 
 from __future__ import annotations
 
@@ -99,7 +99,7 @@ def test_a_plan_whose_command_was_not_applied_is_not_what_is_checked() -> None:
     from ground.scenario import load_scenario
     from supervisor.judge import Judge
 
-    scn = load_scenario(Path(__file__).resolve().parent.parent / "scenarios" / "paper_two_robots.toml")
+    scn = load_scenario(Path(__file__).resolve().parents[2] / "scenarios" / "paper_two_robots.toml")
 
     def plan(robot: str, step: int, end: tuple[float, float]) -> Plan:
         pl = _plan(robot, step)
@@ -137,7 +137,7 @@ def test_a_committed_reference_is_only_ever_extended() -> None:
     assert not continues(p0, plan(1, moved))
     assert not continues(p0, plan(1, np.tile(path[0], (20, 1))))  # started again where it is
 
-    scn = load_scenario(Path(__file__).resolve().parent.parent / "scenarios" / "paper_two_robots.toml")
+    scn = load_scenario(Path(__file__).resolve().parents[2] / "scenarios" / "paper_two_robots.toml")
     mon = Judge(scn)
     other = {"r2": plan(0, np.tile([0.9, 0.9], (20, 1)))}
     mon.plans({"r1": p0, **other})

@@ -1,4 +1,4 @@
-"""Faults: lost and late plans, lost poses, dead, hung and restarted agents (issue 5).
+"""Faults: lost and late plans, lost poses, dead, hung and restarted agents.
 
 The theory first: a neighbour known only from an older plan is kept clear of
 as a static disc grown by ε per missed step, which keeps the appended
@@ -37,7 +37,7 @@ from ground.scenario import load_scenario
 from ground.wire import Plan
 from tracker.world import Disturbance, PoseNoise, make_plant, measure
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SCENARIOS = ROOT / "scenarios"
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "RERUN_ANALYTICS": "0"}
 LOSSY = {"seed": 3, "rules": [
@@ -502,9 +502,9 @@ def test_a_tracker_behind_the_wall_clock_starts_the_clock_over(tmp_path):
     """SIGSTOP the simulated tracker for 0.6 s (realtime): it comes back six steps behind
     the wall clock.  It must not judge the agents against deadlines that passed before
     its ticks went out: it starts the clock over from the late tick, logs it, and no
-    command of those steps counts as missed.  (Counting from the ticks' times, as before
-    session 10, the catch-up steps were missed by every robot: a 32-robot fleet whose
-    tracker fell behind never recovered.)  The robots stay safe and get home."""
+    command of those steps counts as missed.  (Counted from the ticks' times, the catch-up
+    steps would be missed by every robot, and a large fleet whose tracker fell behind would
+    never recover.)  The robots stay safe and get home."""
     hub = loopback(free_port())
     launcher, lines = _launch(SCENARIOS / "paper_three_robots.toml", tmp_path, hub, "realtime")
     log: list[str] = []

@@ -1,4 +1,4 @@
-"""Malformed and hostile payloads on every key of a live fleet (issue 5).
+"""Malformed and hostile payloads on every key of a live fleet.
 
 A real ``fleet run`` of ``paper_three_robots`` (tracker, supervisor, three agents, each its own
 OS process) is fuzzed from this process over Zenoh, once with the plans exchanged peer to peer
@@ -54,7 +54,7 @@ from procfs import alive, children, group_alive, stat
 from ground.net import NetConfig, free_port, loopback
 from ground.wire import MAX_PAYLOAD, Keys, Message, Odom, WireError, decode
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SCENARIO = ROOT / "scenarios" / "paper_three_robots.toml"
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "RERUN_ANALYTICS": "0"}
 FLEET = "lab"

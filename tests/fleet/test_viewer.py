@@ -33,7 +33,7 @@ from procfs import group_alive
 from ground.net import free_port
 from supervisor.recorder import robot_colour
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
 RERUN = Path(sys.executable).parent / "rerun"
 
@@ -65,6 +65,8 @@ FLAGS = [
 ]
 RENDER_TIMEOUT = 240.0
 """Seconds allowed for the viewer's wasm to load under the software rasteriser [s]."""
+
+pytestmark = pytest.mark.slow  # a recording rendered in a browser
 
 
 def _lines(stream: IO[str]) -> queue.Queue[str]:

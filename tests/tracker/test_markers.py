@@ -30,7 +30,7 @@ cv2 = pytest.importorskip("cv2")
 from tracker import markers as M  # noqa: E402
 from tracker.vision import make_detector  # noqa: E402
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SCENARIO = ROOT / "deploy" / "lab_three_robots.toml"
 DPI = 150
 """Rendering resolution of the pages [px/in]: a 5 cm marker spans 295 px."""

@@ -10,13 +10,12 @@ import pytest
 from agent.coordination import (
     PARKED,
     UNDER_WAY,
-    GridPlanner,
-    Navigator,
     NeighbourInfo,
     obstacle_halfplanes,
     shares,
     split_halfplanes,
 )
+from agent.navigator import GridPlanner, Navigator
 from ground.scenario import Circle
 
 EPS = 0.0055

@@ -30,7 +30,7 @@ def recorded():
             probs.append({k: np.array(v, copy=True) for k, v in prob.items()})
         return prob
 
-    scn = load_scenario(Path(__file__).parent.parent / "scenarios" / "swap_8.toml")
+    scn = load_scenario(Path(__file__).resolve().parents[2] / "scenarios" / "swap_8.toml")
     TubeQP.problem = recording
     try:
         result = run(scn, steps=800)  # the whole run: all home after about 550 steps
@@ -51,7 +51,7 @@ def test_proxsuite_and_daqp_agree(recorded):
         assert flag == 1 and ref is not None
         f_px, f_ref = TubeQP.objective(prob, res.xi), TubeQP.objective(prob, ref)
         assert abs(f_px - f_ref) <= 1e-6 * max(1.0, abs(f_ref))
-        # The applied input v̂_t, and ȳ, agree (DESIGN §8: within 1e-3 of the limit).
+        # The applied input v̂_t, and ȳ, agree (within 1e-3 of the limit).
         assert np.max(np.abs(res.xi[4:6] - ref[4:6])) <= 1e-3 * result.design.params.a_max
         assert np.max(np.abs(res.xi[qp.iy] - ref[qp.iy])) <= 1e-5
         assert TubeQP.violation(prob, res.xi) <= 2e-5

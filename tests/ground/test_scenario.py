@@ -30,7 +30,7 @@ from ground.scenario import (
     parse_scenario,
 )
 
-SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
+SCENARIO_DIR = Path(__file__).resolve().parents[2] / "scenarios"
 SHIPPED = sorted(SCENARIO_DIR.glob("*.toml"))
 ARENA = (-1.0, 1.0, -1.0, 1.0)
 

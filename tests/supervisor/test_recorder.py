@@ -13,7 +13,7 @@ from ground.scenario import load_scenario
 from ground.wire import Plan, Pose
 from supervisor.recorder import PAIR_SERIES_MAX, Recorder
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _series(rrd: Path) -> dict[str, list[tuple[int, list[float]]]]:

@@ -31,7 +31,7 @@ from tracker import vision as V  # noqa: E402
 from tracker.calibrate import main as calibrate_main  # noqa: E402
 from tracker.synth import PinholeCamera, Renderer, marker_centre, marker_corners, write_video  # noqa: E402
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONIOENCODING": "utf-8"}
 FIDUCIALS = {
     40: (-1.1, -1.1),
@@ -395,6 +395,7 @@ def _lines(stream: Any, into: queue.Queue[str]) -> None:
         into.put(line)
 
 
+@pytest.mark.slow
 def test_video_through_the_tracker_process_matches_the_trajectories(tmp_path, video):
     """``python -m tracker --source camera --video`` over Zenoh on loopback: every pose's
     (t, x, y, θ) matches the trajectory at t; the corrupt frame's step is skipped."""

@@ -1,7 +1,7 @@
 """Robot models (epuck_link/unicycle.py): wheels, exact unicycle arcs and the two inner loops.
 
 The inner loops must make the controlled point behave as the double integrator of
-DESIGN §1, including from rest, where the paper's eq. 3 is singular.
+docs/method.md §1, including from rest, where the paper's eq. 3 is singular.
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ def test_wheel_speeds_straight_line_exact_value():
 
 
 def test_metres_per_step_and_top_speed_match_epuck_geometry():
-    # 2π · 20.5 mm / 1000 steps; top speed ≈ 0.129 m/s (DESIGN §7).
+    # 2π · 20.5 mm / 1000 steps; top speed ≈ 0.129 m/s.
     assert GEOM.metres_per_step == pytest.approx(2 * math.pi * 0.0205 / 1000, rel=1e-12)
     assert GEOM.max_wheel_speed == pytest.approx(0.129, abs=5e-4)
 

@@ -24,11 +24,11 @@ from ground.geometry import controlled_point
 from ground.params import preset
 from ground.scenario import Scenario, check_geometry, load_scenario, parse_scenario
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 REAL = ROOT / "deploy" / "lab_three_robots.toml"
 TWIN = ROOT / "deploy" / "lab_three_robots_emulated.toml"
 MEASURED_POSITION_ERROR = 0.0004
-"""Largest camera position error on synthetic frames [m] (tracker/camera.py, tests/test_camera.py)."""
+"""Largest camera position error on synthetic frames [m] (tracker/camera.py, tests/tracker/test_camera.py)."""
 MEASURED_HEADING_ERROR = math.radians(0.7)
 """Largest camera heading error on synthetic frames [rad] (same source)."""
 

@@ -1,7 +1,7 @@
-"""A whole secure fleet run with a robot that publishes for another one (issue 5).
+"""A whole secure fleet run with a robot that publishes for another one.
 
-Issue 5 asks that robot r1 cannot publish a plan or a command for r2: the message is not
-delivered, and the fleet keeps running safely.  ``tests/test_security.py`` shows the
+The deployment must ensure that robot r1 cannot publish a plan or a command for r2: the message is not
+delivered, and the fleet keeps running safely.  ``tests/fleet/test_security.py`` shows the
 non-delivery with probe processes; here a complete lockstep run of ``paper_three_robots`` goes
 through the mutual-TLS router of ``deploy/`` (``python -m fleet.secure router``, certificates
 of ``deploy/make_certs.py`` in tmp_path, listening on ``tls/127.0.0.1:<free port>`` only,
@@ -9,7 +9,7 @@ multicast scouting off everywhere) while an attacker floods r2's keys:
 
 - the tracker, the supervisor and the three agents run as ``python -m tracker|supervisor|agent
   ... --zenoh-config FILE``, each with the client configuration
-  :func:`fleet.secure.client_json` builds for its identity (as ``tests/test_multihost.py`` does,
+  :func:`fleet.secure.client_json` builds for its identity (as ``tests/system/test_multihost.py`` does,
   without the namespaces);
 - the **attacker** (:data:`ATTACKER`) holds r1's legitimate certificate (its configuration is
   agent r1's).  It follows the clock and the poses (reads are open within the fleet) and, for

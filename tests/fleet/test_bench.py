@@ -22,8 +22,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "RERUN_ANALYTICS": "0", "PYTHONIOENCODING": "utf-8"}
+
+pytestmark = pytest.mark.slow  # process fleets
 
 
 def _command() -> list[str]:

@@ -1,4 +1,4 @@
-"""Missed deadlines: the robot side follows the shifted candidate (issue 5).
+"""Missed deadlines: the robot side follows the shifted candidate.
 
 A command that misses its deadline is not applied.  The robot side then applies
 the ancillary law on the shifted candidate of the last command it applied,
@@ -28,7 +28,7 @@ from fleet import simulate as harness
 from ground.geometry import controlled_point
 from ground.scenario import load_scenario
 
-SCENARIOS = Path(__file__).resolve().parent.parent / "scenarios"
+SCENARIOS = Path(__file__).resolve().parents[2] / "scenarios"
 
 
 class Late:

@@ -1,4 +1,4 @@
-"""Several hosts (issue 5): the secure fleet across Linux network namespaces.
+"""Several hosts: the secure fleet across Linux network namespaces.
 
 ``deploy/netns.py`` makes three namespaces joined by veth pairs on a bridge,
 with addresses of TEST-NET-2 (198.51.100.0/24, documentation only) that

@@ -1,4 +1,4 @@
-"""Secure deployment (issue 5): mutual TLS and access control at a real Zenoh router.
+"""Secure deployment: mutual TLS and access control at a real Zenoh router.
 
 One router process (``python -m fleet.secure router`` on the shipped template
 ``deploy/router.json5``) listens on ``tls/127.0.0.1:<free port>``; the clients
@@ -45,7 +45,7 @@ from fleet.secure import (
 from ground.net import free_port, render
 from ground.wire import Keys
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 DEPLOY = ROOT / "deploy"
 K = Keys("lab")
 DELIVERY_S = 10.0

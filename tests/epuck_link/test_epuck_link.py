@@ -48,7 +48,7 @@ from ground.wire import Command, Keys, Odom, Pose, Truth, Wheels, WireError, dec
 
 pytestmark = pytest.mark.timeout(180)
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SCENARIO = str(ROOT / "scenarios" / "paper_two_robots.toml")
 START = (-0.7, 0.0, 0.0)
 """r1's start in that scenario [m, m, rad]."""

@@ -1,4 +1,4 @@
-"""Tube math: invariance of Z, tightening, Ψ, admissibility (DESIGN §2–§3)."""
+"""Tube math: invariance of Z, tightening, Ψ, admissibility (docs/method.md §3–§4)."""
 
 from __future__ import annotations
 
@@ -112,7 +112,7 @@ def test_reference_generator_is_exact_schur_and_unit_gain(design):
 
 
 def test_stay_put_reference_is_admissible(design):
-    """Ψ's velocity part fits strictly in X̂ and K_r(Ψ ⊕ EB_ε) in Û (DESIGN §3, with margin)."""
+    """Ψ's velocity part fits strictly in X̂ and K_r(Ψ ⊕ EB_ε) in Û (docs/method.md §4, with margin)."""
     m = design.params.admissibility_margin
     Psi = design.Psi.Z
     assert Psi.support(np.eye(4)[1]) < (1 - m) * design.x_bound[1]
@@ -147,7 +147,7 @@ def test_pose_noise_must_leave_room_in_W():
 
 def test_paper_preset_is_honestly_inadmissible():
     d = synthesize(preset("paper"), ARENA)
-    # DESIGN §2: the paper's K gives a ≈ 0.35 m position half-width.
+    # docs/method.md §3: the paper's K gives a ≈ 0.35 m position half-width.
     assert 0.30 < d.Z.Z.interval_hull()[0] < 0.40
     assert not d.admissible
     assert any("velocity" in f and "m/s" in f for f in d.failures)
