@@ -350,8 +350,8 @@ class TruthPublisher:
 def main(argv: list[str] | None = None) -> int:
     from ground.bus import open_session, publisher
     from ground.process import add_common_args, announce, log
-    from ground.scenario import ConfigError, load_scenario
-    from ground.wire import ROBOT_ID, Keys
+    from ground.scenario import ConfigError
+    from ground.wire import Keys
 
     ap = argparse.ArgumentParser(prog="python -m epuck_link.emulator", description=__doc__.splitlines()[0])
     add_common_args(ap)
@@ -375,34 +375,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rate", type=float, default=100.0, help="truth publishing rate [Hz] (default 100)")
     args = ap.parse_args(argv)
     role = "emulator"
-
-    def fail(field: str, reason: str) -> int:
-        print(f"emulator: error: {field}: {reason}", file=sys.stderr)
+    try:
+        start = _start_pose(args)
+    except ConfigError as e:
+        print(f"emulator: error: {e}", file=sys.stderr)
         return 2
-
-    if not args.pty and args.tcp is None:
-        args.pty = True
-    if args.tcp is not None and not 0 <= args.tcp <= 65535:
-        return fail("--tcp", f"port {args.tcp} outside 0..65535")
-    if not 0 < args.speed_limit <= 32767:
-        return fail("--speed-limit", f"{args.speed_limit} outside 1..32767")
-    if not 0 < args.rate <= 1000:
-        return fail("--rate", f"{args.rate} Hz outside (0, 1000]")
-    if args.robot is not None and not ROBOT_ID.fullmatch(args.robot):
-        return fail("--robot", f"{args.robot!r} must match {ROBOT_ID.pattern}")
-    start = tuple(args.start) if args.start is not None else (0.0, 0.0, 0.0)
-    if args.start is None and args.scenario is not None and args.robot is not None:
-        try:
-            scn = load_scenario(args.scenario)
-        except ConfigError as e:
-            print(f"emulator: error: {e}", file=sys.stderr)
-            return 2
-        spec = next((r for r in scn.robots if r.id == args.robot), None)
-        if spec is None:
-            return fail("--robot", f"{args.robot!r} is not in the scenario")
-        start = spec.start
-    if not all(np.isfinite(start)):
-        return fail("--start", "expected finite numbers")
 
     emu = EpuckEmulator((start[0], start[1], start[2]), tuple(args.encoders), speed_limit=args.speed_limit)
 
@@ -420,7 +397,8 @@ def main(argv: list[str] | None = None) -> int:
             pty_srv = PtyServer(emu, report) if args.pty else None
             tcp_srv = TcpServer(emu, args.tcp, report=report) if args.tcp is not None else None
         except OSError as e:
-            return fail("--tcp" if args.tcp is not None else "--pty", str(e))
+            print(f"emulator: error: {'--tcp' if args.tcp is not None else '--pty'}: {e}", file=sys.stderr)
+            return 2
         servers = [s for s in (pty_srv, tcp_srv) if s is not None]
         truth_key = None
         if args.robot is not None:
@@ -451,6 +429,34 @@ def main(argv: list[str] | None = None) -> int:
         if session is not None:
             session.close()
     return 0
+
+
+def _start_pose(args: argparse.Namespace) -> tuple[float, float, float]:
+    """The emulated robot's start pose [m, m, rad], after checking the options; ConfigError
+    names the bad one."""
+    from ground.scenario import ConfigError, load_scenario
+    from ground.wire import ROBOT_ID
+
+    if not args.pty and args.tcp is None:
+        args.pty = True
+    if args.tcp is not None and not 0 <= args.tcp <= 65535:
+        raise ConfigError("--tcp", f"port {args.tcp} outside 0..65535")
+    if not 0 < args.speed_limit <= 32767:
+        raise ConfigError("--speed-limit", f"{args.speed_limit} outside 1..32767")
+    if not 0 < args.rate <= 1000:
+        raise ConfigError("--rate", f"{args.rate} Hz outside (0, 1000]")
+    if args.robot is not None and not ROBOT_ID.fullmatch(args.robot):
+        raise ConfigError("--robot", f"{args.robot!r} must match {ROBOT_ID.pattern}")
+    start = tuple(args.start) if args.start is not None else (0.0, 0.0, 0.0)
+    if args.start is None and args.scenario is not None and args.robot is not None:
+        scn = load_scenario(args.scenario)
+        spec = next((r for r in scn.robots if r.id == args.robot), None)
+        if spec is None:
+            raise ConfigError("--robot", f"{args.robot!r} is not in the scenario")
+        start = spec.start
+    if not all(np.isfinite(start)):
+        raise ConfigError("--start", "expected finite numbers")
+    return (float(start[0]), float(start[1]), float(start[2]))
 
 
 if __name__ == "__main__":
