@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from ground.geometry import axle_centre
 from ground.params import preset
 
 
@@ -128,7 +129,7 @@ def random_scene(
                 raise RuntimeError(f"random_scene: no placement of {n} starts after {max_tries} draws")
             c = rng.uniform(lo, hi)
             th = float(rng.uniform(-math.pi, math.pi))
-            axle = c - ell * np.array([math.cos(th), math.sin(th)])
+            axle = axle_centre(c, th, ell)
             if (
                 inside(axle)
                 and _far_enough(c, [o[0] for o in out], min_separation)
