@@ -21,7 +21,7 @@ from a process run's summary.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -36,8 +36,8 @@ SOLVED = "PROXQP_SOLVED"
 SLACK = 1e-9
 """Rounding slack of every distance check [m]."""
 
-Pose3 = tuple[float, float, float]
-"""A pose (x [m], y [m], θ [rad]), world frame."""
+Pose3 = Sequence[float] | Array
+"""A pose (x [m], y [m], θ [rad]), world frame, (3,)."""
 
 
 class Judge:
@@ -65,7 +65,7 @@ class Judge:
         """Steps whose plans were judged."""
         self.skipped_steps = 0
         """Samples whose ground truth was lost on the way, not judged."""
-        self.poses: dict[str, list[Pose3]] = {r: [] for r in self.ids}
+        self.poses: dict[str, list[tuple[float, ...]]] = {r: [] for r in self.ids}
         """True poses per sample."""
         self.errors: dict[str, list[float]] = {r: [] for r in self.ids}
         """Distance of the controlled point to the current goal per sample [m]."""
@@ -115,7 +115,7 @@ class Judge:
                 if d < 2.0 * radius:
                     self.collisions += 1
             pose = tuple(float(v) for v in poses[a])
-            self.poses[a].append(pose)  # type: ignore[arg-type]
+            self.poses[a].append(pose)
             pt = controlled_point(pose, self.lookahead)
             if not self.refs[a]:
                 self.refs[a].append(pt)  # the initial reference stays put at the start

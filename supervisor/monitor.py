@@ -143,8 +143,8 @@ class Monitor:
                 if state == "skip":
                     truths.append(None)  # lost on the way: this sample is not judged
                     continue
-                truth = {r: inbox.get(Truth, r, kk) for r in ids}
-                truths.append((truth, {r: inbox.get(Pose, r, kk) for r in ids}))  # type: ignore[misc]
+                truth = {r: tr for r in ids if (tr := inbox.get(Truth, r, kk)) is not None}
+                truths.append((truth, {r: inbox.get(Pose, r, kk) for r in ids}))
             while (step_plans := _plan_step(inbox, ids, kk := self.k_plan + len(plan_steps))) is not None:
                 # Tick k + 1 says whose plan of step k was not executed (its command missed).
                 t_next = inbox.get(Tick, "tracker", kk + 1)
@@ -251,7 +251,7 @@ class Monitor:
             poses=np.array([judge.poses[r][:T] for r in ids]).reshape(len(ids), T, 3),
             refs=judge.trace_refs(T), goals=np.array([judge.goals[r] for r in ids]),
             footprint=math.nan if judge.footprint is None else judge.footprint,
-            robot_radius=judge.radius, arena=tuple(self.scn.arena), obstacles=outlines(self.scn.obstacles),
+            robot_radius=judge.radius, arena=self.scn.arena, obstacles=outlines(self.scn.obstacles),
         )  # fmt: skip
 
 

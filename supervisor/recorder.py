@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 import os
 import time
+from collections.abc import Mapping
 from itertools import combinations
 from pathlib import Path
 from typing import Any
@@ -167,7 +168,9 @@ class Recorder:
             self.flush()
             self.last_flush = now
 
-    def truth(self, step: int, Ts: float, truth: dict[str, Pose], measured: dict[str, Pose]) -> None:
+    def truth(
+        self, step: int, Ts: float, truth: Mapping[str, Pose], measured: Mapping[str, Pose | None]
+    ) -> None:
         """Queue one step of ground truth and camera poses (sent by :meth:`flush`)."""
         rr, row = self.rr, self._row
         for rid in self.ids:

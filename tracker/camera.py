@@ -271,11 +271,11 @@ class CameraRun:
                     break
             elif -wait > pace:
                 self.late += 1
-            frame, lost = self._frame(k)
-            if lost:
+            frame, state = self._frame(k)
+            if state == "lost":
                 code = 1
                 break
-            if frame is False:
+            if state == "end":
                 break  # end of the file
             self._publish(k, frame)
             if k > 0:
@@ -303,23 +303,23 @@ class CameraRun:
         log(ROLE, f"run ended at step {k} ({why}); {self.late} late steps; {self.tracker.counts.summary()}")
         return code
 
-    def _frame(self, k: int) -> tuple[Frame | bool | None, bool]:
-        """(The frame of step k, None if there is none to use, False at the end of a video;
-        whether the device was lost)."""
+    def _frame(self, k: int) -> tuple[Frame | None, str]:
+        """The frame of step k (None if there is none to use) and the source's state: "ok",
+        "end" (the end of a video) or "lost" (the device stopped delivering frames)."""
         source, t_k = self.source, k * self.Ts
         if isinstance(source, VideoSource):
             index = math.floor(t_k * source.fps + 1e-6)
             last = self.last
             frame = last if last is not None and index <= last.index else source.frame_at(index)
-            return (False if frame is None else frame), False
+            return frame, "end" if frame is None else "ok"
         if not source.alive():
             log(ROLE, f"{source.name}: stopped delivering frames ({source.failed_reads} failed reads)")
-            return None, True
+            return None, "lost"
         frame, age = source.newest()
         if frame is not None and age > STALE_STEPS * self.Ts:
             self.tracker.skip(f"the newest frame of {source.name} is {age:.2f} s old")
             frame = None
-        return frame, False
+        return frame, "ok"
 
     def _publish(self, k: int, frame: Frame | None) -> None:
         """Step k's poses (and truths) of every robot found in ``frame``."""
