@@ -11,18 +11,12 @@ contributes ``nᵀ ȳ ≥ nᵀ q + r_i`` with q its point nearest c_i.
 A row is omitted when ``‖ȳ − c_i‖∞ ≤ ε`` already implies it
 (``s_ij σ ≥ √2 ε``), which keeps the QP small without weakening it.
 
-Shaping (cost only, so it can never break the guarantee):
+Neighbours known only from an older plan, or dead, are kept clear of as static discs
+(:class:`Hazard`, :func:`hazard_halfplanes`; :mod:`agent.hazards` sorts them).
 
-* :class:`Navigator` picks the target of the goal term: a waypoint around
-  static obstacles (shortest path on a visibility graph of the inflated
-  obstacles), and the deadlock tie-breaker: *priority yielding*.  Robots are
-  totally ordered by (priority, rank).  A robot whose committed point lies in
-  the corridor that a nearby higher-ordered robot still has to sweep (the
-  segment from that robot's last committed point to its next waypoint,
-  widened by their footprints) steps out of it to the best free point
-  around it.  The highest-ordered unfinished robot therefore never waits on
-  a lower one that can move, which is what breaks gridlock.
-* :func:`polynomial_penalty`, the paper's eq. 34, convexified per step.
+Shaping (cost only, so it can never break the guarantee): :func:`polynomial_penalty`, the
+paper's eq. 34, convexified per step.  The navigator that picks the goal term's target, and
+breaks deadlocks, is :mod:`agent.navigator`.
 """
 
 from __future__ import annotations

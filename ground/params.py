@@ -122,7 +122,7 @@ class ControllerParams:
 
     # Solver caps (docs/method.md §9).
     max_iter: int = 25
-    """ProxSuite outer-iteration cap.  Feasible QPs of this shape need ≤ 4."""
+    """ProxSuite outer-iteration cap.  Feasible QPs of this shape need a handful."""
     max_iter_in: int = 40
     """ProxSuite inner-iteration cap per outer iteration.  With max_iter this
     bounds an infeasible solve to 1000 inner iterations, tens of milliseconds,
