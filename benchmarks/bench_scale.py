@@ -3,13 +3,13 @@
 
 Run from the repository root::
 
-    python benchmarks/bench_scale.py                 # full run, 10–12 min on 2 cores (budget 15 min)
-    python benchmarks/bench_scale.py --quick         # 12–20 s: tiny configuration, every figure present
+    python benchmarks/bench_scale.py                 # full run, several minutes on 2 cores
+    python benchmarks/bench_scale.py --quick         # under a minute: every figure present, few samples
     python benchmarks/bench_scale.py --json OUT.json # where the JSON goes (default out/bench/bench.json)
     python benchmarks/bench_scale.py --no-fleet      # in-process parts only ([1]–[3])
 
-``fleet bench`` (fleet/bench.py) runs this file with the same arguments.  Five
-figures, each described in benchmarks/README.md ("Scale and performance"):
+``fleet bench`` (fleet/bench.py) runs this file with the same arguments.  Six
+figures, each described in docs/performance.md:
 
 1. Per-agent step time (``StepOutput.step_time``), p50/p99/max, for horizons
    N = 10/20/40 and 1/8/32 synthetic neighbours: ``TubeMPC.step`` driven in

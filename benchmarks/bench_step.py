@@ -3,12 +3,12 @@
 
 Run from the repository root (venv active)::
 
-    python benchmarks/bench_step.py            # full run, ~100 s on 2 cores (budget 5 min)
+    python benchmarks/bench_step.py            # full run, a minute or two on 2 cores
     python benchmarks/bench_step.py --quick    # ~20 s (budget 1 min)
     python benchmarks/bench_step.py --json out.json
     python benchmarks/bench_step.py --quick --profile   # + cProfile of the 8-neighbour step
 
-Three figures (see benchmarks/README.md for what each one means):
+Three figures (benchmarks/README.md; docs/performance.md for what they mean):
 
 1. Per-agent step time at N = 20 (``StepOutput.step_time``: assembly + solve
    + bookkeeping, navigator included), the QP part (``StepOutput.solve_time``)

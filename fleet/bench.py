@@ -6,7 +6,7 @@ thin shell.  :func:`add_arguments` declares the options without importing
 anything heavy (building the ``fleet`` parser stays cheap), and :func:`run`
 loads the harness from the checkout and runs it.  ``python -m fleet.bench``
 does the same without the ``fleet`` entry point.  What the figures mean:
-benchmarks/README.md, "Scale and performance".
+docs/performance.md.
 """
 
 from __future__ import annotations
