@@ -221,7 +221,7 @@ def _run_links(scn: Any) -> dict[str, str]:
 
     ``fleet run`` simulates every robot (``sim``) or emulates every robot
     (``emulator``); robots on ``serial:`` or ``tcp:`` links are real, and their
-    processes are started by hand (README, "Run on real E-pucks")."""
+    processes are started by hand (docs/lab.md, "Start the fleet")."""
     from epuck_link.transport import parse_link
 
     kinds: dict[str, str] = {}
@@ -234,7 +234,7 @@ def _run_links(scn: Any) -> dict[str, str]:
             raise ConfigError(
                 f"robots[{i}].link",
                 f"{r.link!r} is a real robot; fleet run drives sim and emulator links "
-                "(start real robots' processes as in the README, 'Run on real E-pucks')",
+                "(start real robots' processes by hand: docs/lab.md)",
             )
     if len(set(kinds.values())) > 1:
         raise ConfigError("robots", "fleet run needs every link sim or every link emulator, not a mix")

@@ -329,7 +329,7 @@ class Command(Message):
 
     The robot side (simulated tracker or ``epuck_link``) runs the inner loop at
     ≥ 50 Hz on it; holding (v, ω) for a whole step instead costs about half of
-    W (docs/design.md, "Relayed plans").
+    W (docs/design.md, "Where the inner loop runs").
 
     ``x_next`` and ``v_next`` are the shifted candidate of the plan just made: the nominal
     state at step ``step + 1`` and the nominal inputs from there, and ``K`` the gain the
