@@ -42,6 +42,7 @@ from agent.navigator import Navigator
 from agent.qp import StepData, TubeQP
 from agent.sets import Array
 from agent.tube import TubeDesign
+from ground.scenario import AT_GOAL
 
 TUBE_TOL = 2e-5
 """Tolerance of the tube check x − x̂ ∈ Z [m, m/s]: twice ProxSuite's eps_abs,
@@ -186,13 +187,13 @@ class TubeMPC:
     @property
     def at_goal(self) -> bool:
         """The committed end point is at the goal now (within 1 mm)."""
-        return bool(np.linalg.norm(self.y_ref[-1] - self.goal) < 1e-3)
+        return bool(np.linalg.norm(self.y_ref[-1] - self.goal) < AT_GOAL)
 
     @property
     def phase(self) -> int:
         """Precedence phase (:data:`agent.coordination.UNDER_WAY` …)."""
         d = float(np.linalg.norm(self.y_ref[-1] - self.goal))
-        if not self.reached_once and d < 1e-3:
+        if not self.reached_once and d < AT_GOAL:
             self.reached_once = True
         if not self.reached_once:
             return UNDER_WAY

@@ -2,14 +2,16 @@
 
 * ``fleet design [SCENARIO.toml] [--preset paper|epuck] [--json]`` prints the
   tube design and exits 1 if it is inadmissible.
-* ``fleet simulate SCENARIO.toml [--out DIR] [--seed N]`` runs the in-process
-  harness, writes ``DIR/summary.json`` and exits 0 only if the run completed
-  with zero collisions and every robot reached its goal.
+* ``fleet simulate SCENARIO.toml [--out DIR] [--seed N]`` runs the whole fleet in
+  one process (:mod:`fleet.simulate`), writes ``DIR/summary.json`` and exits 0 only if
+  the run completed with zero collisions and every robot reached its goal.
 * ``fleet run SCENARIO.toml [--out DIR] [--clock C] [--exchange E] [--seed N] [--viewer]
   [--listen ENDPOINT] [--lease S] [--topology T]`` runs the fleet as processes over Zenoh.
 * ``fleet goal SCENARIO.toml --robot ID X Y --connect ENDPOINT`` gives a
   running agent a new goal.
 * ``fleet report DIR`` writes the figures of a run.
+* ``fleet bench``, ``fleet markers``, ``fleet calibrate``: :mod:`fleet.bench`,
+  :mod:`tracker.markers`, :mod:`tracker.calibrate`.
 
 Bad input gets one line naming the field and the reason, and exit code 2.
 """
@@ -24,12 +26,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from agent.sets import SetComputationError
-from agent.tube import synthesize
 from fleet.launch import TOPOLOGIES
 from ground.params import PRESETS, preset
 from ground.process import lease_arg
-from ground.scenario import ConfigError, check_geometry, load_scenario
+from ground.scenario import ConfigError, load_scenario
 
 DEFAULT_ARENA = (-1.0, 1.0, -1.0, 1.0)
 EXIT_FAIL = 1
@@ -58,6 +58,9 @@ def cmd_design(args: argparse.Namespace) -> int:
         params, arena, name = scn.controller, scn.arena, scn.name
     else:
         params, arena, name = preset(args.preset or "epuck"), DEFAULT_ARENA, "(no scenario)"
+    from agent.sets import SetComputationError
+    from agent.tube import synthesize
+
     try:
         design = synthesize(params, arena)
     except SetComputationError as e:
@@ -95,30 +98,26 @@ def cmd_design(args: argparse.Namespace) -> int:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
+    from agent.tube import validated_design
     from fleet.simulate import run
 
     scn = load_scenario(args.scenario)
-    try:
-        design = synthesize(scn.controller, scn.arena)
-    except SetComputationError as e:
-        return _bad(f"controller: {e}")
-    if not design.admissible:
-        return _bad(f"controller: inadmissible tube design: {'; '.join(design.failures)}")
-    check_geometry(scn, design.footprint)
+    design = validated_design(scn)
     out = Path(args.out) if args.out else Path("out") / scn.name
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         return _bad(f"--out: cannot create {out}: {e.strerror}")
     result = run(scn, seed=args.seed, design=design)
+    from supervisor.judge import verdict
     from supervisor.trace import from_harness
 
     from_harness(result, scn).save(out / "trace.npz")
     summary = result.summary()
     summary["seed"] = scn.simulation.seed if args.seed is None else args.seed
     (out / "summary.json").write_text(json.dumps(_finite(summary), indent=2) + "\n")
-    ok = summary["collisions"] == 0 and summary["all_goals_reached"]
-    st = summary["step_time_ms"]
+    why = verdict(summary)
+    st = summary.get("step_time_ms", {"p50": 0.0, "p99": 0.0})
     print(
         f"{scn.name}: {summary['steps']} steps, {summary['sim_time_s']:.1f} s simulated in "
         f"{summary['wall_time_s']:.1f} s; collisions {summary['collisions']}, min distance "
@@ -127,15 +126,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         f"step time p50 {st['p50']:.2f} ms p99 {st['p99']:.2f} ms"
     )
     print(f"summary: {out / 'summary.json'}")
-    if not ok:
-        missing = [rid for rid, r in summary["robots"].items() if not r["reached_goal"]]
-        why = []
-        if summary["collisions"]:
-            why.append(f"{summary['collisions']} collision samples")
-        if missing:
-            why.append(f"goal not reached by {', '.join(missing)}")
-        print(f"fleet: run failed: {'; '.join(why)}", file=sys.stderr)
-    return 0 if ok else EXIT_FAIL
+    if why:
+        print(f"fleet: run failed: {why}", file=sys.stderr)
+    return EXIT_FAIL if why else 0
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -144,11 +137,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     # SIGTERM stops the fleet like Ctrl-C: the launcher's cleanup ends every process by pid.
     signal.signal(signal.SIGTERM, _interrupt)
 
+    from agent.tube import validated_design
+
     scn = load_scenario(args.scenario)
-    design = synthesize(scn.controller, scn.arena)
-    if not design.admissible:
-        return _bad(f"controller: inadmissible tube design: {'; '.join(design.failures)}")
-    check_geometry(scn, design.footprint)
+    design = validated_design(scn)  # every agent checks it too: fail here, once, before starting
     if args.faults:
         from ground.faults import FaultPlan, FaultPlanError
 
@@ -327,7 +319,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--preset", choices=PRESETS, help="controller preset (overrides the scenario's)")
     d.add_argument("--json", action="store_true", help="machine-readable output")
     d.set_defaults(func=cmd_design)
-    s = sub.add_parser("simulate", help="run a scenario in the in-process closed-loop harness")
+    s = sub.add_parser("simulate", help="run a scenario's whole fleet in one process (fast, closed loop)")
     s.add_argument("scenario", help="scenario TOML file")
     s.add_argument("--out", help="output directory (default out/<scenario name>)")
     s.add_argument("--seed", type=int, help="override the scenario's [simulation] seed")

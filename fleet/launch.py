@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from ground.net import NetConfig, free_port, loopback
+from supervisor.judge import verdict
 
 TOPOLOGIES = ("mesh", "star")
 """How ``fleet run`` links its processes: a mesh of Zenoh peers, or a star around the tracker."""
@@ -227,11 +228,5 @@ def run_fleet(
         return 1, "process failed: " + ", ".join(f"{r} (exit {codes[r]})" for r in crashed), summary
     if summary is None:
         return 1, "supervisor wrote no summary", None
-    if not summary.get("completed", False):
-        return 1, f"the supervisor judged only {summary['steps']} steps of the run", summary
-    if summary["collisions"]:
-        return 1, f"{summary['collisions']} collision samples", summary
-    missing = [r for r, v in summary["robots"].items() if not v["reached_goal"]]
-    if missing:
-        return 1, "goal not reached by " + ", ".join(missing), summary
-    return 0, "ok", summary
+    why = verdict(summary)
+    return (1, why, summary) if why else (0, "ok", summary)

@@ -33,7 +33,7 @@ from agent.messages import plan_message
 from agent.tube import TubeDesign, require_admissible, synthesize
 from epuck_link.robot_side import chain_input
 from ground.geometry import Array
-from ground.scenario import GOAL_TOLERANCE, Scenario
+from ground.scenario import Scenario, home
 from ground.wire import Plan
 from supervisor.judge import Judge
 from tracker.world import Disturbance, PoseNoise, make_plant, measure
@@ -280,9 +280,7 @@ def run(
             judge.simulated(rid, out.step_time * 1e3, tr.w_ratio[-1], out.candidate_violation)
         judge.plans(plans, unexecuted)
         times.append((k + 1) * Ts)
-        if stop_when_done and all(
-            traces[r].goal_error[-1] <= GOAL_TOLERANCE * 0.5 and ctrls[r].at_goal for r in ids
-        ):
+        if stop_when_done and all(home(ctrls[r].y_ref[-1], traces[r].point[-1], ctrls[r].goal) for r in ids):
             break
     n_done = k + 1 if n_steps > 0 else 0
     judge.truth({rid: traces[rid].pose[-1] for rid in ids})  # the final sample: no camera pose used

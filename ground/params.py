@@ -139,7 +139,7 @@ class ControllerParams:
     penalty: bool = False
     """Enable the paper's degree-5 polynomial penalty (eq. 34), convexified."""
     penalty_dlim: float = 0.12
-    """Activation threshold of the penalty on the squared distance ρ [m²]."""
+    """Activation threshold of the penalty on the squared distance s = ‖ȳ − c_j‖² [m²]."""
     penalty_weight: float = 50.0
     """Scale of the penalty polynomial."""
 

@@ -48,7 +48,6 @@ import difflib
 import itertools
 import math
 import numbers
-import re
 import tomllib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -60,15 +59,17 @@ import numpy as np
 from ground.geometry import controlled_point
 from ground.params import PRESETS, ControllerParams
 from ground.params import preset as _preset
+from ground.wire import MAX_RELAYED, ROBOT_ID
 
 GOAL_TOLERANCE = 0.02
 """A robot has reached its goal when its controlled point is within this distance of it [m]."""
+AT_GOAL = 1e-3
+"""A committed reference whose end point is within this distance of its goal ends there [m]."""
 DISTURBANCES = ("uniform", "adversarial", "none")
 """Accepted values of ``simulation.disturbance``."""
 PLANTS = ("unicycle", "double_integrator")
 """Accepted values of ``simulation.plant``."""
 
-_ID_RE = re.compile(r"^[A-Za-z0-9_-]+$")
 
 Point = Sequence[float] | np.ndarray
 
@@ -577,6 +578,10 @@ def _parse_robots(raw: object, path: str) -> tuple[RobotSpec, ...]:
     items = _array(raw, path, "robot tables ([[robots]])")
     if not items:
         raise ConfigError(path, "expected at least one robot")
+    if len(items) > MAX_RELAYED:
+        raise ConfigError(
+            path, f"{len(items)} robots; at most {MAX_RELAYED} (a tick and a relayed digest carry that many)"
+        )
     robots: list[RobotSpec] = []
     seen: dict[str, int] = {}
     markers: dict[int, int] = {}
@@ -586,8 +591,8 @@ def _parse_robots(raw: object, path: str) -> tuple[RobotSpec, ...]:
         _check_keys(table, rpath, _ROBOT_KEYS, required=("id", "start", "goal"))
         ipath = _join(rpath, "id")
         rid = _string(table["id"], ipath)
-        if not _ID_RE.match(rid):
-            raise ConfigError(ipath, f"invalid id {rid!r} (expected a non-empty string of A-Z a-z 0-9 _ -)")
+        if not ROBOT_ID.fullmatch(rid):
+            raise ConfigError(ipath, f"invalid id {rid!r} (expected 1 to 32 characters of A-Z a-z 0-9 _ -)")
         if rid in seen:
             raise ConfigError(ipath, f"duplicate id {rid!r} (also {path}[{seen[rid]}].id)")
         seen[rid] = i
@@ -958,6 +963,13 @@ def check_geometry(scn: Scenario, footprint: float) -> None:
                         f"{label} {_xy(pts[j])} is {sd} m from that of robots[{i}] ({scn.robots[i].id!r}), "
                         f"closer than their footprints allow (2 × {fp:.3f} = {sf} m)",
                     )
+
+
+def home(end: np.ndarray, point: np.ndarray, goal: np.ndarray) -> bool:
+    """A robot is home when its committed reference ends at its goal (within :data:`AT_GOAL`) and
+    its controlled point is within half the goal tolerance of it; ``end``, ``point`` and ``goal``
+    are (2,) [m].  A run whose robots are all home stops early."""
+    return bool(np.linalg.norm(end - goal) < AT_GOAL and np.linalg.norm(point - goal) <= 0.5 * GOAL_TOLERANCE)
 
 
 def goal_problem(scn: Scenario, footprint: float, goal: np.ndarray, plans: Sequence[Any]) -> str | None:

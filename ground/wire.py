@@ -12,17 +12,17 @@ Keys, for a fleet named ``F`` and a robot id ``R``:
 
 =========================  ==============================================
 ``fleet/F/pose/R``         tracker → all: measured pose (:class:`Pose`)
-``fleet/F/truth/R``        simulated tracker → supervisor: true pose
+``fleet/F/truth/R``        tracker → supervisor: true pose (the camera's, on real robots)
 ``fleet/F/odom/R``         robot side → agent: inner-loop velocity (:class:`Odom`)
 ``fleet/F/plan/R``         agent → all: committed reference (:class:`Plan`)
 ``fleet/F/cmd/R``          agent → robot side: acceleration (:class:`Command`)
 ``fleet/F/goal/R``         operator → agent: new goal (:class:`Goal`)
-``fleet/F/clock``          lockstep tick (:class:`Tick`)
+``fleet/F/clock``          tracker → all: the clock's tick (:class:`Tick`)
 ``fleet/F/digest``         tracker → agents: one step's plans, relayed (:class:`Digest`)
 ``fleet/F/alive/R``        liveliness token of agent R
 ``fleet/F/wheels/R``       ``epuck_link`` → all: wheel odometry (:class:`Wheels`)
 ``fleet/F/applied/R``      ``epuck_link`` → tracker: what the robot did over a step (:class:`Applied`)
-``fleet/F/emu/R``          e-puck emulator → tests: its true pose (:class:`Truth`)
+``fleet/F/emu/R``          e-puck emulator → tracker (``--source emulator``): its true pose
 =========================  ==============================================
 
 Units are SI; positions and headings are in the world frame.

@@ -286,6 +286,20 @@ class Judge:
         return refs
 
 
+def verdict(summary: Mapping[str, Any]) -> str | None:
+    """Why a run (its ``summary.json``) failed, in one line, or None if it passed: every step
+    judged, no collision, every robot at its goal."""
+    why = []
+    if not summary.get("completed", False):
+        why.append(f"only {summary.get('steps', 0)} steps of the run were judged")
+    if summary.get("collisions"):
+        why.append(f"{summary['collisions']} collision samples")
+    missing = [r for r, v in summary.get("robots", {}).items() if not v["reached_goal"]]
+    if missing:
+        why.append("goal not reached by " + ", ".join(missing))
+    return "; ".join(why) or None
+
+
 def percentiles(values: Iterable[float]) -> dict[str, float]:
     """``{"p50", "p99", "max"}`` of a series (0 for an empty one)."""
     a = np.fromiter(values, dtype=float)

@@ -213,3 +213,14 @@ def test_the_blocker_refuses_the_agent():
         [sys.executable, "-c", BLOCKER, *argv], cwd=ROOT, env=env, capture_output=True, text=True, timeout=60
     )
     assert res.returncode != 0 and "refused in this interpreter" in res.stderr
+
+
+def test_the_command_line_loads_the_solver_only_for_the_commands_that_need_it():
+    """``fleet goal``, ``report``, ``markers`` and ``calibrate`` run without the agent: building
+    the ``fleet`` parser imports neither the agent package nor ProxSuite."""
+    code = (
+        "import sys, fleet.cli; fleet.cli.build_parser(); "
+        "print(sorted({m.split('.')[0] for m in sys.modules} & {'agent', 'proxsuite', 'scipy'}))"
+    )
+    res = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0 and res.stdout.strip() == "[]", res.stdout + res.stderr

@@ -41,7 +41,7 @@ from epuck_link.robot_side import BRAKED, CANDIDATE, RobotSide
 from ground.bus import Inbox, open_session, publisher, remember_steps
 from ground.geometry import measured_state
 from ground.process import add_common_args, announce, fault_plan, log
-from ground.scenario import GOAL_TOLERANCE, ConfigError, Scenario, load_scenario
+from ground.scenario import ConfigError, Scenario, home, load_scenario
 from ground.wire import Applied, Command, Digest, Keys, Odom, Plan, Pose, Tick, Truth
 from tracker.reports import REPORT_WAIT, Reports
 from tracker.world import Disturbance, EmulatedWorld, PoseNoise, SimulatedWorld
@@ -447,10 +447,10 @@ def _all_home(inbox: Inbox, ids: list[str], world: SimulatedWorld | EmulatedWorl
             continue  # a dead agent's robot is braked where it is: it cannot get home
         with inbox.cond:  # the plans' callbacks add to the history meanwhile
             plan = inbox.newest(Plan, rid, k)  # the plan of step k if it is in
-        if plan is None or np.linalg.norm(plan.committed[-1] - plan.goal) >= 1e-3:
+        if plan is None:
             return False
         with inbox.cond:
             pt = world.state(rid)[[0, 2]]
-        if np.linalg.norm(pt - plan.goal) > 0.5 * GOAL_TOLERANCE:
+        if not home(plan.committed[-1], pt, plan.goal):
             return False
     return True

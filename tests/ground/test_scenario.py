@@ -535,3 +535,30 @@ def test_polygon_stored_ccw_and_distance() -> None:
 def test_controlled_point() -> None:
     assert controlled_point((1.0, 2.0, math.pi / 2), 0.04) == pytest.approx([1.0, 2.04])
     assert controlled_point((1.0, 2.0, 0.3), 0.0) == pytest.approx([1.0, 2.0])
+
+
+def test_robot_ids_and_counts_the_wire_cannot_carry_are_refused_at_load() -> None:
+    """A scenario that loads must run: an id the wire rejects (over 32 characters) or more robots
+    than a tick and a relayed digest carry is one ConfigError naming the field, not a run whose
+    messages are all rejected."""
+    from ground.wire import MAX_RELAYED, ROBOT_ID
+
+    ok = base()
+    ok["robots"][0]["id"] = "r" * 32
+    assert parse_scenario(ok).robots[0].id == "r" * 32 and ROBOT_ID.fullmatch("r" * 32)
+    long = base()
+    long["robots"][0]["id"] = "r" * 33
+    with pytest.raises(ConfigError) as e:
+        parse_scenario(long)
+    assert e.value.field == "robots[0].id" and "32" in e.value.reason
+    crowd = base()
+    crowd["arena"]["bounds"] = [-20.0, 20.0, -20.0, 20.0]
+    crowd["robots"] = [
+        {"id": f"r{i}", "start": [-19.0 + 0.5 * i, -10.0, 0.0], "goal": [-19.0 + 0.5 * i, 10.0]}
+        for i in range(MAX_RELAYED + 1)
+    ]
+    with pytest.raises(ConfigError) as e:
+        parse_scenario(crowd)
+    assert e.value.field == "robots" and str(MAX_RELAYED) in e.value.reason
+    crowd["robots"] = crowd["robots"][:MAX_RELAYED]
+    assert len(parse_scenario(crowd).robots) == MAX_RELAYED
