@@ -69,8 +69,12 @@ class Judge:
         """True poses per sample."""
         self.errors: dict[str, list[float]] = {r: [] for r in self.ids}
         """Distance of the controlled point to the current goal per sample [m]."""
-        self.refs: dict[str, list[Array]] = {r: [] for r in self.ids}
-        """The executed committed reference for each sample's time (2,) [m]."""
+        self.refs: dict[str, list[Array]] = {
+            r.id: [controlled_point(r.start, self.lookahead)] for r in scn.robots
+        }
+        """The executed committed reference for each sample's time (2,) [m]: at sample 0 the
+        start, where every agent's initial reference stays put; then one per step of plans, in
+        whatever order the plans and the truths arrive."""
         self.pose_error: dict[str, list[float]] = {r: [0.0, 0.0] for r in self.ids}
         """Largest camera error per robot: [per-axis position [m], heading [rad]]."""
         self.last_plans: dict[str, Plan] = {}
@@ -117,8 +121,6 @@ class Judge:
             pose = tuple(float(v) for v in poses[a])
             self.poses[a].append(pose)
             pt = controlled_point(pose, self.lookahead)
-            if not self.refs[a]:
-                self.refs[a].append(pt)  # the initial reference stays put at the start
             self.errors[a].append(float(np.linalg.norm(pt - self.goals[a])))
 
     def skipped(self) -> None:

@@ -149,3 +149,38 @@ def test_a_committed_reference_is_only_ever_extended() -> None:
     mon.plans({**other})  # r1's plan of step 4 lost on the way: step 5 is not checked against 3
     mon.plans({"r1": plan(5, path[6:26]), **other})
     assert mon.robot["r1"]["breaks"] == 1
+
+
+def test_the_judge_does_not_depend_on_whether_plans_or_truths_come_first() -> None:
+    """The supervisor takes truths and plans as they come, and the truth of sample 0 may arrive
+    after the plans of step 0 (the tracker batches truths).  The figures and the trace's
+    references are the same either way: sample 0's reference is the start."""
+    from pathlib import Path
+
+    from ground.geometry import controlled_point
+    from ground.scenario import load_scenario
+    from supervisor.judge import Judge
+
+    scn = load_scenario(Path(__file__).resolve().parents[2] / "scenarios" / "paper_two_robots.toml")
+    ell = scn.controller.lookahead
+    starts = {r.id: np.array(r.start, float) for r in scn.robots}
+
+    def plan(robot: str, step: int) -> Plan:
+        end = controlled_point(starts[robot], ell) + 0.001 * (step + 1)
+        return Plan(**{**_plan(robot, step).__dict__, "committed": np.tile(end, (20, 1))})
+
+    def run(plans_first: bool) -> Judge:
+        judge = Judge(scn)
+        truth0 = {r: starts[r] for r in IDS}
+        truth1 = {r: starts[r] + [0.002, 0.0, 0.0] for r in IDS}
+        steps = [lambda: judge.plans({r: plan(r, 0) for r in IDS}), lambda: judge.truth(truth0)]
+        for s in steps if plans_first else steps[::-1]:
+            s()
+        judge.truth(truth1)
+        return judge
+
+    a, b = run(True), run(False)
+    for r in IDS:
+        assert np.array_equal(a.trace_refs(2), b.trace_refs(2))
+        assert np.array_equal(a.refs[r][0], controlled_point(starts[r], ell))
+        assert a.deviation(r) == b.deviation(r) > 0
