@@ -19,7 +19,7 @@ figures, each described in docs/performance.md:
    cost the split rule and the navigator).
 2. ProxSuite against DAQP and OSQP on the same recorded QP sequence (the
    N = 20 / 8-neighbour cell of [1], plus, in a full run, 20 robots of the
-   in-process harness with their 8 nearest neighbours), as ratios to DAQP, with
+   in-process simulator with their 8 nearest neighbours), as ratios to DAQP, with
    the ProxSuite settings and problem structures tried to close the gap.
 3. The wire cost: encode/decode of each message type, and what one agent
    decodes per step in a fleet of n robots (n − 1 plans, its pose, odometry
@@ -638,7 +638,7 @@ def compare_solvers(
 
 
 def harness_sequences(seed: int, steps: int) -> list[dict[str, Any]]:
-    """QP sequences of 20 robots of the in-process harness, 8 nearest neighbours (bench_step)."""
+    """QP sequences of 20 robots of the in-process simulator, 8 nearest neighbours (bench_step)."""
     cache: dict[str, Any] = {}
     scn, _, _ = bs.random_20(seed, cache)
     probe, _ = bs.bench_harness(scn, cache["design"], steps, nearest=8, record={rb.id for rb in scn.robots})

@@ -15,7 +15,7 @@ Three figures (benchmarks/README.md; docs/performance.md for what they mean):
    and the step without the navigator (``Navigator.target`` timed by a wrapper
    installed at run time), in three settings:
 
-   * ``harness-20 (19 nb)``: the in-process harness on a seeded random
+   * ``harness-20 (19 nb)``: the in-process simulator on a seeded random
      20-robot scene, every agent sees its 19 neighbours (as shipped);
    * ``harness-20 (8 nearest)``: the same scene, each agent is given only
      its 8 nearest neighbours (a benchmark-only filter; rows only arise for

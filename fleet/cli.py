@@ -110,9 +110,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         return _bad(f"--out: cannot create {out}: {e.strerror}")
     result = run(scn, seed=args.seed, design=design)
     from supervisor.judge import verdict
-    from supervisor.trace import from_harness
+    from supervisor.trace import from_simulation
 
-    from_harness(result, scn).save(out / "trace.npz")
+    from_simulation(result, scn).save(out / "trace.npz")
     summary = result.summary()
     summary["seed"] = scn.simulation.seed if args.seed is None else args.seed
     (out / "summary.json").write_text(json.dumps(_finite(summary), indent=2) + "\n")

@@ -1,6 +1,6 @@
 """Run traces for reports: what happened, as arrays, in ``DIR/trace.npz``.
 
-Both ``fleet simulate`` (from the harness) and the supervisor of ``fleet run``
+Both ``fleet simulate`` (:func:`from_simulation`) and the supervisor of ``fleet run``
 write the same file, so ``fleet report DIR`` works on either.
 """
 
@@ -76,7 +76,7 @@ def outlines(obstacles: Any, sides: int = 96) -> list[Array]:
     return out
 
 
-def from_harness(result: Any, scenario: Any) -> Trace:
+def from_simulation(result: Any, scenario: Any) -> Trace:
     """Build a trace from :func:`fleet.simulate.run`'s result."""
     ids = list(result.traces)
     poses = np.array([np.array(result.traces[r].pose) for r in ids])

@@ -61,7 +61,7 @@ class PoseNoise:
 
     ``bounds`` = (position per axis [m], heading [rad]).  It draws from its own
     generator, seeded from the run's seed, so the disturbance sequence does
-    not depend on it and the tracker process reproduces the harness exactly."""
+    not depend on it and the tracker process reproduces ``fleet simulate`` exactly."""
 
     def __init__(self, bounds: tuple[float, float], seed: int):
         self.bound = np.array([bounds[0], bounds[0], bounds[1]], dtype=float)

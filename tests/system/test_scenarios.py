@@ -1,4 +1,4 @@
-"""The scenario table of the core issue, run in the in-process harness."""
+"""Shipped and seeded random scenes, run by `fleet simulate` in one process: every robot home, safely."""
 
 from __future__ import annotations
 
