@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from fleet.scenes import random_scene
-from fleet.simulate import GOAL_TOLERANCE, run
-from ground.scenario import load_scenario, parse_scenario
+from fleet.simulate import run
+from ground.scenario import GOAL_TOLERANCE, load_scenario, parse_scenario
 
 SCENARIOS = Path(__file__).resolve().parents[2] / "scenarios"
 
