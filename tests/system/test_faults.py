@@ -438,6 +438,7 @@ def test_killed_agent_is_braked_avoided_and_rejoins_when_restarted(tmp_path, top
         assert restarted.returncode == 0
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize(("lease", "topology"), [(None, "mesh"), (1.0, "mesh"), (None, "star")])
 def test_hung_agent_is_braked_and_resumes(tmp_path, lease, topology):
     """SIGSTOP r2 for about 5 s (realtime): the tracker's watchdog brakes its robot after 0.5 s,
@@ -498,6 +499,7 @@ def test_hung_agent_is_braked_and_resumes(tmp_path, lease, topology):
     assert re.search(r"\[supervisor\] step \d+: r2 is alive again", after), after[-3000:]
 
 
+@pytest.mark.realtime
 def test_a_tracker_behind_the_wall_clock_starts_the_clock_over(tmp_path):
     """SIGSTOP the simulated tracker for 0.6 s (realtime): it comes back six steps behind
     the wall clock.  It must not judge the agents against deadlines that passed before

@@ -406,6 +406,7 @@ def _interleave(lists: list[list[Item]]) -> list[Item]:
     return out
 
 
+@pytest.mark.realtime
 @pytest.mark.slow
 @pytest.mark.timeout(400)
 @pytest.mark.parametrize("exchange", ["mesh", "relay"])

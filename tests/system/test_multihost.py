@@ -345,7 +345,12 @@ def _supervisor_events(rrd: Path) -> list[tuple[float, str]]:
 
 # ------------------------------------------------------------------ tests
 @pytest.mark.parametrize(
-    ("clock", "exchange"), [("lockstep", "mesh"), ("realtime", "mesh"), ("realtime", "relay")]
+    ("clock", "exchange"),
+    [
+        ("lockstep", "mesh"),
+        pytest.param("realtime", "mesh", marks=pytest.mark.realtime),
+        pytest.param("realtime", "relay", marks=pytest.mark.realtime),
+    ],
 )
 def test_three_robots_complete_across_hosts(
     clock: str, exchange: str, topo: Any, certs: Path, tmp_path: Path
@@ -368,6 +373,7 @@ def test_three_robots_complete_across_hosts(
     assert s["all_goals_reached"] and s["clock"] == clock, s
 
 
+@pytest.mark.realtime
 def test_a_cut_link_is_a_partition_and_the_host_rejoins(topo: Any, certs: Path, tmp_path: Path) -> None:
     b = PLACEMENT["r2"]
     cut_robots = sorted(r for r, h in PLACEMENT.items() if h == b)

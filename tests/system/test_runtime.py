@@ -341,6 +341,7 @@ def test_nothing_listens_beyond_loopback(tmp_path):
             assert a.startswith("0100007F:"), f"pid {pid} listens on {a}"
 
 
+@pytest.mark.realtime
 @pytest.mark.parametrize("exchange", ["mesh", "relay"])
 def test_realtime_run_of_three_robots_for_20_s(tmp_path, exchange):
     """Wall-clock steps at Ts for 20 s: safe, with deadline misses counted and reported, and
@@ -372,6 +373,7 @@ def test_realtime_run_of_three_robots_for_20_s(tmp_path, exchange):
     assert all(r["tube_exits"] == 0 and r["reference_breaks"] == 0 for r in robots), s["robots"]
 
 
+@pytest.mark.realtime
 def test_goal_changed_at_run_time(tmp_path):
     """An operator moves r1's goal while the fleet runs: bad goals are refused, the good one is
     taken, and the run is judged against it (realtime clock, so the run is still going)."""
@@ -483,6 +485,7 @@ def test_sigterm_to_fleet_run_stops_every_process(tmp_path):
     assert not [k for k in kids if alive(k)], "processes outlived the launcher"
 
 
+@pytest.mark.realtime
 def test_realtime_digest_comes_half_a_step_before_its_tick(tmp_path):
     """Realtime relay: the digest of step k − 1 goes out once the tracker has taken the
     commands of k − 1, not with tick k, so the agents decode it while the cores are idle.
