@@ -65,6 +65,9 @@ GOAL_TOLERANCE = 0.02
 """A robot has reached its goal when its controlled point is within this distance of it [m]."""
 AT_GOAL = 1e-3
 """A committed reference whose end point is within this distance of its goal ends there [m]."""
+GOAL_MARGIN = 0.01
+"""Two goals are at least the two footprints plus this apart [m]: the split rule then leaves
+both robots slack to settle, and the goal discs of docs/method.md §7 do not touch."""
 DISTURBANCES = ("uniform", "adversarial", "none")
 """Accepted values of ``simulation.disturbance``."""
 PLANTS = ("unicycle", "double_integrator")
@@ -942,7 +945,7 @@ def check_geometry(scn: Scenario, footprint: float) -> None:
 
     Raises :class:`ConfigError` when a start's controlled point or a goal lies
     outside the arena or closer than ``footprint`` to a wall or an obstacle, or
-    when two starts (or two goals) are closer than ``2·footprint``."""
+    when two starts are closer than ``2·footprint``, or two goals than that plus :data:`GOAL_MARGIN`."""
     ell = scn.controller.lookahead
     starts = [controlled_point(r.start, ell) for r in scn.robots]
     goals = [np.asarray(r.goal, dtype=float) for r in scn.robots]
@@ -952,16 +955,21 @@ def check_geometry(scn: Scenario, footprint: float) -> None:
         for kind, p, label in (("start", starts[i], "controlled point"), ("goal", goals[i], "goal")):
             check_point(scn, p, fp, f"robots[{i}].{kind}", label)
 
-    for kind, pts, label in (("start", starts, "controlled point"), ("goal", goals, "goal")):
+    for kind, pts, label, margin in (
+        ("start", starts, "controlled point", 0.0),
+        ("goal", goals, "goal", GOAL_MARGIN),
+    ):
         for j in range(len(pts)):
             for i in range(j):
                 d = float(np.linalg.norm(pts[j] - pts[i]))
-                if d < 2.0 * fp:
-                    sd, sf = _pair(d, 2.0 * fp)
+                need = 2.0 * fp + margin
+                if d < need:
+                    sd, sf = _pair(d, need)
+                    rule = f"2 × {fp:.3f}" + (f" + {margin:g}" if margin else "")
                     raise ConfigError(
                         f"robots[{j}].{kind}",
-                        f"{label} {_xy(pts[j])} is {sd} m from that of robots[{i}] ({scn.robots[i].id!r}), "
-                        f"closer than their footprints allow (2 × {fp:.3f} = {sf} m)",
+                        f"{label} {_xy(pts[j])} of {scn.robots[j].id!r} is {sd} m from that of robots[{i}] "
+                        f"({scn.robots[i].id!r}), closer than their footprints allow ({rule} = {sf} m)",
                     )
 
 
@@ -976,7 +984,7 @@ def goal_problem(scn: Scenario, footprint: float, goal: np.ndarray, plans: Seque
     """Why a goal (2,) [m] given at run time cannot be accepted, or None.
 
     It must clear the walls and obstacles by the footprint radius [m] and park at least the two
-    footprints away from every other robot's current goal: ``plans`` are their latest
+    footprints and :data:`GOAL_MARGIN` away from every other robot's current goal: ``plans`` are their latest
     :class:`~ground.wire.Plan` (``robot``, ``goal`` (2,) [m], ``footprint`` [m])."""
     try:
         check_point(scn, goal, footprint, "goal")
@@ -984,7 +992,8 @@ def goal_problem(scn: Scenario, footprint: float, goal: np.ndarray, plans: Seque
         return e.reason
     for pl in plans:
         d = float(np.linalg.norm(goal - pl.goal))
-        if d < footprint + pl.footprint:
-            need = footprint + pl.footprint
-            return f"{d:.3f} m from {pl.robot}'s goal, closer than the footprints allow ({need:.3f} m)"
+        need = footprint + pl.footprint + GOAL_MARGIN
+        if d < need:
+            why = f"closer than the footprints and the margin allow ({need:.3f} m)"
+            return f"{d:.3f} m from {pl.robot}'s goal, {why}"
     return None
