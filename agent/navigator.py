@@ -28,7 +28,7 @@ from scipy.sparse.csgraph import dijkstra
 from agent.coordination import PARKED, NeighbourInfo, order_key
 from agent.sets import Array
 from ground.geometry import controlled_point
-from ground.scenario import ConfigError, Scenario
+from ground.scenario import GOAL_MARGIN, Circle, ConfigError, Scenario
 
 ORDER_CELL = 0.01
 """Cell of the grid on which :func:`precedence` checks that the arena stays connected [m]: fine
@@ -41,7 +41,8 @@ def precedence(scn: Scenario, footprint: float) -> list[int]:
     when no such order exists.
 
     Robots are taken by priority (the higher first) and, within one priority, in this order:
-    the next rank goes to the first robot, in scenario order, whose goal disc of radius
+    the next rank goes to the first robot (the goals with the most others within two goal discs
+    first, then in scenario order) whose goal disc of radius
     2·``footprint`` [m], added to the walls, obstacles and the goal discs of the robots ranked
     before it, leaves the goals of all the robots after it in the largest piece of the free
     space of the controlled points, and their starts too unless inside a goal disc: parked
@@ -58,8 +59,10 @@ def precedence(scn: Scenario, footprint: float) -> list[int]:
     fp = float(footprint)
     free = (X >= xmin + fp) & (X <= xmax - fp) & (Y >= ymin + fp) & (Y <= ymax - fp)
     for ob in scn.obstacles:
-        near = free.copy()
-        idx = np.flatnonzero(near)
+        pts = np.array([ob.center]) if isinstance(ob, Circle) else np.array(ob.vertices)
+        reach = fp + (ob.radius if isinstance(ob, Circle) else 0.0)
+        lo, hi = pts.min(axis=0) - reach, pts.max(axis=0) + reach
+        idx = np.flatnonzero(free & (X >= lo[0]) & (X <= hi[0]) & (Y >= lo[1]) & (Y <= hi[1]))
         d = np.array([ob.distance((X.flat[k], Y.flat[k])) for k in idx])
         free.flat[idx[d < fp]] = False
 
@@ -94,8 +97,7 @@ def precedence(scn: Scenario, footprint: float) -> list[int]:
     disc = 2.0 * fp
     starts = [controlled_point(r.start, ell) for r in scn.robots]
 
-    def away(g: Array) -> np.ndarray:
-        return np.asarray((X - g[0]) ** 2 + (Y - g[1]) ** 2 >= disc * disc)
+    outside = [np.asarray((X - g[0]) ** 2 + (Y - g[1]) ** 2 >= disc * disc) for g in goals]
 
     def reaches(a: Array, b: Array, parked: list[int]) -> bool:
         """From a to b past the goal discs of ``parked`` (those covering a excepted: a robot
@@ -103,7 +105,7 @@ def precedence(scn: Scenario, footprint: float) -> list[int]:
         m = free.copy()
         for k in parked:
             if float(np.hypot(*(a - goals[k]))) >= disc:
-                m &= away(goals[k])
+                m &= outside[k]
         ca, cb = nearest_free(m, a), nearest_free(m, b)
         if ca is None or cb is None:
             return False
@@ -114,12 +116,14 @@ def precedence(scn: Scenario, footprint: float) -> list[int]:
     left = sorted(range(len(scn.robots)), key=lambda i: (-scn.robots[i].priority, i))
     ranks = [0] * len(left)
     mask = free
+    # Crowded goals first: a goal ringed by others is walled in unless it parks before them.
+    crowd = [sum(float(np.hypot(*(g - h))) < 2.0 * disc + GOAL_MARGIN for h in goals) for g in goals]
     for rank in range(len(left)):
         same = [i for i in left if scn.robots[i].priority == scn.robots[left[0]].priority]
+        same.sort(key=lambda i: -crowd[i])  # stable: scenario order among equals
         chosen = None
         for i in same:
-            g = goals[i]
-            trial = mask & away(g)
+            trial = mask & outside[i]
             lab, n = ndimage.label(trial, structure=np.ones((3, 3)))
             main = 1 + int(np.argmax(np.bincount(lab.ravel(), minlength=n + 1)[1:])) if n else 0
             ok = True
@@ -127,7 +131,10 @@ def precedence(scn: Scenario, footprint: float) -> list[int]:
                 if j == i:
                     continue
                 gc = nearest_free(trial, goals[j])
-                ok = gc is not None and int(lab[gc]) == main and reaches(starts[j], goals[j], [*placed, i])
+                sc = cell(starts[j])
+                ok = gc is not None and int(lab[gc]) == main
+                if ok:
+                    ok = int(lab[sc]) == main if trial[sc] else reaches(starts[j], goals[j], [*placed, i])
                 if not ok:
                     break
             if ok:
@@ -244,9 +251,9 @@ class GridPlanner:
         dist, pred = dijkstra(G, directed=True, indices=self.cell(goal), return_predecessors=True)
         return np.asarray(dist), np.asarray(pred)
 
-    def walled(self, dist: Array) -> Array:
+    def walled(self, dist: Array) -> np.ndarray:
         """Cells whose shortest path to the goal crosses a blocked cell (from :meth:`field`)."""
-        return np.asarray(dist >= self.BLOCKED * min(self.hx, self.hy))
+        return np.asarray(dist >= self.BLOCKED * min(self.hx, self.hy), dtype=bool)
 
     def carrot(self, pred: Array, start: Array, goal: Array, lookahead: float) -> Array:
         """Point ``lookahead`` [m] along the path from ``start`` towards ``goal``."""

@@ -2,6 +2,10 @@
 
 * :func:`antipodal_swap` — n robots on a circle, each crossing to the antipodal point.
 * :func:`random_scene` — seeded random starts and goals with a minimum separation.
+* :func:`ring`, :func:`mirrored_grid`, :func:`corridor_swap`, :func:`gap_swap`,
+  :func:`goals_by_obstacles` — the scenes that stall a crowd: goals at the minimum legal
+  spacing, odd rings, narrow passages.  :func:`hard_scene` draws one of them from a seed
+  (``fleet bench --liveness``).
 * :func:`scene_to_toml` — render such a dict as a scenario file.
 
 The scenes use the default (``epuck``) controller; their defaults are chosen so
@@ -178,6 +182,161 @@ def random_scene(
         "simulation": {"seed": int(seed)},
         "robots": robots,
     }
+
+
+# --------------------------------------------------------------------------- hard scenes
+
+MIN_GOAL_SPACING = 0.2782
+"""Goal spacing of the hard scenes [m]: the epuck preset's two footprints (2 × 0.13404 m) plus
+:data:`ground.scenario.GOAL_MARGIN`, rounded up: the closest goals the loader accepts."""
+
+
+def _robot(k: int, point: Sequence[float], goal: Sequence[float], lookahead: float = 0.04) -> dict[str, Any]:
+    """Robot ``r{k+1}`` whose controlled point (``lookahead`` [m] ahead of the axle) starts at
+    ``point`` [m], heading at its goal."""
+    dx, dy = goal[0] - point[0], goal[1] - point[1]
+    th = math.atan2(dy, dx) if math.hypot(dx, dy) > 1e-9 else 0.0
+    axle = axle_centre(np.asarray(point, dtype=float), th, lookahead)
+    return {
+        "id": f"r{k + 1}",
+        "start": [_clean(axle[0]), _clean(axle[1]), _clean(th)],
+        "goal": [_clean(goal[0]), _clean(goal[1])],
+    }
+
+
+def _scene(
+    name: str, robots: list[dict[str, Any]], duration: float, seed: int, **extra: Any
+) -> dict[str, Any]:
+    bounds = extra.pop("arena", (-1.0, 1.0, -1.0, 1.0))
+    return {
+        "name": name,
+        "duration": float(duration),
+        "arena": {"bounds": [float(b) for b in bounds]},
+        "simulation": {"seed": int(seed)},
+        "robots": robots,
+        **extra,
+    }
+
+
+def ring(
+    n: int, spacing: float = 0.317, shift: int = 1, duration: float = 150.0, seed: int = 0
+) -> dict[str, Any]:
+    """n robots on a circle, ``spacing`` [m] apart; robot k heads for robot k + ``shift``'s start."""
+    radius = spacing / (2.0 * math.sin(math.pi / n))
+    pts = [(radius * math.cos(2 * math.pi * k / n), radius * math.sin(2 * math.pi * k / n)) for k in range(n)]
+    robots = [_robot(k, pts[k], pts[(k + shift) % n]) for k in range(n)]
+    return _scene(f"ring_{n}_shift{shift}", robots, duration, seed)
+
+
+def mirrored_grid(
+    rows: int, cols: int, spacing: float = MIN_GOAL_SPACING, duration: float = 200.0, seed: int = 0
+) -> dict[str, Any]:
+    """A rows × cols grid of robots ``spacing`` [m] apart, each heading for its mirror image
+    through the centre (the centre robot of an odd grid stays)."""
+    pts = [
+        ((i - (rows - 1) / 2) * spacing, (j - (cols - 1) / 2) * spacing)
+        for i in range(rows)
+        for j in range(cols)
+    ]
+    robots = [_robot(k, p, (-p[0], -p[1])) for k, p in enumerate(pts)]
+    return _scene(f"grid_{rows}x{cols}", robots, duration, seed)
+
+
+def corridor_swap(
+    n: int, length: float = 3.0, width: float = 0.6, duration: float = 300.0, seed: int = 0
+) -> dict[str, Any]:
+    """n robots in a ``length`` × ``width`` [m] arena, half at each end, each crossing to the
+    other end: they must pass head-on in a corridor barely two robots wide."""
+    half, x0, y = n // 2, 0.5 * length - 0.2, 0.07
+    left = [(-x0 + 0.3 * k, y * (-1) ** k) for k in range(half)]
+    right = [(x0 - 0.3 * k, y * (-1) ** k) for k in range(n - half)]
+    robots = [
+        _robot(k, left[k], (right[k][0] if k < len(right) else x0 - 0.3 * k, -left[k][1]))
+        for k in range(half)
+    ]
+    robots += [_robot(half + k, right[k], (-x0 + 0.3 * k, -right[k][1])) for k in range(n - half)]
+    arena = (-0.5 * length, 0.5 * length, -0.5 * width, 0.5 * width)
+    return _scene(f"corridor_{n}", robots, duration, seed, arena=arena)
+
+
+def gap_swap(n: int, gap: float = 0.36, duration: float = 240.0, seed: int = 0) -> dict[str, Any]:
+    """Two walls of polygons across the arena at x = 0, leaving a ``gap`` [m] at the centre;
+    n robots on each side, each crossing to the mirror point on the other side."""
+    g = 0.5 * gap
+    walls = [
+        {"polygon": [[-0.06, g], [0.06, g], [0.06, 1.0], [-0.06, 1.0]]},
+        {"polygon": [[-0.06, -1.0], [0.06, -1.0], [0.06, -g], [-0.06, -g]]},
+    ]
+    ys = [(k - (n - 1) / 2) * 0.3 for k in range(n)]
+    robots = [_robot(k, (-0.6, y), (0.6, -y)) for k, y in enumerate(ys)]
+    robots += [_robot(n + k, (0.6, y), (-0.6, -y)) for k, y in enumerate(ys)]
+    return _scene(f"gap_{2 * n}", robots, duration, seed, obstacles=walls)
+
+
+def goals_by_obstacles(n: int, seed: int = 0, duration: float = 200.0) -> dict[str, Any]:
+    """Three circular obstacles, each with goals packed around it 1 cm past the footprint
+    (0.14 m from its edge); up to n ≤ 12 robots from starts on the left."""
+    rng = np.random.default_rng(seed)
+    centres = [(0.45, 0.5), (0.45, -0.5), (-0.2, 0.0)]
+    radius = 0.12
+    goals: list[tuple[float, float]] = []
+    for cx, cy in centres:
+        d = radius + 0.14
+        for a in np.linspace(0.0, 2 * math.pi, 7, endpoint=False) + rng.uniform(0, math.pi):
+            q = (cx + d * math.cos(a), cy + d * math.sin(a))
+            if (
+                all(math.hypot(q[0] - o[0], q[1] - o[1]) >= MIN_GOAL_SPACING for o in goals)
+                and max(map(abs, q)) < 0.85
+            ):
+                goals.append(q)
+    goals = [goals[i] for i in rng.permutation(len(goals))[:n]]
+    slots = [(x, -0.75 + 0.3 * j) for j in range(6) for x in (-0.8, -0.5)]  # 0.3 m apart
+    starts = [slots[i] for i in sorted(rng.permutation(len(slots))[: len(goals)])]
+    robots = [_robot(k, a, b) for k, (a, b) in enumerate(zip(starts, goals, strict=True))]
+    obstacles = [{"circle": {"center": list(c), "radius": radius}} for c in centres]
+    return _scene(f"obstacle_goals_{len(goals)}", robots, duration, seed, obstacles=obstacles)
+
+
+HARD_FAMILIES = ("dense", "ring", "grid", "swap", "corridor", "gap", "obstacles")
+"""The families :func:`hard_scene` draws from, in turn."""
+
+
+def hard_scene(seed: int) -> dict[str, Any]:
+    """One scene of family ``HARD_FAMILIES[seed % 7]``, its size and layout drawn from ``seed``."""
+    rng = np.random.default_rng(seed)
+    family = HARD_FAMILIES[seed % len(HARD_FAMILIES)]
+    if family == "dense":
+        n = int(rng.integers(8, 17))
+        d = random_scene(seed, n=n, min_separation=MIN_GOAL_SPACING, duration=300.0, margin=0.15)
+    elif family == "ring":
+        n = int(rng.choice([3, 5, 7, 9]))
+        d = ring(
+            n,
+            spacing=float(rng.uniform(MIN_GOAL_SPACING + 0.001, 0.34)),
+            shift=int(rng.integers(1, n)),
+            seed=seed,
+        )
+    elif family == "grid":
+        rows, cols = (int(v) for v in rng.choice([(2, 2), (2, 3), (3, 3), (3, 4), (4, 4)]))
+        d = mirrored_grid(rows, cols, seed=seed, duration=300.0)
+    elif family == "swap":
+        n = int(rng.integers(4, 25))
+        compact = n > 12
+        spacing = 0.238 if compact else MIN_GOAL_SPACING
+        ell = COMPACT_CONTROLLER["lookahead"] if compact else preset("epuck").lookahead
+        radius = max(0.4, spacing / (2 * math.sin(math.pi / n)) + ell + 0.001)  # the axle is ℓ outside
+        half = max(1.0, radius + 0.25)
+        d = antipodal_swap(n, radius=radius, duration=20.0 * n, seed=seed, arena=(-half, half, -half, half))
+        if compact:
+            d["controller"] = dict(COMPACT_CONTROLLER)
+    elif family == "corridor":
+        d = corridor_swap(int(rng.choice([2, 4, 6])), seed=seed)
+    elif family == "gap":
+        d = gap_swap(int(rng.integers(1, 5)), seed=seed)
+    else:
+        d = goals_by_obstacles(int(rng.integers(4, 13)), seed=seed)
+    d["name"] = f"hard_{seed}_{d['name']}"
+    return d
 
 
 # --------------------------------------------------------------------------- TOML output
