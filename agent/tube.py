@@ -264,6 +264,13 @@ def synthesize(
             f"pose_noise too large: it moves the measured point by up to 2·{p.point_noise:.4g} m per "
             f"step, more than {1 - margin:.2f}·W position bound {p.W[0]:.4g} m"
         )
+    if p.lookahead <= 0:
+        # docs/method.md §1: ℓ = 0 runs the paper's eq. 3, regularised at v_min; from rest its
+        # one-step error is far outside any usable W, so the tube would promise what it cannot.
+        failures.append(
+            "lookahead 0 m: the inner loop is then the paper's eq. 3, singular at rest, and its "
+            "one-step error is not bounded by W; use a look-ahead point (e.g. lookahead = 0.04)"
+        )
     if p.delta <= 0:
         failures.append(f"delta {p.delta} m must be > 0")
     if eps <= 0:

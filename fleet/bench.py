@@ -19,26 +19,30 @@ from pathlib import Path
 from types import ModuleType
 
 from fleet.launch import TOPOLOGIES
+from ground.process import seed_arg
 
 HARNESS = Path(__file__).resolve().parent.parent / "benchmarks" / "bench_scale.py"
 """The harness in the source checkout this package is installed from (editable install)."""
+LIVENESS = HARNESS.with_name("bench_liveness.py")
+"""The liveness harness (``--liveness N``), beside it."""
 
 
 class HarnessMissing(RuntimeError):
     """The package was installed without its source tree, so there is no harness to run."""
 
 
-def _harness() -> ModuleType:
-    """The harness module, loaded once from :data:`HARNESS`."""
-    if not HARNESS.is_file():
-        raise HarnessMissing(f"{HARNESS} not found: fleet bench needs the source checkout (pip install -e .)")
+def _harness(path: Path = HARNESS) -> ModuleType:
+    """The harness module, loaded once from ``path`` (:data:`HARNESS` or :data:`LIVENESS`)."""
+    if not path.is_file():
+        raise HarnessMissing(f"{path} not found: fleet bench needs the source checkout (pip install -e .)")
     os.environ["OMP_NUM_THREADS"] = "1"  # before the harness imports proxsuite
-    mod = sys.modules.get("bench_scale")
-    if mod is None or getattr(mod, "__file__", None) != str(HARNESS):
-        spec = importlib.util.spec_from_file_location("bench_scale", HARNESS)
+    name = path.stem
+    mod = sys.modules.get(name)
+    if mod is None or getattr(mod, "__file__", None) != str(path):
+        spec = importlib.util.spec_from_file_location(name, path)
         assert spec is not None and spec.loader is not None
         mod = importlib.util.module_from_spec(spec)
-        sys.modules["bench_scale"] = mod
+        sys.modules[name] = mod
         spec.loader.exec_module(mod)
     return mod
 
@@ -54,7 +58,7 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument(
         "--out", metavar="DIR", default="out/bench", help="run directories and JSON (default out/bench)"
     )
-    ap.add_argument("--seed", type=int, default=0, help="seed of the step grid and the recorded QPs")
+    ap.add_argument("--seed", type=seed_arg, default=0, help="seed of the step grid and the recorded QPs")
     ap.add_argument(
         "--steps", type=int, default=None, help="steps per step-grid cell (default 600; quick 12)"
     )
@@ -85,12 +89,23 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
         "router, one link per process)",
     )  # fmt: skip
     ap.add_argument("--no-fleet", action="store_true", help="skip the fleet runs (figures [4] to [6])")
+    ap.add_argument(
+        "--liveness", type=int, default=None, metavar="N",
+        help="instead: run N hard scenes (fleet.scenes.hard_scene, seeds from --seed) through fleet "
+        "simulate and print completion, time to goal and path efficiency (docs/performance.md)",
+    )  # fmt: skip
+    ap.add_argument("--jobs", type=int, default=2, help="--liveness: processes (default 2)")
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the benchmark; 0 once the tables are printed and the JSON written, 2 without a harness."""
+    for name in ("liveness", "jobs"):
+        value = getattr(args, name)
+        if value is not None and value < 1:
+            print(f"fleet: error: --{name}: must be at least 1, got {value}", file=sys.stderr)
+            return 2
     try:
-        mod = _harness()
+        mod = _harness(LIVENESS if args.liveness is not None else HARNESS)
     except HarnessMissing as e:
         print(f"fleet: error: {e}", file=sys.stderr)
         return 2

@@ -28,7 +28,7 @@ from typing import Any
 
 from fleet.launch import TOPOLOGIES
 from ground.params import PRESETS, preset
-from ground.process import lease_arg
+from ground.process import lease_arg, seed_arg
 from ground.scenario import ConfigError, load_scenario
 
 DEFAULT_ARENA = (-1.0, 1.0, -1.0, 1.0)
@@ -322,12 +322,12 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("simulate", help="run a scenario's whole fleet in one process (fast, closed loop)")
     s.add_argument("scenario", help="scenario TOML file")
     s.add_argument("--out", help="output directory (default out/<scenario name>)")
-    s.add_argument("--seed", type=int, help="override the scenario's [simulation] seed")
+    s.add_argument("--seed", type=seed_arg, help="override the scenario's [simulation] seed")
     s.set_defaults(func=cmd_simulate)
     r = sub.add_parser("run", help="run the fleet as separate processes over Zenoh (lockstep clock)")
     r.add_argument("scenario", help="scenario TOML file")
     r.add_argument("--out", help="output directory (default out/<scenario name>)")
-    r.add_argument("--seed", type=int, help="override the scenario's [simulation] seed")
+    r.add_argument("--seed", type=seed_arg, help="override the scenario's [simulation] seed")
     r.add_argument("--viewer", action="store_true", help="open the Rerun viewer live")
     r.add_argument(
         "--clock", choices=["lockstep", "realtime"], default=None,

@@ -34,7 +34,7 @@ from agent.navigator import precedence
 from agent.tube import TubeDesign, require_admissible, synthesize
 from epuck_link.robot_side import chain_input
 from ground.geometry import Array
-from ground.scenario import Scenario, home
+from ground.scenario import Scenario, home, settle_samples
 from ground.wire import Plan
 from supervisor.judge import Judge
 from tracker.world import Disturbance, PoseNoise, make_plant, measure
@@ -226,6 +226,7 @@ def run(
     ids = [rb.id for rb in robots]
     times = [0.0]
     k = 0
+    home_run = 0
     for k in range(n_steps):
         # The sample the agents measure now, as the supervisor judges it: the true poses
         # with the camera's.
@@ -283,7 +284,9 @@ def run(
             judge.simulated(rid, out.step_time * 1e3, tr.w_ratio[-1], out.candidate_violation)
         judge.plans(plans, unexecuted)
         times.append((k + 1) * Ts)
-        if stop_when_done and all(home(ctrls[r].y_ref[-1], traces[r].point[-1], ctrls[r].goal) for r in ids):
+        all_home = all(home(ctrls[r].y_ref[-1], traces[r].point[-1], ctrls[r].goal) for r in ids)
+        home_run = home_run + 1 if all_home else 0
+        if stop_when_done and home_run >= settle_samples(Ts):
             break
     n_done = k + 1 if n_steps > 0 else 0
     judge.truth({rid: traces[rid].pose[-1] for rid in ids})  # the final sample: no camera pose used

@@ -18,6 +18,7 @@ from typing import Any, NoReturn
 
 from ground.faults import FaultPlan, FaultPlanError
 from ground.net import MODES, NetConfig, lease_seconds
+from ground.scenario import MAX_SEED
 
 
 def lease_arg(text: str) -> float:
@@ -26,6 +27,17 @@ def lease_arg(text: str) -> float:
         return lease_seconds(text)
     except ValueError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def seed_arg(text: str) -> int:
+    """argparse type of ``--seed``: an integer in [0, :data:`ground.scenario.MAX_SEED`]."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if not 0 <= n <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"must be in [0, {MAX_SEED}], got {n}")
+    return n
 
 
 def add_common_args(ap: argparse.ArgumentParser) -> None:

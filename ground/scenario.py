@@ -48,6 +48,7 @@ import difflib
 import itertools
 import math
 import numbers
+import stat
 import tomllib
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -62,12 +63,29 @@ from ground.params import preset as _preset
 from ground.wire import MAX_RELAYED, ROBOT_ID
 
 GOAL_TOLERANCE = 0.02
-"""A robot has reached its goal when its controlled point is within this distance of it [m]."""
+"""A robot is at its goal when its controlled point is within this distance of it [m]."""
+SETTLE_TIME = 1.0
+"""A robot has arrived when its controlled point has stayed within :data:`GOAL_TOLERANCE` of its
+goal this long [s]: one pass through the goal is not an arrival."""
 AT_GOAL = 1e-3
 """A committed reference whose end point is within this distance of its goal ends there [m]."""
 GOAL_MARGIN = 0.01
 """Two goals are at least the two footprints plus this apart [m]: the split rule then leaves
 both robots slack to settle, and the goal discs of docs/method.md §7 do not touch."""
+MAX_HORIZON = 200
+"""Largest MPC horizon N [steps]: the QP has 6N + 4 variables and its matrices grow as N²."""
+MAX_MRPI_TERMS = 1000
+"""Most terms of the mRPI sum (``mrpi_max_terms``): each adds a zonotope generator block."""
+MIN_MRPI_TOL = 1e-12
+"""Smallest ``mrpi_tol``: below it the tail bound is lost in rounding and never met."""
+MAX_ARENA_SIDE = 20.0
+"""Longest arena side [m]: the navigator's 5 cm grid then has at most 400 × 400 cells."""
+MAX_SCENARIO_BYTES = 1 << 20
+"""Largest scenario file read [bytes]."""
+MAX_SEED = 2**32 - 1
+"""Largest seed: a 32-bit unsigned integer, the same in every process."""
+PRIORITY_RANGE = (-(2**31), 2**31 - 1)
+"""Priorities the wire carries (``ground.wire.Plan.priority``, a 32-bit signed integer)."""
 DISTURBANCES = ("uniform", "adversarial", "none")
 """Accepted values of ``simulation.disturbance``."""
 PLANTS = ("unicycle", "double_integrator")
@@ -341,13 +359,16 @@ def _number(
     return x
 
 
-def _integer(value: object, path: str, *, ge: int | None = None) -> int:
-    """An integer (bools and floats rejected), optionally >= ``ge``."""
+def _integer(value: object, path: str, *, ge: int | None = None, le: int | None = None, why: str = "") -> int:
+    """An integer (bools and floats rejected), optionally in [``ge``, ``le``]; ``why`` says
+    why the upper bound."""
     if isinstance(value, bool | np.bool_) or not isinstance(value, numbers.Integral):
         raise ConfigError(path, f"expected an integer, got {_show(value)}")
     n = int(value)
     if ge is not None and n < ge:
         raise ConfigError(path, f"must be an integer >= {ge}, got {n}")
+    if le is not None and n > le:
+        raise ConfigError(path, f"must be an integer <= {le}{why}, got {n}")
     return n
 
 
@@ -427,9 +448,9 @@ def _weights(length: int, positive: bool = False) -> Rule:
     return rule
 
 
-def _int_at_least(lo: int) -> Rule:
+def _int_at_least(lo: int, hi: int | None = None, why: str = "") -> Rule:
     def rule(value: object, path: str) -> int:
-        return _integer(value, path, ge=lo)
+        return _integer(value, path, ge=lo, le=hi, why=why)
 
     return rule
 
@@ -447,7 +468,7 @@ def _disturbance_box(value: object, path: str) -> tuple[float, ...]:
 
 _CONTROLLER_RULES: dict[str, Rule] = {
     "Ts": _positive,
-    "horizon": _int_at_least(2),
+    "horizon": _int_at_least(2, MAX_HORIZON, " (the QP's matrices grow as the horizon squared)"),
     "Q": _weights(4),
     "R": _weights(2, positive=True),
     "gamma": _nonnegative,
@@ -465,8 +486,8 @@ _CONTROLLER_RULES: dict[str, Rule] = {
     "robot_radius": _positive,
     "lookahead": _nonnegative,
     "v_min": _positive,
-    "mrpi_tol": _positive,
-    "mrpi_max_terms": _int_at_least(1),
+    "mrpi_tol": lambda v, p: _number(v, p, ge=MIN_MRPI_TOL),
+    "mrpi_max_terms": _int_at_least(1, MAX_MRPI_TERMS, " (each term adds generators to the tube)"),
     "admissibility_margin": lambda v, p: _number(v, p, ge=0.0, lt=1.0),
     "max_iter": _int_at_least(1),
     "max_iter_in": _int_at_least(1),
@@ -550,7 +571,7 @@ def _parse_simulation(raw: object, path: str) -> SimulationSpec:
     _check_keys(table, path, [f.name for f in dataclasses.fields(SimulationSpec)])
     spec = SimulationSpec()
     if "seed" in table:
-        spec = dataclasses.replace(spec, seed=_integer(table["seed"], _join(path, "seed"), ge=0))
+        spec = dataclasses.replace(spec, seed=_integer(table["seed"], _join(path, "seed"), ge=0, le=MAX_SEED))
     if "disturbance" in table:
         d = _string(table["disturbance"], _join(path, "disturbance"), DISTURBANCES)
         spec = dataclasses.replace(spec, disturbance=d)
@@ -571,6 +592,12 @@ def _parse_arena(raw: object, path: str) -> tuple[float, float, float, float]:
         raise ConfigError(bpath, f"xmin {_fmt(xmin)} m must be < xmax {_fmt(xmax)} m")
     if not ymin < ymax:
         raise ConfigError(bpath, f"ymin {_fmt(ymin)} m must be < ymax {_fmt(ymax)} m")
+    for side, size in (("x", xmax - xmin), ("y", ymax - ymin)):
+        if not size <= MAX_ARENA_SIDE:
+            raise ConfigError(
+                bpath,
+                f"the arena is {_fmt(size)} m along {side}; at most {MAX_ARENA_SIDE:g} m (navigator grid)",
+            )
     return (xmin, xmax, ymin, ymax)
 
 
@@ -601,7 +628,16 @@ def _parse_robots(raw: object, path: str) -> tuple[RobotSpec, ...]:
         seen[rid] = i
         sx, sy, sth = _vector(table["start"], _join(rpath, "start"), 3)
         gx, gy = _vector(table["goal"], _join(rpath, "goal"), 2)
-        priority = _integer(table["priority"], _join(rpath, "priority")) if "priority" in table else 0
+        lo, hi = PRIORITY_RANGE
+        priority = 0
+        if "priority" in table:
+            priority = _integer(
+                table["priority"], _join(rpath, "priority"), le=hi, why=" (32 bits on the wire)"
+            )
+            if priority < lo:
+                raise ConfigError(
+                    _join(rpath, "priority"), f"must be >= {lo} (32 bits on the wire), got {priority}"
+                )
         link = "sim"
         if "link" in table:
             link = _string(table["link"], _join(rpath, "link"))
@@ -858,8 +894,22 @@ def load_scenario(path: str | Path, preset_override: str | None = None) -> Scena
     (field ``file`` for an unreadable file or a TOML syntax error)."""
     p = Path(path)
     try:
+        st = p.stat()
+        if stat.S_ISDIR(st.st_mode):
+            raise IsADirectoryError
+        if not stat.S_ISREG(st.st_mode):
+            raise ConfigError("file", f"{p}: not a regular file (a device, pipe or socket)")
+        if st.st_size > MAX_SCENARIO_BYTES:
+            raise ConfigError(
+                "file", f"{p}: {st.st_size} bytes; a scenario is at most {MAX_SCENARIO_BYTES} bytes"
+            )
         with p.open("rb") as fh:
-            data = tomllib.load(fh)
+            text = fh.read(MAX_SCENARIO_BYTES + 1)
+        if len(text) > MAX_SCENARIO_BYTES:
+            raise ConfigError(
+                "file", f"{p}: more than {MAX_SCENARIO_BYTES} bytes; a scenario is at most that"
+            )
+        data = tomllib.loads(text.decode("utf-8"))
     except FileNotFoundError:
         raise ConfigError("file", f"{p}: no such file") from None
     except IsADirectoryError:
@@ -973,10 +1023,28 @@ def check_geometry(scn: Scenario, footprint: float) -> None:
                     )
 
 
+def settle_samples(Ts: float) -> int:
+    """Consecutive samples, ``Ts`` [s] apart, that span :data:`SETTLE_TIME`: the first and the
+    last of them included."""
+    return math.ceil(SETTLE_TIME / Ts - 1e-9) + 1
+
+
+def settled_since(errors: Sequence[float], Ts: float) -> int | None:
+    """The sample from which a robot has stayed at its goal to the end, if it has arrived
+    (stayed :data:`SETTLE_TIME` at least); ``errors`` are its distances to the goal per sample
+    [m], ``Ts`` [s] apart.  None if it has not arrived."""
+    n = len(errors)
+    k = n
+    while k > 0 and errors[k - 1] <= GOAL_TOLERANCE:
+        k -= 1
+    return k if n - k >= settle_samples(Ts) else None
+
+
 def home(end: np.ndarray, point: np.ndarray, goal: np.ndarray) -> bool:
     """A robot is home when its committed reference ends at its goal (within :data:`AT_GOAL`) and
     its controlled point is within half the goal tolerance of it; ``end``, ``point`` and ``goal``
-    are (2,) [m].  A run whose robots are all home stops early."""
+    are (2,) [m].  A run whose robots have all been home for :func:`settle_samples` samples in a
+    row stops early (so each has arrived, :func:`settled_since`)."""
     return bool(np.linalg.norm(end - goal) < AT_GOAL and np.linalg.norm(point - goal) <= 0.5 * GOAL_TOLERANCE)
 
 

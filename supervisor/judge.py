@@ -28,7 +28,7 @@ import numpy as np
 
 from ground.bus import remember_steps
 from ground.geometry import Array, controlled_point, wrap_angle
-from ground.scenario import GOAL_TOLERANCE, Scenario
+from ground.scenario import Scenario, settled_since
 from ground.wire import Plan
 
 SOLVED = "PROXQP_SOLVED"
@@ -201,9 +201,9 @@ class Judge:
 
     # ------------------------------------------------------------------ output
     def reached(self, robot: str) -> bool:
-        """The robot's controlled point is within the goal tolerance at the last sample."""
-        err = self.errors[robot]
-        return bool(err) and err[-1] <= GOAL_TOLERANCE
+        """The robot has arrived: its controlled point has stayed within the goal tolerance for
+        the settle time up to the last sample (:func:`ground.scenario.settled_since`)."""
+        return settled_since(self.errors[robot], self.Ts) is not None
 
     def summary(self, completed: bool, wall_time: float) -> dict[str, Any]:
         """``summary.json`` of the run (see the README's "summary.json")."""
@@ -237,17 +237,16 @@ class Judge:
 
     def _robot_summary(self, r: str) -> dict[str, Any]:
         err = np.array(self.errors[r]) if self.errors[r] else np.array([math.inf])
-        reached = self.reached(r)
-        ttg = None
-        if reached:
-            bad = np.flatnonzero(err > GOAL_TOLERANCE)
-            ttg = float((0 if bad.size == 0 else int(bad[-1]) + 1) * self.Ts)
+        since = settled_since(self.errors[r], self.Ts)
+        pts = np.array([controlled_point(q, self.lookahead) for q in self.poses[r]]).reshape(-1, 2)
         st = self.robot[r]
         out: dict[str, Any] = {
             "goal": self.goals[r].tolist(),
-            "reached_goal": reached,
-            "time_to_goal_s": ttg,
+            "reached_goal": since is not None,
+            "time_to_goal_s": None if since is None else since * self.Ts,
             "final_error_m": float(err[-1]),
+            "path_length_m": float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum()),
+            "straight_line_m": float(np.linalg.norm(pts[0] - self.goals[r])) if len(pts) else 0.0,
             "qp_solves": st["solves"],
             "qp_failures": st["failures"],
             "fallbacks": st["failures"],

@@ -40,8 +40,8 @@ import numpy as np
 from epuck_link.robot_side import BRAKED, CANDIDATE, RobotSide
 from ground.bus import Inbox, open_session, publisher, remember_steps
 from ground.geometry import measured_state
-from ground.process import add_common_args, announce, fault_plan, log
-from ground.scenario import ConfigError, Scenario, home, load_scenario
+from ground.process import add_common_args, announce, fault_plan, log, seed_arg
+from ground.scenario import ConfigError, Scenario, home, load_scenario, settle_samples
 from ground.wire import Applied, Command, Digest, Keys, Odom, Plan, Pose, Tick, Truth
 from tracker.reports import REPORT_WAIT, Reports
 from tracker.world import Disturbance, EmulatedWorld, PoseNoise, SimulatedWorld
@@ -65,7 +65,7 @@ def main(argv: list[str] | None = None) -> int:
         "--source", choices=["sim", "emulator"], default="sim",
         help="sim: simulated plants; emulator: observe epuck_link emulators (camera: tracker.camera)",
     )  # fmt: skip
-    ap.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
+    ap.add_argument("--seed", type=seed_arg, default=None, help="override the scenario's seed")
     ap.add_argument("--steps", type=int, default=None, help="override the scenario's duration [steps]")
     ap.add_argument("--start-timeout", type=float, default=60.0, help="wait for agents to come up [s]")
     ap.add_argument(
@@ -129,6 +129,8 @@ class SimTracker:
         )
         self.noise = PoseNoise(p.pose_noise, seed)
         self.realtime = args.clock == "realtime"
+        self.home_run = 0
+        """Consecutive steps every live robot has been home (the early end)."""
         self.inbox = inbox = Inbox(keys, ROLE, fault_plan(args))
         self.subs = [
             # Realtime: commands are read once, at the deadline; plans once a step.
@@ -251,7 +253,8 @@ class SimTracker:
         # plans of this very step, as `fleet simulate` does.
         inbox.wait(partial(_planned, inbox, answering, k), 0.0 if self.realtime else self.args.timeout)
         inbox.prune(k if self.world.drives else k - Reports.LOOKBACK)
-        return _all_home(inbox, ids, self.world, k)
+        self.home_run = self.home_run + 1 if _all_home(inbox, ids, self.world, k) else 0
+        return self.home_run >= settle_samples(p.Ts)
 
     def _answering(self, k: int) -> list[str]:
         """Who answers step k: the live agents that have been heard since they came up (at step

@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from ground.process import seed_arg
 from tracker.vision import OPENCV_MISSING, cv2_module
 
 SUPERSAMPLE = 2
@@ -425,7 +426,7 @@ def main(argv: list[str] | None = None) -> int:
     out.add_argument("--image", help="write one frame (PNG) of the robots at their starts")
     ap.add_argument("--duration", type=float, default=10.0, help="video length [s] (default 10)")
     ap.add_argument("--fps", type=float, default=20.0, help="video frame rate [1/s] (default 20)")
-    ap.add_argument("--seed", type=int, default=0, help="noise seed")
+    ap.add_argument("--seed", type=seed_arg, default=0, help="noise seed")
     args = ap.parse_args(argv)
     try:
         import cv2  # noqa: F401

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -176,3 +178,12 @@ def test_mrpi_raises_when_it_cannot_converge():
 def test_design_raises_on_unconvergeable_parameters():
     with pytest.raises(SetComputationError):
         synthesize(preset("epuck").replace(mrpi_max_terms=3), ARENA)
+
+
+def test_a_design_without_a_look_ahead_point_is_refused():
+    """ℓ = 0 runs the paper's eq. 3, whose one-step error at rest W does not bound: the design
+    says so instead of claiming the tube."""
+    d = synthesize(dataclasses.replace(preset("epuck"), lookahead=0.0), ARENA)
+    assert not d.admissible
+    assert any("lookahead 0" in f and "not bounded by W" in f for f in d.failures), d.failures
+    assert synthesize(preset("epuck"), ARENA).admissible

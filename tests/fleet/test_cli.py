@@ -538,3 +538,10 @@ def test_a_realtime_run_short_of_cpu_says_so_in_one_line():
     assert only_late is not None and "missed" not in only_late and "10.0 s behind" in only_late
     only_misses = realtime_note({**kept_up, "deadline_misses": 97}, 0.2)
     assert only_misses is not None and "1.0 % of the deadlines" in only_misses and "behind" not in only_misses
+
+
+@pytest.mark.parametrize("seed", ["-1", "4294967296", "x"])
+def test_a_seed_out_of_range_is_one_line_and_exit_2(seed):
+    proc = fleet("simulate", str(SCENARIOS / "paper_two_robots.toml"), "--seed", seed)
+    no_traceback(proc)
+    assert proc.returncode == 2 and "--seed" in proc.stderr.strip().splitlines()[-1], proc.stderr

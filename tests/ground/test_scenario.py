@@ -20,6 +20,7 @@ from agent.tube import synthesize
 from fleet.scenes import COMPACT_CONTROLLER, antipodal_swap, random_scene, scene_to_toml
 from ground.params import ControllerParams, preset
 from ground.scenario import (
+    MAX_SCENARIO_BYTES,
     Circle,
     ConfigError,
     Polygon,
@@ -552,9 +553,13 @@ def test_robot_ids_and_counts_the_wire_cannot_carry_are_refused_at_load() -> Non
         parse_scenario(long)
     assert e.value.field == "robots[0].id" and "32" in e.value.reason
     crowd = base()
-    crowd["arena"]["bounds"] = [-20.0, 20.0, -20.0, 20.0]
+    crowd["arena"]["bounds"] = [-10.0, 10.0, -10.0, 10.0]
     crowd["robots"] = [
-        {"id": f"r{i}", "start": [-19.0 + 0.5 * i, -10.0, 0.0], "goal": [-19.0 + 0.5 * i, 10.0]}
+        {
+            "id": f"r{i}",
+            "start": [-9.5 + 0.5 * (i % 36), -9.0 + i // 36, 0.0],
+            "goal": [-9.5 + 0.5 * (i % 36), 5.0 + i // 36],
+        }
         for i in range(MAX_RELAYED + 1)
     ]
     with pytest.raises(ConfigError) as e:
@@ -562,3 +567,43 @@ def test_robot_ids_and_counts_the_wire_cannot_carry_are_refused_at_load() -> Non
     assert e.value.field == "robots" and str(MAX_RELAYED) in e.value.reason
     crowd["robots"] = crowd["robots"][:MAX_RELAYED]
     assert len(parse_scenario(crowd).robots) == MAX_RELAYED
+
+
+@pytest.mark.parametrize(
+    ("patch", "field", "words"),
+    [
+        ({"controller": {"horizon": 10000}}, "controller.horizon", "<= 200"),
+        ({"controller": {"mrpi_max_terms": 10**9}}, "controller.mrpi_max_terms", "<= 1000"),
+        ({"controller": {"mrpi_tol": 1e-300}}, "controller.mrpi_tol", ">= 1e-12"),
+        ({"arena": {"bounds": [-1e300, 1e300, -1.0, 1.0]}}, "arena.bounds", "at most 20 m"),
+        ({"simulation": {"seed": 2**32}}, "simulation.seed", "<= 4294967295"),
+        ({"robots": [{"priority": 2**31}]}, "robots[0].priority", "32 bits"),
+        ({"robots": [{"priority": -(2**31) - 1}]}, "robots[0].priority", "32 bits"),
+    ],
+)
+def test_inputs_that_cannot_run_are_refused_with_the_field(patch, field, words):
+    """Caps on what would exhaust memory or time, and the ranges the wire carries."""
+    data = base()
+    for key, value in patch.items():
+        if key == "robots":
+            data["robots"][0].update(value[0])
+        else:
+            data.setdefault(key, {}).update(value)
+    with pytest.raises(ConfigError) as e:
+        parse_scenario(data)
+    assert e.value.field == field and words in e.value.reason, str(e.value)
+
+
+def test_a_scenario_must_be_a_small_regular_file(tmp_path):
+    """A device, a pipe or an oversized file is refused before it is read (no hang, no
+    MemoryError); the field is ``file``."""
+    import os
+
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    big = tmp_path / "big.toml"
+    big.write_bytes(b"#" * (MAX_SCENARIO_BYTES + 1))
+    for path, words in (("/dev/zero", "not a regular file"), (fifo, "not a regular file"), (big, "at most")):
+        with pytest.raises(ConfigError) as e:
+            load_scenario(path)
+        assert e.value.field == "file" and words in e.value.reason, str(e.value)

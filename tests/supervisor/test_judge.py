@@ -184,3 +184,18 @@ def test_the_judge_does_not_depend_on_whether_plans_or_truths_come_first() -> No
         assert np.array_equal(a.trace_refs(2), b.trace_refs(2))
         assert np.array_equal(a.refs[r][0], controlled_point(starts[r], ell))
         assert a.deviation(r) == b.deviation(r) > 0
+
+
+def test_arrived_means_stayed_for_the_settle_time():
+    """One pass through the goal is not an arrival: the controlled point must stay within the
+    tolerance for SETTLE_TIME; time to goal is the start of that final stretch, and the path
+    length shows the detour."""
+    from ground.scenario import GOAL_TOLERANCE, settle_samples, settled_since
+
+    Ts = 0.1
+    n = settle_samples(Ts)
+    near, far = 0.5 * GOAL_TOLERANCE, 2.0 * GOAL_TOLERANCE
+    assert settled_since([far] * 5 + [near] * n, Ts) == 5
+    assert settled_since([far] * 5 + [near] * (n - 1), Ts) is None  # not long enough yet
+    assert settled_since([near] * 20 + [far], Ts) is None  # left again at the end
+    assert settled_since([near] * n + [far] + [near] * (n - 1), Ts) is None

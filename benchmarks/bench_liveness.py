@@ -1,0 +1,141 @@
+#!/usr/bin/env python
+"""Liveness benchmark: ``fleet bench --liveness N``.
+
+Runs N scenes drawn by :func:`fleet.scenes.hard_scene` (seeds ``--seed`` … ``--seed + N − 1``,
+seven families in turn: dense random scenes with goals at the closest legal spacing, odd
+rings, mirrored grids, antipodal swaps of 4–24, thin corridors, a gap between polygons,
+goals packed around obstacles) through ``fleet simulate``, in ``--jobs`` processes, and
+prints a table per family and overall:
+
+* completion: scenes whose every robot got home (settled at its goal), and robots home;
+* collisions (the count must be 0);
+* time to goal p50 / p90 [s] over all robots;
+* path efficiency: each robot's path length over the straight line from its start to its
+  goal (robots that do not move are left out), p50 / p90.
+
+A scene the loader refuses counts as refused, not run.  The JSON (``--json``, default
+``out/bench/liveness.json``) holds every scene's figures.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ["OMP_NUM_THREADS"] = "1"  # before proxsuite (libgomp) is imported
+
+import argparse
+import json
+import multiprocessing
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+SCHEMA = 1
+
+
+def one(seed: int) -> dict[str, Any]:
+    """Run hard scene ``seed`` in this process; its figures."""
+    from agent.tube import validated_design
+    from fleet.scenes import hard_scene
+    from fleet.simulate import run
+    from ground.scenario import ConfigError, parse_scenario
+
+    data = hard_scene(seed)
+    family = data["name"].split("_")[2]
+    t0 = time.perf_counter()
+    try:
+        scn = parse_scenario(data)
+        design = validated_design(scn)
+    except ConfigError as e:
+        return {"seed": seed, "name": data["name"], "family": family, "refused": str(e)}
+    res = run(scn, design=design)
+    s = res.summary()
+    robots = s["robots"]
+    eff = [r["path_length_m"] / r["straight_line_m"] for r in robots.values() if r["straight_line_m"] > 0.05]
+    return {
+        "seed": seed,
+        "name": data["name"],
+        "family": family,
+        "robots": len(robots),
+        "home": sum(r["reached_goal"] for r in robots.values()),
+        "collisions": s["collisions"],
+        "steps": s["steps"],
+        "time_to_goal_s": [r["time_to_goal_s"] for r in robots.values() if r["time_to_goal_s"] is not None],
+        "path_efficiency": eff,
+        "wall_s": time.perf_counter() - t0,
+    }
+
+
+def _pct(values: list[float], q: float) -> str:
+    return f"{np.percentile(values, q):.1f}" if values else "–"
+
+
+def table(rows: list[dict[str, Any]]) -> list[str]:
+    """The printed table: one line per family and one for all."""
+    fams = sorted({r["family"] for r in rows})
+    out = [
+        f"{'family':<10} {'scenes':>6} {'refused':>7} {'complete':>9} {'robots home':>12} {'collisions':>10} "
+        f"{'ttg p50':>8} {'ttg p90':>8} {'path p50':>8} {'path p90':>8}"
+    ]
+    for fam in [*fams, "all"]:
+        sel = [r for r in rows if fam in ("all", r["family"])]
+        ran = [r for r in sel if "refused" not in r]
+        done = sum(r["home"] == r["robots"] for r in ran)
+        home = sum(r["home"] for r in ran)
+        total = sum(r["robots"] for r in ran)
+        ttg = [t for r in ran for t in r["time_to_goal_s"]]
+        eff = [e for r in ran for e in r["path_efficiency"]]
+        rate = f"{100.0 * done / len(ran):.1f} %" if ran else "–"
+        out.append(
+            f"{fam:<10} {len(sel):>6} {len(sel) - len(ran):>7} {rate:>9} {f'{home}/{total}':>12} "
+            f"{sum(r['collisions'] for r in ran):>10} {_pct(ttg, 50):>8} {_pct(ttg, 90):>8} "
+            f"{_pct(eff, 50):>8} {_pct(eff, 90):>8}"
+        )
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    n, seed0, jobs = int(args.liveness), int(args.seed), max(1, int(args.jobs))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    json_path = Path(args.json) if args.json else out / "liveness.json"
+    print(f"fleet bench --liveness: {n} hard scenes from seed {seed0}, {jobs} processes", flush=True)
+    print(f"machine: nproc {os.cpu_count()}, {platform.processor() or platform.machine()}; "
+          f"python {platform.python_version()}; load average {os.getloadavg()}", flush=True)  # fmt: skip
+    t0 = time.perf_counter()
+    rows: list[dict[str, Any]] = []
+    # The workers import this file by name (it may have been loaded from its path).
+    here = str(Path(__file__).resolve().parent)
+    if here not in sys.path:
+        sys.path.insert(0, here)  # spawn hands the workers this process's sys.path
+    ctx = multiprocessing.get_context("spawn")
+    with ctx.Pool(jobs) as pool:
+        for r in pool.imap_unordered(one, range(seed0, seed0 + n)):
+            rows.append(r)
+            what = r.get("refused") or f"{r['home']}/{r['robots']} home, {r['collisions']} collisions"
+            print(f"  [{len(rows):>3}/{n}] {r['name']}: {what}", flush=True)
+    rows.sort(key=lambda r: r["seed"])
+    lines = table(rows)
+    print("\n".join(lines), flush=True)
+    print(f"wall time {time.perf_counter() - t0:.0f} s", flush=True)
+    json_path.write_text(json.dumps({"schema": SCHEMA, "scenes": rows, "table": lines}, indent=1))
+    print(f"figures: {json_path}", flush=True)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--liveness", type=int, default=105, metavar="N", help="scenes to run (default 105)")
+    ap.add_argument("--seed", type=int, default=0, help="first scene seed (default 0)")
+    ap.add_argument("--jobs", type=int, default=2, help="processes (default 2)")
+    ap.add_argument("--out", default="out/bench", help="directory of the JSON (default out/bench)")
+    ap.add_argument("--json", default=None, help="where the JSON goes (default OUT/liveness.json)")
+    return run(ap.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,91 @@
+"""Every robot gets home and stays: the scenes that used to stall at close goals.
+
+Each scene runs in `fleet simulate` and must end with every robot arrived (within the goal
+tolerance for the settle time, ``ground.scenario.settled_since``) and no collision.  The
+precedence that makes this so is ``agent.navigator.precedence`` (docs/method.md §7, "Why
+robots get home").  The breadth — 100+ generated scenes — is ``fleet bench --liveness``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from fleet.scenes import (
+    COMPACT_CONTROLLER,
+    MIN_GOAL_SPACING,
+    antipodal_swap,
+    corridor_swap,
+    mirrored_grid,
+    random_scene,
+    ring,
+)
+from fleet.simulate import run
+from ground.scenario import GOAL_MARGIN, parse_scenario
+
+
+def _two_close() -> dict:
+    """Two robots whose goals are the closest the loader accepts (2 footprints + 1 cm)."""
+    g = 0.5 * MIN_GOAL_SPACING
+    return {
+        "name": "two_close", "duration": 120.0, "arena": {"bounds": [-1.0, 1.0, -1.0, 1.0]},
+        "robots": [
+            {"id": "r1", "start": [-0.6, 0.0, 0.0], "goal": [g, 0.0]},
+            {"id": "r2", "start": [0.6, 0.0, math.pi], "goal": [-g, 0.0]},
+        ],
+    }  # fmt: skip
+
+
+def _swap20() -> dict:
+    """20 robots, compact controller (footprint ≈ 0.1135 m), goals 0.238 m apart."""
+    d = antipodal_swap(20, radius=0.238 / (2 * math.sin(math.pi / 20)) + 0.031, duration=300.0)
+    d["controller"] = dict(COMPACT_CONTROLLER)
+    return d
+
+
+SCENES = {
+    "two_close": _two_close,
+    "odd_ring_5": lambda: ring(5, spacing=0.317, duration=150.0),
+    "grid_3x3": lambda: mirrored_grid(3, 3, duration=200.0),
+    "swap_20_compact": _swap20,
+    "corridor_6": lambda: corridor_swap(6, duration=300.0),
+}
+DENSE = pytest.param(
+    "dense_14",
+    marks=pytest.mark.xfail(
+        strict=True,
+        reason="known gap: in dense random scenes at the closest spacing a few robots still stall "
+        "(3 of 14 here); the precedence argument assumes robots can always step out of a corridor",
+    ),
+)
+SCENES["dense_14"] = lambda: random_scene(
+    0, n=14, min_separation=MIN_GOAL_SPACING, duration=300.0, margin=0.15
+)
+
+
+@pytest.mark.parametrize("name", [n for n in SCENES if n != "dense_14"] + [DENSE])
+def test_every_robot_arrives_and_stays(name):
+    scn = parse_scenario(SCENES[name]())
+    res = run(scn)
+    s = res.summary()
+    assert s["collisions"] == 0 and s["reference_separation_violations"] == 0
+    late = {r: round(v["final_error_m"], 3) for r, v in s["robots"].items() if not v["reached_goal"]}
+    assert not late, f"{name}: not arrived (final error m): {late}"
+    assert s["steps"] * scn.controller.Ts < scn.duration, "ended by the duration, not by arriving"
+    for v in s["robots"].values():
+        assert v["path_length_m"] >= v["straight_line_m"] - 0.05
+
+
+def test_closest_goals_are_the_footprints_plus_the_margin():
+    """Goals 1 mm closer than 2 footprints + GOAL_MARGIN are refused, naming both robots."""
+    from agent.tube import validated_design
+    from ground.scenario import ConfigError
+
+    d = _two_close()
+    g = 0.5 * (MIN_GOAL_SPACING - 0.001)
+    d["robots"][0]["goal"], d["robots"][1]["goal"] = [g, 0.0], [-g, 0.0]
+    with pytest.raises(ConfigError) as e:
+        validated_design(parse_scenario(d))
+    assert e.value.field == "robots[1].goal" and "'r1'" in e.value.reason and "'r2'" in e.value.reason
+    assert f"+ {GOAL_MARGIN:g}" in e.value.reason
