@@ -248,6 +248,7 @@ class TubeMPC:
         Shaping only: whatever it returns, the step's constraints are the same."""
         if not self.params.deadlock:
             return self.goal, "goal"
+        self.nav.phase = self.phase
         return self.nav.target(self.last_point, self.goal, known)
 
     def steer_ahead(self, known: Sequence[NeighbourInfo]) -> None:

@@ -7,10 +7,10 @@ whatever it does cannot break a guarantee (docs/method.md §7).
 
 * :class:`GridPlanner` — shortest paths on a grid over the arena, around walls, obstacles and
   parked robots; the robot follows a carrot along its path.
-* :class:`Navigator` — *precedence yielding*: robots are totally ordered by (priority, rank),
-  the rank from :func:`precedence`; a robot inside the corridor that a nearby robot of higher
-  precedence, not parked, still has to sweep steps out of it to the best free point around it,
-  and a progress watchdog sends a stalled robot to a clearance-seeking escape point for a while.
+* :class:`Navigator` — *precedence yielding*: robots are totally ordered by (phase, priority,
+  rank); a robot inside the corridor that a nearby robot of higher precedence still has to
+  sweep steps out of it to the best free point around it, and a progress watchdog sends a
+  stalled robot to a clearance-seeking escape point for a while.
 """
 
 from __future__ import annotations
@@ -21,138 +21,11 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import ndimage
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from agent.coordination import PARKED, NeighbourInfo, order_key
+from agent.coordination import PARKED, RETURNING, NeighbourInfo, order_key
 from agent.sets import Array
-from ground.geometry import controlled_point
-from ground.scenario import GOAL_MARGIN, Circle, ConfigError, Scenario
-
-ORDER_CELL = 0.01
-"""Cell of the grid on which :func:`precedence` checks that the arena stays connected [m]: fine
-enough to see the 2·GOAL_MARGIN gap between the goal discs on either side of a goal."""
-
-
-def precedence(scn: Scenario, footprint: float) -> list[int]:
-    """The rank of each robot of ``scn`` (lower goes first), from which liveness follows
-    (docs/method.md §7, "Why robots get home"); raises :class:`ConfigError` naming the robot
-    when no such order exists.
-
-    Robots are taken by priority (the higher first) and, within one priority, in this order:
-    the next rank goes to the first robot (the goals with the most others within two goal discs
-    first, then in scenario order) whose goal disc of radius
-    2·``footprint`` [m], added to the walls, obstacles and the goal discs of the robots ranked
-    before it, leaves the goals of all the robots after it in the largest piece of the free
-    space of the controlled points, and their starts too unless inside a goal disc: parked
-    robots do not wall a later robot off from its goal.  Pieces with no
-    goal left in them (a corner closed off by two parked robots) are allowed: a robot would
-    have to be pushed into one as it closed.  Each goal must also be reachable from its
-    robot's start past the walls and obstacles."""
-    xmin, xmax, ymin, ymax = scn.arena
-    nx = max(2, math.ceil((xmax - xmin) / ORDER_CELL))
-    ny = max(2, math.ceil((ymax - ymin) / ORDER_CELL))
-    xs = xmin + (np.arange(nx) + 0.5) * (xmax - xmin) / nx
-    ys = ymin + (np.arange(ny) + 0.5) * (ymax - ymin) / ny
-    X, Y = np.meshgrid(xs, ys, indexing="ij")
-    fp = float(footprint)
-    free = (X >= xmin + fp) & (X <= xmax - fp) & (Y >= ymin + fp) & (Y <= ymax - fp)
-    for ob in scn.obstacles:
-        pts = np.array([ob.center]) if isinstance(ob, Circle) else np.array(ob.vertices)
-        reach = fp + (ob.radius if isinstance(ob, Circle) else 0.0)
-        lo, hi = pts.min(axis=0) - reach, pts.max(axis=0) + reach
-        idx = np.flatnonzero(free & (X >= lo[0]) & (X <= hi[0]) & (Y >= lo[1]) & (Y <= hi[1]))
-        d = np.array([ob.distance((X.flat[k], Y.flat[k])) for k in idx])
-        free.flat[idx[d < fp]] = False
-
-    def cell(p: Array) -> tuple[int, int]:
-        i = min(nx - 1, max(0, int((p[0] - xmin) / (xmax - xmin) * nx)))
-        j = min(ny - 1, max(0, int((p[1] - ymin) / (ymax - ymin) * ny)))
-        return i, j
-
-    def nearest_free(mask: np.ndarray, p: Array) -> tuple[int, int] | None:
-        """The free cell nearest p (the cell of p may be cut by the grid's rounding)."""
-        i, j = cell(p)
-        if mask[i, j]:
-            return i, j
-        ii, jj = np.nonzero(mask[max(0, i - 2) : i + 3, max(0, j - 2) : j + 3])
-        if ii.size == 0:
-            return None
-        k = int(np.argmin((ii + max(0, i - 2) - i) ** 2 + (jj + max(0, j - 2) - j) ** 2))
-        return int(ii[k]) + max(0, i - 2), int(jj[k]) + max(0, j - 2)
-
-    ell = scn.controller.lookahead
-    goals = [np.asarray(r.goal, dtype=float) for r in scn.robots]
-    labels, _ = ndimage.label(free, structure=np.ones((3, 3)))
-    for i, r in enumerate(scn.robots):
-        a = nearest_free(free, controlled_point(r.start, ell))
-        b = nearest_free(free, goals[i])
-        if a is None or b is None or labels[a] != labels[b]:
-            raise ConfigError(
-                f"robots[{i}].goal",
-                f"({goals[i][0]:.2f}, {goals[i][1]:.2f}) cannot be reached from {r.id}'s start "
-                f"past the walls and obstacles with the footprint radius {fp:.3f} m",
-            )
-    disc = 2.0 * fp
-    starts = [controlled_point(r.start, ell) for r in scn.robots]
-
-    outside = [np.asarray((X - g[0]) ** 2 + (Y - g[1]) ** 2 >= disc * disc) for g in goals]
-
-    def reaches(a: Array, b: Array, parked: list[int]) -> bool:
-        """From a to b past the goal discs of ``parked`` (those covering a excepted: a robot
-        starting inside one leaves it before its owner parks, since it yields to it)."""
-        m = free.copy()
-        for k in parked:
-            if float(np.hypot(*(a - goals[k]))) >= disc:
-                m &= outside[k]
-        ca, cb = nearest_free(m, a), nearest_free(m, b)
-        if ca is None or cb is None:
-            return False
-        lab = ndimage.label(m, structure=np.ones((3, 3)))[0]
-        return bool(lab[ca] == lab[cb])
-
-    placed: list[int] = []
-    left = sorted(range(len(scn.robots)), key=lambda i: (-scn.robots[i].priority, i))
-    ranks = [0] * len(left)
-    mask = free
-    # Crowded goals first: a goal ringed by others is walled in unless it parks before them.
-    crowd = [sum(float(np.hypot(*(g - h))) < 2.0 * disc + GOAL_MARGIN for h in goals) for g in goals]
-    for rank in range(len(left)):
-        same = [i for i in left if scn.robots[i].priority == scn.robots[left[0]].priority]
-        same.sort(key=lambda i: -crowd[i])  # stable: scenario order among equals
-        chosen = None
-        for i in same:
-            trial = mask & outside[i]
-            lab, n = ndimage.label(trial, structure=np.ones((3, 3)))
-            main = 1 + int(np.argmax(np.bincount(lab.ravel(), minlength=n + 1)[1:])) if n else 0
-            ok = True
-            for j in left:
-                if j == i:
-                    continue
-                gc = nearest_free(trial, goals[j])
-                sc = cell(starts[j])
-                ok = gc is not None and int(lab[gc]) == main
-                if ok:
-                    ok = int(lab[sc]) == main if trial[sc] else reaches(starts[j], goals[j], [*placed, i])
-                if not ok:
-                    break
-            if ok:
-                chosen, mask = i, trial
-                break
-        if chosen is None:
-            j = same[0]
-            raise ConfigError(
-                f"robots[{j}].goal",
-                f"no order of the goals lets every robot get home: with the {rank} goals ranked "
-                f"before, {scn.robots[j].id}'s at ({goals[j][0]:.2f}, {goals[j][1]:.2f}) and every "
-                f"other of priority {scn.robots[j].priority} wall in the goal of a robot after it "
-                f"(goal discs of radius 2 × {fp:.3f} m)",
-            )
-        ranks[chosen] = rank
-        left.remove(chosen)
-        placed.append(chosen)
-    return ranks
 
 
 def point_segment_distance(p: Array, a: Array, b: Array) -> float:
@@ -242,18 +115,13 @@ class GridPlanner:
         j = min(self.ny - 1, max(0, int((p[1] - self.y0) / self.hy)))
         return i * self.ny + j
 
-    def field(self, goal: Array, cost: Array) -> tuple[Array, Array]:
-        """Path lengths (weighted by ``cost``) and predecessors of shortest paths *to* ``goal``,
-        one per cell."""
+    def field(self, goal: Array, cost: Array) -> Array:
+        """Predecessor array of shortest paths *to* ``goal`` under cell ``cost``."""
         n = self.nx * self.ny
         w = self.length * 0.5 * (cost[self.src] + cost[self.dst])
         G = csr_matrix((w, self.dst, self.indptr), shape=(n, n))
-        dist, pred = dijkstra(G, directed=True, indices=self.cell(goal), return_predecessors=True)
-        return np.asarray(dist), np.asarray(pred)
-
-    def walled(self, dist: Array) -> np.ndarray:
-        """Cells whose shortest path to the goal crosses a blocked cell (from :meth:`field`)."""
-        return np.asarray(dist >= self.BLOCKED * min(self.hx, self.hy), dtype=bool)
+        _, pred = dijkstra(G, directed=True, indices=self.cell(goal), return_predecessors=True)
+        return np.asarray(pred)
 
     def carrot(self, pred: Array, start: Array, goal: Array, lookahead: float) -> Array:
         """Point ``lookahead`` [m] along the path from ``start`` towards ``goal``."""
@@ -287,11 +155,11 @@ class Navigator:
     that, the yielding rule: a robot inside the corridor of a nearby robot
     that goes first (the segment to that robot's carrot, widened by
     r_i + r_j + ``corridor_margin``) moves to the best free point out of it.
-    Precedence is (priority, rank), fixed for the run: a robot yields to the robots that go
-    before it while they are under way, parked or not itself, and to no one else; a robot
-    parked at its goal is never moved by a robot that goes after it.  So the first robot not
-    yet home never waits on a robot that can move, and once home it stays (docs/method.md §7).
-    """
+    Precedence is (phase, priority, rank): robots under way (goal never
+    reached) go first, then robots returning to a goal they were displaced
+    from, then parked robots, which step aside when they block a path and
+    return afterwards.  Parked robots never need to yield to each other, and
+    the first robot in precedence never waits on a robot that can move."""
 
     footprint: float
     arena: tuple[float, float, float, float]
@@ -314,11 +182,12 @@ class Navigator:
     stall_steps: int = 60
     """Steps without 2 cm of progress before the watchdog escape."""
     seed: int = 0
+    phase: int = 0
+    """This robot's precedence class (set by the controller each step)."""
     _grid: GridPlanner | None = None
     _ring: Array = field(default_factory=lambda: np.zeros((0, 2)))
     _ring_norm: Array = field(default_factory=lambda: np.zeros(0))
     _pred: Array | None = None
-    _dist: Array | None = None
     _since_plan: int = 10**9
     _escape: Array | None = None
     _escape_left: int = 0
@@ -334,10 +203,6 @@ class Navigator:
         self._ring_norm = np.linalg.norm(self._ring, axis=1)
         self._rng = np.random.default_rng(self.seed)
 
-    def _goes_before(self, nb: NeighbourInfo) -> bool:
-        """Whether ``nb`` precedes this robot: (priority, rank) only, never the phase."""
-        return order_key(nb.priority, nb.rank) < order_key(self.priority, self.rank)
-
     def reset_goal(self) -> None:
         """Forget the plan and the watchdog state (new goal)."""
         self._pred = None
@@ -349,17 +214,12 @@ class Navigator:
         g = self._grid
         assert g is not None
         cost = g.static.copy()
+        me = (self.phase, *order_key(self.priority, self.rank))
         pts, radii, extras = [], [], []
         for nb in neighbours:
-            before = self._goes_before(nb)
-            if before and nb.goal is not None:
-                # Where it will park for good: a path through there could be walled in.
-                pts.append(nb.goal)
-                radii.append(self.footprint + nb.footprint)
-                extras.append(GridPlanner.BLOCKED)
             if nb.phase == PARKED:
                 extras.append(self.parked_cost)
-            elif before:
+            elif (nb.phase, *order_key(nb.priority, nb.rank)) < me:
                 extras.append(self.soft_cost)  # goes first: plan around it
             else:
                 continue  # goes after this robot: it yields, so plan through it
@@ -367,8 +227,7 @@ class Navigator:
             radii.append(self.footprint + nb.footprint)
         if pts:
             g.add_discs(cost, pts, radii, extras)
-        cost[g.cell(goal)] = 1.0  # the goal is legal (the loader checked it) whatever the cell rounds to
-        self._dist, self._pred = g.field(goal, cost)
+        self._pred = g.field(goal, cost)
         self._since_plan = 0
 
     def waypoint(self, c: Array, goal: Array, neighbours: Sequence[NeighbourInfo] = ()) -> Array:
@@ -390,12 +249,23 @@ class Navigator:
         """Target of the goal term and the mode (``goal``, ``path``, ``yield``, ``escape``)."""
         wp = self.waypoint(c, goal, neighbours)
         mode = "goal" if wp is goal else "path"
+        me = order_key(self.priority, self.rank)
         corridors = []
         for nb in neighbours:
-            # Yield to robots that go first and are not parked.
-            if nb.phase == PARKED or not self._goes_before(nb):
+            # Yield to lower phases; within a phase, to the higher-ordered.
+            if nb.phase == PARKED or (nb.phase, *order_key(nb.priority, nb.rank)) > (self.phase, *me):
                 continue
             R = self.footprint + nb.footprint
+            if (
+                self.phase == PARKED
+                and nb.phase == RETURNING
+                and nb.goal is not None
+                and math.hypot(nb.goal[0] - goal[0], nb.goal[1] - goal[1]) < R + self.corridor_margin
+            ):
+                # Goals closer than a corridor's half-width: yielding to a robot returning to
+                # its own would displace this one from its goal, and the two would trade
+                # places for ever.  The returning robot plans around this parked one instead.
+                continue
             q = nb.last_point
             if math.hypot(q[0] - c[0], q[1] - c[1]) > R + self.conflict_range:
                 continue
@@ -449,17 +319,7 @@ class Navigator:
         P = c + self._ring * radius  # (48, 2)
         ix = np.clip(((P[:, 0] - g.x0) / g.hx).astype(int), 0, g.nx - 1)
         iy = np.clip(((P[:, 1] - g.y0) / g.hy).astype(int), 0, g.ny - 1)
-        cells = ix * g.ny + iy
-        free = g.static[cells] < GridPlanner.BLOCKED
-        if self._dist is not None and np.any(free):
-            # Not into a pocket that robots going first wall off when they park; from inside
-            # one of their goal discs, out on the side nearest the goal.
-            dist = self._dist[cells]
-            open_ = free & ~g.walled(dist)
-            if np.any(open_):
-                free = open_
-            else:
-                free &= dist <= dist[free].min() + 0.5 * GridPlanner.BLOCKED * min(g.hx, g.hy)
+        free = g.static[ix * g.ny + iy] < GridPlanner.BLOCKED
         if not np.any(free):
             return c.copy()
         score = 0.5 * radius * self._ring_norm + 0.2 * np.hypot(wp[0] - P[:, 0], wp[1] - P[:, 1])

@@ -28,7 +28,6 @@ from agent.controller import TubeMPC
 from agent.coordination import NeighbourInfo
 from agent.hazards import Guard, neighbour_of
 from agent.messages import command_message, plan_message
-from agent.navigator import precedence
 from agent.tube import validated_design
 from ground.bus import Inbox, open_session, publisher, remember_steps
 from ground.geometry import controlled_point, measured_state
@@ -76,15 +75,13 @@ class Agent:
         self.me = me = args.robot
         self.role = f"agent {me}"
         ids = [r.id for r in scn.robots]
-        index = ids.index(me)
-        ranks = precedence(scn, design.footprint)
-        self.rank = rank = ranks[index]
-        spec = scn.robots[index]
+        self.rank = rank = ids.index(me)
+        spec = scn.robots[rank]
         p = self.p = design.params
         self.ctrl = TubeMPC(
             design, controlled_point(spec.start, p.lookahead), np.array(spec.goal, dtype=float), scn.arena,
             obstacles=scn.obstacles, priority=spec.priority, rank=rank,
-            seed=scn.simulation.seed * 1000 + index,
+            seed=scn.simulation.seed * 1000 + rank,
         )  # fmt: skip
         self.link = _Link(args, Keys(args.fleet), me, self.role)
         self.inbox = self.link.inbox
@@ -92,8 +89,7 @@ class Agent:
         self.starts = {
             r.id: NeighbourInfo(
                 id=r.id, last_point=controlled_point(r.start, p.lookahead), footprint=design.footprint,
-                priority=r.priority, rank=ranks[i], target=np.array(r.goal, float),
-                goal=np.array(r.goal, float),
+                priority=r.priority, rank=i, target=np.array(r.goal, float), goal=np.array(r.goal, float),
             )
             for i, r in enumerate(scn.robots)
         }  # fmt: skip

@@ -29,7 +29,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 
-from agent.navigator import precedence
 from agent.sets import Array, MRPIApprox, SetComputationError, Zonotope, mrpi_outer
 from ground.model import double_integrator, position_to_rest_state
 from ground.params import ControllerParams
@@ -323,9 +322,8 @@ def require_admissible(design: TubeDesign) -> TubeDesign:
 
 def validated_design(scn: Scenario) -> TubeDesign:
     """The admissible tube design of a scenario, its starts and goals checked against the
-    footprint and its goals against the order robots get home in
-    (:func:`agent.navigator.precedence`); raises :class:`~ground.scenario.ConfigError`
-    (field ``controller`` or the robot's) with the reason, and nothing else."""
+    footprint; raises :class:`~ground.scenario.ConfigError` (field ``controller`` or the robot's)
+    with the reason, and nothing else."""
     try:
         design = synthesize(scn.controller, scn.arena)
     except SetComputationError as e:
@@ -333,5 +331,4 @@ def validated_design(scn: Scenario) -> TubeDesign:
     if design.failures:
         raise ConfigError("controller", "inadmissible tube design: " + "; ".join(design.failures))
     check_geometry(scn, design.footprint)
-    precedence(scn, design.footprint)
     return design

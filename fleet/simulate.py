@@ -30,7 +30,6 @@ import numpy as np
 
 from agent.controller import TUBE_TOL, StepOutput, TubeMPC
 from agent.messages import plan_message
-from agent.navigator import precedence
 from agent.tube import TubeDesign, require_admissible, synthesize
 from epuck_link.robot_side import chain_input
 from ground.geometry import Array
@@ -196,9 +195,7 @@ def run(
     applied: dict[str, tuple[int, StepOutput | None]] = {}
     """Per robot: the step and output of the last command its robot side applied."""
     last_a: dict[str, Array] = {}
-    ranks = precedence(scenario, design.footprint)
-    for index, rb in enumerate(robots):
-        rank = ranks[index]
+    for rank, rb in enumerate(robots):
         plant = make_plant(sim.plant, np.array(rb.start, dtype=float), p)
         start_pt = plant.state()[[0, 2]]
         fault = None
@@ -212,7 +209,7 @@ def run(
             obstacles=scenario.obstacles,
             priority=rb.priority,
             rank=rank,
-            seed=seed * 1000 + index,
+            seed=seed * 1000 + rank,
             solver_fault=fault,
         )
         plants[rb.id] = plant

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from agent.coordination import (
+    PARKED,
     UNDER_WAY,
     NeighbourInfo,
     obstacle_halfplanes,
@@ -100,7 +101,7 @@ def test_grid_discs_match_brute_force_and_paths_avoid_walls():
     assert np.allclose(cost, g.static + (d2 < np.square(radii)).astype(float) @ np.array(extras))
     # A path across the obstacle goes around it and never through blocked cells.
     start, goal = np.array([-0.7, 0.0]), np.array([0.7, 0.0])
-    _, pred = g.field(goal, g.static)
+    pred = g.field(goal, g.static)
     c, visited = g.cell(start), 0
     while c != g.cell(goal) and visited < 2000:
         c = int(pred[c])
@@ -109,7 +110,7 @@ def test_grid_discs_match_brute_force_and_paths_avoid_walls():
     assert c == g.cell(goal)
 
 
-def test_lower_robot_in_the_corridor_yields_and_a_parked_robot_only_to_those_before_it():
+def test_lower_robot_in_the_corridor_yields_and_parked_robots_yield_to_all():
     nav = Navigator(footprint=0.134, arena=(-1, 1, -1, 1), rank=5)
     me = np.array([0.0, 0.0])
     goal = np.array([0.0, 0.8])
@@ -122,11 +123,10 @@ def test_lower_robot_in_the_corridor_yields_and_a_parked_robot_only_to_those_bef
     nav2 = Navigator(footprint=0.134, arena=(-1, 1, -1, 1), rank=0)
     later = NeighbourInfo("b", np.array([-0.35, 0.0]), 0.134, rank=5, target=np.array([0.3, 0.0]))
     assert nav2.target(me, goal, [later])[1] != "yield"
-    # Parked at its goal, a robot yields to one under way that goes before it, never to one
-    # that goes after it (which would trade places with it for ever at close goals).
-    for rank, expect in ((0, "yield"), (9, "goal")):
-        parked = Navigator(footprint=0.134, arena=(-1, 1, -1, 1), rank=5)
-        mover = NeighbourInfo(
-            "c", np.array([-0.35, 0.0]), 0.134, rank=rank, phase=UNDER_WAY, target=np.array([0.3, 0.0])
-        )
-        assert parked.target(me, me, [mover])[1] == expect, rank
+    # A parked robot yields even to a lower-ranked robot under way.
+    nav3 = Navigator(footprint=0.134, arena=(-1, 1, -1, 1), rank=0)
+    nav3.phase = PARKED
+    mover = NeighbourInfo(
+        "c", np.array([-0.35, 0.0]), 0.134, rank=9, phase=UNDER_WAY, target=np.array([0.3, 0.0])
+    )
+    assert nav3.target(me, me, [mover])[1] == "yield"
