@@ -438,7 +438,7 @@ def test_agent_checks_run_time_goals_itself():
     import numpy as np
 
     from agent.tube import validated_design
-    from ground.scenario import goal_problem, load_scenario
+    from ground.scenario import GOAL_MARGIN, goal_problem, load_scenario
     from ground.wire import Plan
 
     scn = load_scenario(SCENARIOS / "paper_three_robots.toml")
@@ -455,7 +455,9 @@ def test_agent_checks_run_time_goals_itself():
     )  # fmt: skip
     why = goal_problem(scn, fp, np.array([0.40, -0.55]), [r2])
     assert why is not None and "r2" in why
-    assert goal_problem(scn, fp, np.array([0.35 - 2.01 * fp, -0.61]), [r2]) is None
+    # The two footprints plus the goal margin apart, not less.
+    assert "margin" in goal_problem(scn, fp, np.array([0.35 - 2.01 * fp, -0.61]), [r2])
+    assert goal_problem(scn, fp, np.array([0.35 - 2.0 * fp - GOAL_MARGIN - 1e-3, -0.61]), [r2]) is None
 
 
 def test_sigterm_to_fleet_run_stops_every_process(tmp_path):
