@@ -191,12 +191,15 @@ MIN_GOAL_SPACING = 0.2782
 :data:`ground.scenario.GOAL_MARGIN`, rounded up: the closest goals the loader accepts."""
 
 
-def _robot(k: int, point: Sequence[float], goal: Sequence[float], lookahead: float = 0.04) -> dict[str, Any]:
+def _robot(
+    k: int, point: Sequence[float], goal: Sequence[float], lookahead: float | None = None
+) -> dict[str, Any]:
     """Robot ``r{k+1}`` whose controlled point (``lookahead`` [m] ahead of the axle) starts at
-    ``point`` [m], heading at its goal."""
+    ``point`` [m], heading at its goal; ``lookahead`` defaults to the epuck preset's."""
+    ell = preset("epuck").lookahead if lookahead is None else lookahead
     dx, dy = goal[0] - point[0], goal[1] - point[1]
     th = math.atan2(dy, dx) if math.hypot(dx, dy) > 1e-9 else 0.0
-    axle = axle_centre(np.asarray(point, dtype=float), th, lookahead)
+    axle = axle_centre(np.asarray(point, dtype=float), th, ell)
     return {
         "id": f"r{k + 1}",
         "start": [_clean(axle[0]), _clean(axle[1]), _clean(th)],
