@@ -213,9 +213,11 @@ class Monitor:
         self.ever_live |= live
 
     def finished(self) -> bool | None:
-        """None while the run goes on; once it has ended, whether every step was judged.  After
-        the stop tick it waits until every step's truth and plans are in, or nothing arrived for
-        a grace period (an agent that died never sends its last plans)."""
+        """None while the run goes on; once it has ended, whether every step was judged: its
+        ground truth and its plans (a robot whose agent died is left out of a step's plans once
+        it is gone, :func:`_plan_step`).  After the stop tick it waits until every step is in, or
+        nothing arrived for a grace period; then the run did not complete (e.g. no agent ever
+        planned: the tracker's clock ran with nobody to steer, and nothing was judged)."""
         with self.inbox.cond:
             tick = self.inbox.get(Tick, "tracker")
         if tick is None or not tick.stop:
@@ -224,7 +226,7 @@ class Monitor:
         if self.k_truth > tick.step and self.k_plan >= tick.step:
             return True
         if time.monotonic() > self.stop_deadline:
-            return self.k_truth > tick.step
+            return False
         return None
 
     def summary(self, completed: bool) -> dict[str, Any]:

@@ -199,3 +199,51 @@ def test_arrived_means_stayed_for_the_settle_time():
     assert settled_since([far] * 5 + [near] * (n - 1), Ts) is None  # not long enough yet
     assert settled_since([near] * 20 + [far], Ts) is None  # left again at the end
     assert settled_since([near] * n + [far] + [near] * (n - 1), Ts) is None
+
+
+class _NoRecording:
+    """Stands in for the Rerun recorder: the bookkeeping is what is under test."""
+
+    def __getattr__(self, name: str):
+        return lambda *a, **k: None
+
+
+def test_a_run_whose_plans_never_came_did_not_complete() -> None:
+    """The clock ran to its stop tick and every ground-truth sample came, but no agent ever
+    planned (every agent exited at once): the summary must not say ``completed: true`` with
+    ``steps: 0``.  With the same truths and every plan in, it completes."""
+    from pathlib import Path
+
+    from ground.scenario import load_scenario
+    from ground.wire import Pose, Truth
+    from supervisor.monitor import Monitor
+
+    scn = load_scenario(Path(__file__).resolve().parents[2] / "scenarios" / "paper_two_robots.toml")
+    ids = [r.id for r in scn.robots]
+    assert ids == IDS
+    end = 6
+
+    def run(with_plans: bool) -> dict:
+        inbox = Inbox(Keys("lab"), "test")
+        inbox.live = set(ids)
+        inbox._store(Tick.TYPE, Tick(robot="tracker", step=end, t=0.1 * end, stop=True, misses=0), False)
+        for k in range(end + 1):
+            for i, r in enumerate(ids):
+                for typ in (Truth, Pose):
+                    inbox._store(typ.TYPE, typ(robot=r, seq=k, t=0.1 * k, x=0.3 * i, y=0.0, theta=0.0), True)
+                if with_plans and k < end:
+                    inbox._store(Plan.TYPE, _plan(r, k), True)
+        watch = Monitor(scn, inbox, _NoRecording())  # type: ignore[arg-type]
+        watch.ids = ids
+        watch.take()
+        done = watch.finished()
+        if done is None:  # waiting for plans that will not come: let the grace period lapse
+            watch.stop_deadline = 1.0
+            done = watch.finished()
+        assert done is not None
+        return watch.summary(done)
+
+    s = run(with_plans=False)
+    assert (s["completed"], s["steps"]) == (False, 0), s
+    s = run(with_plans=True)
+    assert (s["completed"], s["steps"]) == (True, end), s
