@@ -43,6 +43,7 @@ from agent.qp import StepData, TubeQP
 from agent.sets import Array
 from agent.tube import TubeDesign
 from ground.scenario import AT_GOAL
+from ground.wire import BLIND
 
 TUBE_TOL = 2e-5
 """Tolerance of the tube check x − x̂ ∈ Z [m, m/s]: twice ProxSuite's eps_abs,
@@ -167,13 +168,15 @@ class TubeMPC:
         self.reset(np.asarray(start, dtype=float))
 
     # --------------------------------------------------------------- state
-    def reset(self, point: Array) -> None:
-        """(Re-)initialise at rest at ``point`` (2,): reference and plan stay put there."""
+    def reset(self, point: Array, x: Array | None = None) -> None:
+        """(Re-)initialise at ``point`` (2,) [m]: the committed reference stays put there.  The
+        nominal state starts at ``x`` (4,) [m, m/s], the measured state (so x − x̂ = 0 ∈ Z),
+        or at rest at ``point``."""
         E = self.design.E
         self.y_ref = np.tile(point, (self.N, 1))
         self.x_ref = np.tile(E @ point, (self.N, 1))
         xi = np.zeros(self.qp.n)
-        xi[0:4] = E @ point
+        xi[0:4] = E @ point if x is None else x
         xi[self.qp.iy] = point
         self.xi = xi
         self.target = self.goal
@@ -393,7 +396,7 @@ class TubeMPC:
         nxt = self.candidate()
         return StepOutput(
             a=a, committed=self.y_ref.copy(), plan=(qp.S_pos @ cand).reshape(self.N + 1, 2),
-            x_hat=cand[0:4].copy(), status="HOLD_NO_POSE", fallback=True, solve_time=0.0,
+            x_hat=cand[0:4].copy(), status=BLIND, fallback=True, solve_time=0.0,
             step_time=time.perf_counter() - t0, candidate_violation=0.0, tube_ok=True, min_slack=math.inf,
             target=np.asarray(self.target, dtype=float).copy(), mode="hold", x_next=nxt[0:4].copy(),
             v_next=nxt[qp.iv].reshape(self.N, 2),

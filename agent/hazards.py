@@ -16,7 +16,7 @@ import numpy as np
 
 from agent.coordination import Hazard, NeighbourInfo
 from ground.params import ControllerParams
-from ground.wire import Plan
+from ground.wire import BLIND, Plan
 
 
 def neighbour_of(plan: Plan) -> NeighbourInfo:
@@ -36,7 +36,8 @@ class Guard:
       *hazard*: a static disc around its last known committed point ĉ_j of
       radius r_j + (m + 1)·√2·ε, since its appended point moves at most ε per
       axis a step.
-    * A dead robot (liveliness gone; its robot side brakes it) is a hazard of
+    * A dead robot (liveliness gone; its robot side brakes it), or one whose agent
+      says it is blind (:data:`ground.wire.BLIND`: no poses, braking), is a hazard of
       radius r_j + max(N, m + 1)·√2·ε + v_max²/(2 a_max): wherever its reference was
       when it died is within that of ĉ_j, and braking adds the stopping distance.
     * At step 0 every robot is a neighbour at its scenario start, as in
@@ -72,7 +73,8 @@ class Guard:
             if k == 0:
                 nbs.append(starts[j])
                 continue
-            if pl is not None and j in live and j not in braked:
+            blind = pl is not None and pl.status == BLIND
+            if pl is not None and j in live and j not in braked and not blind:
                 nbs.append(neighbour_of(pl))
                 if self._state.get(j, "neighbour") != "neighbour":
                     self._note(j, "neighbour", k)
@@ -83,14 +85,14 @@ class Guard:
                 else (old.committed[-1], old.step, old.footprint)
             )  # fmt: skip
             m = max(k - 1 - since, 0)
-            if j in live and j not in braked:
+            if j in live and j not in braked and not blind:
                 radius = r_j + (m + 1) * self.eps
                 info = neighbour_of(old) if old is not None else starts[j]
                 self._note(j, "stale", k)
             else:
                 radius = r_j + max(self.N, m + 1) * self.eps + self.brake
                 info = None
-                self._note(j, "dead" if j not in live else "braked", k)
+                self._note(j, "dead" if j not in live else "braked" if j in braked else "blind", k)
             hazards.append(Hazard(j, np.array(centre, dtype=float), radius, info))
         self.hazard_steps += len(hazards)
         return nbs, hazards
@@ -98,7 +100,7 @@ class Guard:
     def _note(self, j: str, state: str, k: int) -> None:
         before = self._state.get(j, "neighbour")
         self._state[j] = state
-        if state == before or (state == "stale" and before in ("dead", "braked")):
+        if state == before or (state == "stale" and before in ("dead", "braked", "blind")):
             return
         self.transitions += 1
         if (j, state, before) in self._logged:
@@ -109,5 +111,6 @@ class Guard:
             "stale": "its plan is late or lost; kept clear of as a growing static disc",
             "dead": "not alive; kept clear of as a static obstacle while its robot stops",
             "braked": "braked by its robot side; kept clear of as a static obstacle while it stops",
+            "blind": "without poses, braking; kept clear of as a static obstacle while it stops",
         }[state]
         self.log(f"step {k}: {j}: {what}")

@@ -253,11 +253,18 @@ class Agent:
         if pose is not None and odom is not None:
             x = measured_state((pose.x, pose.y, pose.theta), (odom.vx, odom.vy), p.lookahead)
             if self.blind > blind_steps:
-                log(self.role, f"step {k}: measurements back after {self.blind} steps; planning again")
+                # Its robot braked off the committed reference, and its neighbours kept clear
+                # of it as of a braked robot (BLIND): start again from where it is, as a
+                # restarted agent does, with the tube about the new measurement.
+                log(
+                    self.role,
+                    f"step {k}: measurements back after {self.blind} steps; starting again where it is",
+                )
+                self.joined = False
             self.blind = 0
             if not self.joined and k > 0:
-                # (Re)joining a running fleet: start at rest where the robot is.
-                self.ctrl.reset(x[[0, 2]])
+                # (Re)joining a running fleet: start where the robot is, references at rest there.
+                self.ctrl.reset(x[[0, 2]], x)
                 if not self.rejoined:  # once a braking episode: it starts again at each of its steps
                     log(self.role, f"joined at step {k} at ({x[0]:.3f}, {x[2]:.3f})")
                 self.rejoined = self.behind == "braked"

@@ -262,6 +262,12 @@ class Truth(Pose):
     TYPE: ClassVar[str] = "truth"
 
 
+BLIND = "HOLD_NO_POSE"
+"""``Plan.status`` of an agent without poses past its model bound: the robot brakes where it
+is, off its committed reference, so the neighbours keep clear of it as of a braked robot
+(docs/method.md §6), and it commits afresh from where it is when the poses come back."""
+
+
 @dataclass(frozen=True)
 class Plan(Message):
     """An agent's committed reference and what neighbours need to coordinate."""
@@ -288,7 +294,8 @@ class Plan(Message):
     goal: NDArray[np.float64] = field(compare=False)
     """Goal (2,) [m]."""
     status: str
-    """Solver status of this step."""
+    """Solver status of this step; :data:`BLIND` when the agent had no measurement and its
+    robot brakes instead of tracking ``committed``."""
     solve_time: float
     """QP update + solve time [s]."""
     tube_ok: bool

@@ -29,7 +29,7 @@ import numpy as np
 from ground.bus import remember_steps
 from ground.geometry import Array, controlled_point, wrap_angle
 from ground.scenario import Scenario, settled_since
-from ground.wire import Plan
+from ground.wire import BLIND, Plan
 
 SOLVED = "PROXQP_SOLVED"
 """The one solver status whose plan is a solution; every other status is a fallback."""
@@ -83,7 +83,7 @@ class Judge:
         """Per robot, recent steps whose plan was reported not executed."""
         self.robot: dict[str, dict[str, Any]] = {
             r: {"solves": 0, "failures": 0, "tube_exits": 0, "status": {}, "solve_ms": [], "candidate": 0,
-                "braked": 0, "breaks": 0}
+                "braked": 0, "breaks": 0, "blind": 0}
             for r in self.ids
         }  # fmt: skip
         self.extras: dict[str, dict[str, Any]] = {r: {} for r in self.ids}
@@ -142,9 +142,11 @@ class Judge:
         for r, pl in executed.items():
             prev = self.last_plans.get(r)
             # Checked when every step between was reported unexecuted (a plan lost on its way
-            # to the supervisor would look like a break).
+            # to the supervisor would look like a break).  A blind agent's robot braked off its
+            # reference, which its neighbours stopped relying on: it starts again where it is.
             if (
                 prev is not None
+                and prev.status != BLIND
                 and pl.step > prev.step
                 and all(s in self.unexecuted[r] for s in range(prev.step + 1, pl.step))
                 and not continues(prev, pl)
@@ -170,11 +172,14 @@ class Judge:
             if made is None:
                 continue
             st = self.robot[a]
-            st["solves"] += 1
             st["status"][made.status] = st["status"].get(made.status, 0) + 1
-            st["failures"] += made.status != SOLVED
-            st["tube_exits"] += not made.tube_ok
-            st["solve_ms"].append(made.solve_time * 1e3)
+            if made.status == BLIND:  # no measurement, no QP: the robot braked
+                st["blind"] += 1
+            else:
+                st["solves"] += 1
+                st["failures"] += made.status != SOLVED
+                st["tube_exits"] += not made.tube_ok
+                st["solve_ms"].append(made.solve_time * 1e3)
             self.goals[a] = made.goal.copy()
             # The executed reference for the next sample ("stay put" past its end).
             at = min(max(k - pa.step, 0), len(pa.committed) - 1)
@@ -253,6 +258,7 @@ class Judge:
             "tube_exits": st["tube_exits"],
             "steps_on_candidate": st["candidate"],
             "steps_braked": st["braked"],
+            "steps_blind": st["blind"],
             "reference_breaks": st["breaks"],
             "status_counts": dict(st["status"]),
             "max_reference_deviation_m": self.deviation(r),

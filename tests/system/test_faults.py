@@ -9,6 +9,7 @@ SIGKILL + restart and SIGSTOP/SIGCONT.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -30,11 +31,12 @@ from agent.controller import TubeMPC
 from agent.coordination import Hazard, NeighbourInfo, hazard_halfplanes
 from agent.hazards import Guard
 from agent.tube import synthesize
+from fleet.scenes import antipodal_swap, scene_to_toml
 from ground.faults import DELIVER, DROP, FaultPlan, FaultPlanError
 from ground.geometry import controlled_point
 from ground.net import free_port, loopback
 from ground.scenario import load_scenario
-from ground.wire import Plan
+from ground.wire import BLIND, Plan
 from tracker.world import Disturbance, PoseNoise, make_plant, measure
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -206,6 +208,11 @@ def test_guard_grows_stale_discs_by_epsilon_and_caps_dead_ones():
     nbs, hz = g.classify(9, ["r3"], {"r3": None}, {"r3": None}, {"r3"}, starts)
     assert np.array_equal(hz[0].centre, starts["r3"].last_point)  # never heard: its start
     assert hz[0].radius == pytest.approx(design.footprint + 10 * reach)  # steps 0..9 appended
+    # A live robot whose fresh plan says its agent is blind (no poses, braking): a braked disc.
+    blind = dataclasses.replace(old, step=11, status=BLIND)
+    nbs, hz = g.classify(12, ["r2"], {"r2": blind}, {"r2": blind}, {"r2"}, starts)
+    assert not nbs and hz[0].radius == pytest.approx(design.footprint + p.horizon * reach + brake)
+    assert hz[0].info is None and np.array_equal(hz[0].centre, [0.3, 0.2])
 
 
 # -------------------------------------------------------------- processes
@@ -264,6 +271,41 @@ def test_lockstep_run_with_lost_plans_and_poses_is_safe_and_deterministic(tmp_pa
     assert s["steps"] == s2["steps"]
     for key in ("min_distance_m", "min_reference_separation_m"):
         assert s[key] == pytest.approx(s2[key], abs=1e-12)
+
+
+def test_a_blind_robot_starts_again_from_its_measurement_when_poses_return(tmp_path):
+    """Six robots swap places (lockstep).  r1's camera poses stop for 10 steps, past the model
+    bound of 3: it runs 3 steps on its prediction, then brakes and holds for 7, and its
+    neighbours keep clear of it as of a braked robot.  When the poses come back it starts again
+    from the measurement: no step outside the tube (at most one is allowed), no QP failure, no
+    reference break counted.  r2's poses stop for 3 steps, within the bound: it keeps its
+    reference, with no tube exit either.  (Before the restart rule, r1 counted 8 tube exits and
+    8 failed QPs after such a blackout.)"""
+    scene = tmp_path / "swap_6.toml"
+    scene.write_text(scene_to_toml(antipodal_swap(6)))
+    plan = {"seed": 1, "rules": [
+        {"key": "pose/r1", "bursts": [[40, 50]], "to": ["agent r1"]},
+        {"key": "pose/r2", "bursts": [[60, 63]], "to": ["agent r2"]},
+    ]}  # fmt: skip
+    faults = tmp_path / "faults.json"
+    faults.write_text(json.dumps(plan))
+    out = tmp_path / "run"
+    res = _fleet("run", str(scene), "--out", str(out), "--faults", str(faults))
+    assert res.returncode == 0, res.stderr[-3000:]
+    s, err = json.loads((out / "summary.json").read_text()), res.stderr
+    assert s["completed"] and s["collisions"] == 0 and s["all_goals_reached"], s
+    assert s["min_reference_separation_m"] >= s["required_reference_separation_m"] - 1e-9
+    r1, r2 = s["robots"]["r1"], s["robots"]["r2"]
+    assert r1["steps_blind"] == 7 and r1["status_counts"][BLIND] == 7, r1
+    assert r1["tube_exits"] <= 1 and r1["qp_failures"] == 0 and r1["reference_breaks"] == 0, r1
+    assert r2["steps_blind"] == 0 and r2["tube_exits"] == r2["qp_failures"] == r2["reference_breaks"] == 0, r2
+    assert "[agent r1] step 50: measurements back after 10 steps; starting again where it is" in err
+    assert "[agent r1] joined at step 50" in err
+    for j in ("r2", "r3", "r4", "r5", "r6"):
+        assert f"[agent {j}] step 44: r1: without poses, braking; kept clear of" in err, err[-3000:]
+        assert f"[agent {j}] step 51: r1: coordinating again" in err, err[-3000:]
+    exits = dict(re.findall(r"\[agent (r\d)\] stopped after .*? (\d+) tube exits", err))
+    assert exits["r1"] == exits["r2"] == "0", exits
 
 
 def test_relayed_plans_lost_at_the_tracker_or_the_agents_are_handled_safely(tmp_path):
