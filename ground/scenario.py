@@ -84,6 +84,9 @@ MAX_SCENARIO_BYTES = 1 << 20
 """Largest scenario file read [bytes]."""
 MAX_SEED = 2**32 - 1
 """Largest seed: a 32-bit unsigned integer, the same in every process."""
+REACH_CELLS = 400
+"""Cells along the arena's longer side of the grid on which :func:`check_geometry` decides that
+a goal can be reached (a 2 m arena is searched on 5 mm cells)."""
 PRIORITY_RANGE = (-(2**31), 2**31 - 1)
 """Priorities the wire carries (``ground.wire.Plan.priority``, a 32-bit signed integer)."""
 DISTURBANCES = ("uniform", "adversarial", "none")
@@ -153,6 +156,11 @@ class Circle:
         p = np.asarray(point, dtype=float)[:2]
         return max(0.0, float(np.linalg.norm(p - np.asarray(self.center))) - self.radius)
 
+    def distances(self, points: np.ndarray) -> np.ndarray:
+        """:meth:`distance` of each of ``points`` (M, 2) [m]: (M,) [m]."""
+        d = np.linalg.norm(np.asarray(points, dtype=float) - np.asarray(self.center), axis=1)
+        return np.maximum(d - self.radius, 0.0)
+
     def closest_point(self, point: Point) -> np.ndarray:
         """Nearest point (2,) [m] of the disc's boundary circle to ``point``.
 
@@ -204,6 +212,16 @@ class Polygon:
             return 0.0
         p = np.asarray(point, dtype=float)[:2]
         return float(np.linalg.norm(self.closest_point(p) - p))
+
+    def distances(self, points: np.ndarray) -> np.ndarray:
+        """:meth:`distance` of each of ``points`` (M, 2) [m]: (M,) [m] (0 inside)."""
+        v = self._array()
+        e = np.roll(v, -1, axis=0) - v
+        r = np.asarray(points, dtype=float)[:, None, :] - v[None]  # (M, E, 2)
+        t = np.clip(np.einsum("mij,ij->mi", r, e) / np.einsum("ij,ij->i", e, e), 0.0, 1.0)
+        d = np.linalg.norm(r - t[..., None] * e[None], axis=2).min(axis=1)
+        inside = np.all(e[None, :, 0] * r[..., 1] - e[None, :, 1] * r[..., 0] >= 0.0, axis=1)
+        return np.where(inside, 0.0, d)
 
 
 Obstacle = Circle | Polygon
@@ -1013,6 +1031,45 @@ def check_geometry(scn: Scenario, footprint: float) -> None:
                         f"{label} {_xy(pts[j])} of {scn.robots[j].id!r} is {sd} m from that of robots[{i}] "
                         f"({scn.robots[i].id!r}), closer than their footprints allow ({rule} = {sf} m)",
                     )
+    _check_reachable(scn, starts, goals, fp)
+
+
+def _check_reachable(scn: Scenario, starts: list[np.ndarray], goals: list[np.ndarray], fp: float) -> None:
+    """Raise :class:`ConfigError` for the first robot whose goal cannot be reached from its start
+    by a disc of radius ``fp`` [m] past the walls and static obstacles (the other robots aside).
+
+    Free space is searched on a grid of :data:`REACH_CELLS` cells along the longer side: a cell
+    is free when its centre clears every wall and obstacle by ``fp``, and free cells that share
+    an edge or a corner are connected.  A passage counts when it is about a cell wider than
+    2·``fp`` (the footprint already holds the tube); one narrower than 2·``fp`` never does.  A
+    start or goal is joined to the free cells within a cell diagonal of it."""
+    from scipy import ndimage
+
+    xmin, xmax, ymin, ymax = scn.arena
+    h = max(xmax - xmin, ymax - ymin) / REACH_CELLS
+    nx, ny = max(1, math.ceil((xmax - xmin) / h)), max(1, math.ceil((ymax - ymin) / h))
+    xs = xmin + (np.arange(nx) + 0.5) * (xmax - xmin) / nx
+    ys = ymin + (np.arange(ny) + 0.5) * (ymax - ymin) / ny
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    free = (X - xmin >= fp) & (xmax - X >= fp) & (Y - ymin >= fp) & (ymax - Y >= fp)
+    centres = np.column_stack([X.ravel(), Y.ravel()])
+    for obs in scn.obstacles:
+        free &= (obs.distances(centres) >= fp).reshape(nx, ny)
+    labels, _ = ndimage.label(free, structure=np.ones((3, 3), dtype=bool))
+    reach = math.hypot(xs[1] - xs[0] if nx > 1 else h, ys[1] - ys[0] if ny > 1 else h)
+
+    def pieces(p: np.ndarray) -> set[int]:
+        near = (X - p[0]) ** 2 + (Y - p[1]) ** 2 <= reach**2
+        return set(np.unique(labels[near & free]).tolist())
+
+    for i, r in enumerate(scn.robots):
+        at_start, at_goal = pieces(starts[i]), pieces(goals[i])
+        if at_start and at_goal and not at_start & at_goal:
+            raise ConfigError(
+                f"robots[{i}].goal",
+                f"goal {_xy(goals[i])} of {r.id!r} cannot be reached from its start: the walls and "
+                f"obstacles leave no passage for its footprint of radius {fp:.3f} m",
+            )
 
 
 def settle_samples(Ts: float) -> int:

@@ -349,6 +349,10 @@ BAD = {
         ),
         "robots[1].id",
     ),
+    "goal_walled_in": (
+        scenario_toml(obstacles="[[obstacles]]\npolygon = [[0.2, -1], [0.3, -1], [0.3, 1], [0.2, 1]]\n"),
+        "robots[0].goal",
+    ),
     "toml_syntax": ('name = "broken\nduration = 60\n', "file"),
     "inadmissible_epsilon": (scenario_toml(controller="[controller]\nepsilon = 0.05\n"), "controller"),
     "missing_file": (None, "file"),

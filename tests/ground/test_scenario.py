@@ -459,6 +459,52 @@ def test_geometry_message_units() -> None:
     )
 
 
+@pytest.mark.parametrize(("gap", "refused"), [(0.30, False), (0.28, False), (0.26, True), (0.0, True)])
+def test_a_goal_behind_a_wall_is_refused_unless_a_passage_fits(gap: float, refused: bool) -> None:
+    """A wall across the arena leaves a gap of ``gap`` [m] at its top.  The footprint (0.134 m)
+    passes a gap of 2 × 0.134 = 0.268 m and more; a narrower one, or none, walls the goals in,
+    and the first robot behind it is named."""
+    data = base()
+    data["obstacles"] = [{"polygon": [[0.3, -1.0], [0.4, -1.0], [0.4, 1.0 - gap], [0.3, 1.0 - gap]]}]
+    scn = parse_scenario(data)
+    if not refused:
+        check_geometry(scn, 0.134)
+        return
+    with pytest.raises(ConfigError) as exc:
+        check_geometry(scn, 0.134)
+    assert str(exc.value) == (
+        "robots[0].goal: goal (0.60, 0.00) of 'r1' cannot be reached from its start: the walls and "
+        "obstacles leave no passage for its footprint of radius 0.134 m"
+    )
+
+
+def test_a_goal_in_a_pocket_of_obstacles_is_refused() -> None:
+    """Four discs ring the goal of r2, each gap between them narrower than its footprint allows:
+    r2's goal is refused; r1's goal, outside the ring, is not the one named."""
+    data = base()
+    data["robots"][0]["start"] = [-0.6, 0.6, 0.0]  # out of the ring to come
+    gx, gy = data["robots"][1]["goal"]
+    data["obstacles"] = [
+        {"circle": {"center": [gx + dx, gy + dy], "radius": 0.12}}
+        for dx, dy in ((0.3, 0.0), (-0.3, 0.0), (0.0, 0.3), (0.0, -0.3))
+    ]
+    scn = parse_scenario(data)
+    with pytest.raises(ConfigError) as exc:
+        check_geometry(scn, 0.134)
+    assert exc.value.field == "robots[1].goal" and "'r2' cannot be reached" in exc.value.reason
+    # The same ring, its discs shrunk so a footprint passes between them: accepted.
+    for ob in data["obstacles"]:
+        ob["circle"]["radius"] = 0.02
+    check_geometry(parse_scenario(data), 0.134)
+
+
+def test_distances_of_many_points_are_the_distances_of_each() -> None:
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-1.5, 1.5, (400, 2))
+    for ob in (Polygon(((0.0, 0.0), (1.0, -0.2), (0.7, 0.9), (-0.1, 0.5))), Circle((0.2, -0.3), 0.4)):
+        assert np.allclose(ob.distances(pts), [ob.distance(p) for p in pts], atol=1e-12)
+
+
 def test_toml_syntax_error(tmp_path: Path) -> None:
     path = tmp_path / "broken.toml"
     path.write_text('name = "x"\nduration = 60.0\n[arena\nbounds = [0, 1, 0, 1]\n')
