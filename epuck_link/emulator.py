@@ -1,20 +1,27 @@
 """An e-puck firmware emulator speaking the real protocols byte for byte.
 
 ``python -m epuck_link.emulator [--pty] [--tcp PORT] [--start X Y THETA] [--encoders L R]
-[--speed-limit N] [--robot ID [--fleet F] [--connect E] [--listen E] [--rate HZ]]``
+[--model e-puck1|e-puck2] [--speed-limit N] [--stream-period S]
+[--robot ID [--fleet F] [--connect E] [--listen E] [--rate HZ]]``
 
 * ``--pty``: advanced sercom on a pseudo-terminal pair (``os.openpty``, raw
   mode); the slave's path is announced, ``epuck_link --link serial:PATH`` opens
   it.  Binary chains (``0xBC`` set speed, ``0xAF`` get encoders, ``0x00``) and
   the ASCII lines ``D,l,r`` and ``Q`` are answered as the firmware does.
+  Inside a chain, the other requests the firmware knows are skipped with their
+  arguments (:data:`epuck_link.protocol.CHAIN_ARGS_V2`).
 * ``--tcp PORT``: the e-puck2 Wi-Fi protocol on ``127.0.0.1:PORT`` (0: a free
-  port), one client at a time.  The image stream is answered with a black
-  image.
+  port), one client at a time, as the ESP32 firmware runs it (:class:`WifiSide`):
+  21-byte blocks, and once a valid command has come a packet every
+  ``--stream-period`` seconds (default 0.02), new command or not.  The image
+  stream is answered with a black image.
 
 The robot is a differential drive with the E-puck geometry
 (:class:`ground.params.WheelGeometry`: wheel radius 20.5 mm, axle 53 mm, 1000
-steps per revolution).  Speeds are clamped to ±``--speed-limit`` steps/s;
-between two requests the wheels turn at constant speed and the pose is
+steps per revolution).  Speeds are clamped to ±``--speed-limit`` steps/s, and
+the motors step at whole timer periods (:func:`epuck_link.protocol.step_rate`:
+700 steps/s runs at 714 on an e-puck1); between two requests the wheels turn
+at constant speed and the pose is
 integrated exactly (:func:`epuck_link.unicycle.integrate_unicycle`) in wall time, or
 on an injected clock in tests.  The encoder counts are kept exactly and
 reported as int16s that wrap, as the firmware does.
@@ -82,11 +89,16 @@ class EpuckEmulator:
         pose: tuple[float, float, float] = (0.0, 0.0, 0.0),
         encoders: tuple[int, int] = (0, 0),
         geom: WheelGeometry | None = None,
-        speed_limit: int = P.MAX_STEPS_V1,
+        speed_limit: int | None = None,
         clock: Callable[[], float] = time.monotonic,
+        model: str = "e-puck1",
     ):
+        if model not in P.MODELS:
+            raise ValueError(f"model {model!r}: expected one of {', '.join(P.MODELS)}")
+        self.model = model
+        """``e-puck1`` or ``e-puck2``: the firmware's speed limit, chained requests and step timing."""
         self.geom = geom or WheelGeometry()
-        self.speed_limit = speed_limit
+        self.speed_limit = speed_limit or (P.MAX_STEPS_V1 if model == "e-puck1" else P.MAX_STEPS_V2)
         self.clock = clock
         self._lock = threading.Lock()
         self._pose = np.array(pose, dtype=float)
@@ -105,7 +117,8 @@ class EpuckEmulator:
         now = self.clock()
         dt = now - self._t
         if dt > 0:
-            left, right = self._speeds
+            # The motors step at whole timer periods, a little faster than commanded.
+            left, right = (P.step_rate(s, self.model) for s in self._speeds)
             if left or right:
                 v, omega = unicycle_from_wheels(left, right, self.geom)
                 self._pose = integrate_unicycle(self._pose, v, omega, dt)
@@ -146,7 +159,7 @@ class EpuckEmulator:
     # ---------------------------------------------------------- protocols
     def serial_handler(self) -> Callable[[bytes], bytes]:
         """A handler for one serial connection: bytes received → bytes to send back."""
-        parser = P.AsercomParser()
+        parser = P.AsercomParser(args=P.CHAIN_ARGS_V1 if self.model == "e-puck1" else P.CHAIN_ARGS_V2)
         pending = bytearray()
 
         def handle(data: bytes) -> bytes:
@@ -166,38 +179,78 @@ class EpuckEmulator:
                         self.set_speeds(*speeds)
                     out += reply
                 else:
-                    self.ignored += 1
+                    self.ignored += 1 + len(req.args)
             return bytes(out)
 
         return handle
 
-    def wifi_handler(self) -> Callable[[bytes], bytes]:
-        """A handler for one Wi-Fi (TCP) connection: bytes received → bytes to send back.
+    def wifi(self) -> WifiSide:
+        """The Wi-Fi processor's side of one TCP connection (:class:`WifiSide`)."""
+        return WifiSide(self)
 
-        Bytes before a ``0x80`` are skipped (resynchronisation)."""
-        buf = bytearray()
 
-        def handle(data: bytes) -> bytes:
-            buf.extend(data)
-            out = bytearray()
-            while buf:
-                if buf[0] != P.WIFI_COMMAND:
-                    del buf[0]
-                    self.ignored += 1
-                    continue
-                if len(buf) < P.WIFI_COMMAND_SIZE:
-                    break
-                cmd = P.parse_wifi_command(bytes(buf[: P.WIFI_COMMAND_SIZE]))
-                del buf[: P.WIFI_COMMAND_SIZE]
-                if cmd.settings & P.SETTING_MOTOR_STEPS:
-                    self.set_counts(cmd.left, cmd.right)
-                else:
-                    self.set_speeds(cmd.left, cmd.right)
-                self.wifi_packets += 1
-                out += P.wifi_reply(cmd.request, *self.encoders())
-            return bytes(out)
+class WifiSide:
+    """The e-puck2's ESP32 Wi-Fi firmware for one connection, pass by pass, as GCtronic's
+    ``e-puck2/esp-idf`` (branch ``wifi``, e2f4883) ``Projects/ESP32_E-Puck_2/main/
+    socket_e-puck2.c`` does it:
 
-        return handle
+    * Commands are read in whole 21-byte blocks, one a pass, never resynchronised byte by
+      byte (L164–177).  Only a block starting with ``0x80`` makes the connection valid
+      (L171–172); after that every block is taken as a command whatever its first byte
+      (L174–177): a stream that lost its alignment stays misaligned.
+    * With five blocks or more waiting, all but the last are dropped (L146–161).
+    * Once a valid command has come, every pass re-applies the last command and answers it
+      by its request byte, new command or not (L182–195): ``0x00`` the empty packet, bit 0
+      the image (then the sensors if bit 1), bit 1 the sensors; a request byte with neither
+      bit answers nothing.  So the robot *streams*.
+
+    :meth:`take` queues received bytes; :meth:`cycle` is one packet's worth of passes and
+    returns the bytes to send (the server paces it, :class:`TcpServer`)."""
+
+    BACKLOG_BLOCKS = 5
+
+    def __init__(self, emulator: EpuckEmulator):
+        self.emu = emulator
+        self.rx = bytearray()
+        self.valid = False
+        self.last: bytes | None = None
+        self.dropped = 0
+        """Blocks dropped from a backlog."""
+
+    def take(self, data: bytes) -> None:
+        self.rx += data
+
+    @property
+    def waiting(self) -> bool:
+        """A partial block is in: the firmware blocks on the rest of it (MSG_WAITALL, L174)."""
+        return 0 < len(self.rx) < P.WIFI_COMMAND_SIZE
+
+    def cycle(self) -> bytes:
+        """Read at most one block, then answer the last valid command (empty until there is one)."""
+        size = P.WIFI_COMMAND_SIZE
+        if len(self.rx) >= self.BACKLOG_BLOCKS * size:
+            keep = len(self.rx) % size or size
+            self.dropped += (len(self.rx) - keep) // size
+            del self.rx[: len(self.rx) - keep]
+        if len(self.rx) >= size:
+            block = bytes(self.rx[:size])
+            del self.rx[:size]
+            if block[0] == P.WIFI_COMMAND or self.valid:
+                self.valid, self.last = True, block
+                self.emu.wifi_packets += 1
+            else:
+                self.emu.ignored += size
+        if self.last is None:
+            return b""
+        # The header of a later block is not checked: read its fields as they stand.
+        cmd = P.parse_wifi_command(bytes([P.WIFI_COMMAND]) + self.last[1:])
+        if cmd.settings & P.SETTING_MOTOR_STEPS:
+            self.emu.set_counts(cmd.left, cmd.right)
+        else:
+            self.emu.set_speeds(cmd.left, cmd.right)
+        if cmd.request == 0 or cmd.request & (P.REQUEST_IMAGE | P.REQUEST_SENSORS):
+            return P.wifi_reply(cmd.request, *self.emu.encoders())
+        return b""
 
 
 # ------------------------------------------------------------------ servers
@@ -243,8 +296,16 @@ class PtyServer:
                 pass
 
 
+STREAM_PERIOD = 0.02
+"""Seconds between two packets of the e-puck2's sensor stream: two passes of the ESP32 loop,
+each ended by ``vTaskDelay(10)`` at a 1 kHz tick (``socket_e-puck2.c`` L279, ``sdkconfig``
+L593); the UART exchange with the main processor runs alongside and may stretch it to 30 ms."""
+
+
 class TcpServer:
-    """Serves the Wi-Fi protocol on ``host:port`` (0: a free port), one client at a time."""
+    """Serves the Wi-Fi protocol on ``host:port`` (0: a free port), one client at a time, and
+    streams as the robot does: one packet every ``stream_period`` [s] once a valid command
+    has come (:class:`WifiSide`)."""
 
     def __init__(
         self,
@@ -252,9 +313,11 @@ class TcpServer:
         port: int = 0,
         host: str = LOOPBACK,
         report: Callable[[str], None] = lambda m: None,
+        stream_period: float = STREAM_PERIOD,
     ):
         self.emulator = emulator
         self.report = report
+        self.stream_period = stream_period
         self._sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # restart on the same port
         self._sock.bind((host, port))
@@ -280,19 +343,30 @@ class TcpServer:
             self.report(f"wifi client {addr[0]}:{addr[1]} left")
 
     def _serve(self, conn: socket.socket) -> None:
-        conn.settimeout(0.1)
         conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        handle = self.emulator.wifi_handler()
+        side = self.emulator.wifi()
+        due = time.monotonic()
         while not self._stop.is_set():
-            try:
-                data = conn.recv(4096)
-            except TimeoutError:
+            # Until the next packet is due, take what arrives (bounded, so a close is seen).
+            wait = min(0.1, max(0.0, due - time.monotonic())) if side.valid else 0.1
+            ready, _, _ = select.select([conn], [], [], wait)
+            if ready:
+                try:
+                    data = conn.recv(65536)
+                except OSError:
+                    return
+                if not data:
+                    return
+                side.take(data)
+            now = time.monotonic()
+            if (
+                side.waiting
+                or (side.valid and now < due)
+                or (not side.valid and len(side.rx) < P.WIFI_COMMAND_SIZE)
+            ):
                 continue
-            except OSError:
-                return
-            if not data:
-                return
-            reply = handle(data)
+            reply = side.cycle()
+            due = max(due + self.stream_period, now) if side.valid else now
             try:
                 if reply:
                     conn.sendall(reply)
@@ -367,10 +441,17 @@ def main(argv: list[str] | None = None) -> int:
                     help="start pose [m, m, rad] (default: the scenario's, else 0 0 0)")  # fmt: skip
     ap.add_argument("--encoders", type=int, nargs=2, default=(0, 0), metavar=("L", "R"),
                     help="initial encoder counts [steps]")  # fmt: skip
-    limits = f"e-puck {P.MAX_STEPS_V1}, e-puck2 {P.MAX_STEPS_V2}"
+    ap.add_argument("--model", choices=P.MODELS, default="e-puck1",
+                    help="the robot: speed limit, chained requests, step timing")  # fmt: skip
+    limits = f"e-puck1 {P.MAX_STEPS_V1}, e-puck2 {P.MAX_STEPS_V2}"
     ap.add_argument(
-        "--speed-limit", type=int, default=P.MAX_STEPS_V1, help=f"firmware clamp [steps/s] ({limits})"
+        "--speed-limit",
+        type=int,
+        default=None,
+        help=f"firmware clamp [steps/s] (default the model's: {limits})",
     )
+    ap.add_argument("--stream-period", type=float, default=STREAM_PERIOD, metavar="S",
+                    help=f"seconds between Wi-Fi packets (default {STREAM_PERIOD})")  # fmt: skip
     ap.add_argument("--robot", default=None, help="publish the true pose on fleet/F/emu/ROBOT")
     ap.add_argument("--rate", type=float, default=100.0, help="truth publishing rate [Hz] (default 100)")
     args = ap.parse_args(argv)
@@ -381,7 +462,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"emulator: error: {e}", file=sys.stderr)
         return 2
 
-    emu = EpuckEmulator((start[0], start[1], start[2]), tuple(args.encoders), speed_limit=args.speed_limit)
+    emu = EpuckEmulator(
+        (start[0], start[1], start[2]), tuple(args.encoders), speed_limit=args.speed_limit, model=args.model
+    )
 
     def report(msg: str) -> None:
         log(role, msg)
@@ -395,7 +478,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         try:
             pty_srv = PtyServer(emu, report) if args.pty else None
-            tcp_srv = TcpServer(emu, args.tcp, report=report) if args.tcp is not None else None
+            tcp_srv = (
+                TcpServer(emu, args.tcp, report=report, stream_period=args.stream_period)
+                if args.tcp is not None else None
+            )  # fmt: skip
         except OSError as e:
             print(f"emulator: error: {'--tcp' if args.tcp is not None else '--pty'}: {e}", file=sys.stderr)
             return 2
@@ -411,7 +497,7 @@ def main(argv: list[str] | None = None) -> int:
         announce(
             role, robot=args.robot, pty=pty_srv.path if pty_srv else None,
             tcp=f"{LOOPBACK}:{tcp_srv.port}" if tcp_srv else None, clock_origin=emu.origin,
-            truth_key=truth_key, speed_limit=args.speed_limit,
+            truth_key=truth_key, speed_limit=emu.speed_limit, model=emu.model,
         )  # fmt: skip
         while not stopping.wait(0.5):
             pass
@@ -441,8 +527,10 @@ def _start_pose(args: argparse.Namespace) -> tuple[float, float, float]:
         args.pty = True
     if args.tcp is not None and not 0 <= args.tcp <= 65535:
         raise ConfigError("--tcp", f"port {args.tcp} outside 0..65535")
-    if not 0 < args.speed_limit <= 32767:
+    if args.speed_limit is not None and not 0 < args.speed_limit <= 32767:
         raise ConfigError("--speed-limit", f"{args.speed_limit} outside 1..32767")
+    if not 0.001 <= args.stream_period <= 1.0:  # NaN fails too
+        raise ConfigError("--stream-period", f"{args.stream_period} s outside [0.001, 1]")
     if not 0 < args.rate <= 1000:
         raise ConfigError("--rate", f"{args.rate} Hz outside (0, 1000]")
     if args.robot is not None and not ROBOT_ID.fullmatch(args.robot):

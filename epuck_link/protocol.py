@@ -33,11 +33,13 @@ offset  content
 20      sound bits
 ======  ==========================================================================
 
-Each command packet is answered with a header byte then its payload: ``0x01``
-+ 38400 bytes of QQVGA RGB565 image when the image stream is requested,
-``0x02`` + 104 sensor bytes when the sensor stream is requested, or the empty
-``0x03`` (an acknowledgement) when neither is.  In the sensor payload the
-encoder counts are int16 LE at offsets 79–80 (left) and 81–82 (right).
+The robot answers with a header byte then its payload: ``0x01`` + 38400 bytes
+of QQVGA RGB565 image when the image stream is requested, ``0x02`` + 104 sensor
+bytes when the sensor stream is requested, or the empty ``0x03`` when the
+request byte is 0.  Once a command has come it answers the last one again on
+every pass of its loop, about every 20 ms, new command or not: it streams
+(:class:`epuck_link.emulator.WifiSide`).  In the sensor payload the encoder
+counts are int16 LE at offsets 79–80 (left) and 81–82 (right).
 """
 
 from __future__ import annotations
@@ -73,6 +75,44 @@ MAX_STEPS_V1 = 1000
 """Firmware speed limit of the e-puck 1.x [steps/s]."""
 MAX_STEPS_V2 = 1100
 """Firmware speed limit of the e-puck2 (``MOTOR_SPEED_LIMIT``) [steps/s]."""
+MODELS = ("e-puck1", "e-puck2")
+"""The robots the emulator models."""
+
+
+def step_rate(speed: int, model: str) -> float:
+    """The rate [steps/s] the motors actually step at for a commanded ``speed`` [steps/s]: the
+    step period is a whole number of timer ticks, rounded down.
+
+    * e-puck 1.x: ``10000 / speed`` ticks of 0.1 ms (GCtronic e-puck-library 4cb85cb,
+      ``library/motor_led/advance_one_timer/e_motors.c`` L290, ``e_agenda.c`` L54): 700 steps/s
+      steps every 14 ticks, at 714.3.
+    * e-puck2: ``100000 / (2·speed)`` ticks of 10 µs per microstep, two microsteps a step
+      (e-puck2_main-processor d2e0dbb, ``src/motors.c`` L7, L309, L324; assuming ChibiOS's
+      PWM period is that many ticks): 700 steps/s at 704.2."""
+    if speed == 0:
+        return 0.0
+    v = abs(int(speed))
+    if model == "e-puck1":
+        rate = 10000.0 / (10000 // v)
+    elif model == "e-puck2":
+        rate = 100000.0 / (2 * (100000 // (2 * v)))
+    else:
+        raise ValueError(f"model {model!r}: expected one of {', '.join(MODELS)}")
+    return math.copysign(rate, speed)
+
+
+CHAIN_ARGS_V1 = {binary_request(c): n for c, n in (("D", 4), ("L", 2), ("P", 4), ("W", 3), ("w", 35))}
+"""Argument bytes each binary request of the e-puck 1.x firmware reads inside a chain; any
+other byte is a request without arguments (GCtronic e-puck-library 4cb85cb,
+``program/DemoGCtronic-complete/Asercom.c``: 'D' L339–358, 'L' L395–418, 'P' L473–490, 'W'
+L533–541 and 'w' L543 when over Bluetooth, unknown requests ignored at L568–569)."""
+CHAIN_ARGS_V2 = {
+    **CHAIN_ARGS_V1, binary_request("Y"): 2,
+    0x100 - 0x09: 19, 0x100 - 0x0A: 12, 0x100 - 0x0F: 1, 0x100 - 0x10: 1, 0x100 - 0x11: 1,
+}  # fmt: skip
+"""The same for the e-puck2 (e-puck2_main-processor d2e0dbb, ``src/epuck1x/Asercom2.c``): also
+'Y' 2 (L1017–1031), set all actuators −0x09 19 (L475), RGB LEDs −0x0A 12 (L575–583),
+−0x0F, −0x10 and −0x11 1 each (L637, L668, L700)."""
 SERIAL_BAUD = 115200
 
 _INT16 = struct.Struct("<h")
@@ -173,9 +213,11 @@ class AsciiLine:
 
 @dataclass(frozen=True)
 class Ignored:
-    """A binary request this implementation does not know (the firmware ignores it too)."""
+    """A binary request this implementation does not act on, with the argument bytes the
+    firmware reads for it (none for a request it does not know: it ignores that byte alone)."""
 
     byte: int
+    args: bytes = b""
 
 
 Request = SetSpeed | GetEncoders | EndOfChain | AsciiLine | Ignored
@@ -186,14 +228,17 @@ class AsercomParser:
 
     Feed it any chunks (a request may be split across reads); it returns each
     complete request once.  Inside a binary chain every byte is a request:
-    ``0xBC`` takes 4 argument bytes, ``0xAF`` none, ``0x00`` ends the chain,
-    anything else is ignored.  Outside a chain, a byte ≥ 0x80 starts one, a
-    printable byte starts an ASCII line (ended by ``\\r`` or ``\\n``), and
-    stray ``0x00``, ``\\r``, ``\\n`` are skipped.  ASCII lines longer than
-    ``max_line`` bytes are cut there."""
+    ``0xBC`` takes 4 argument bytes, ``0xAF`` none, ``0x00`` ends the chain; the
+    other requests the firmware knows are skipped with their arguments (``args``:
+    :data:`CHAIN_ARGS_V1` or :data:`CHAIN_ARGS_V2`), so an argument byte is never
+    taken for a request; any other byte is ignored alone.  Outside a chain, a byte
+    ≥ 0x80 starts one, a printable byte starts an ASCII line (ended by ``\\r`` or
+    ``\\n``), and stray ``0x00``, ``\\r``, ``\\n`` are skipped.  ASCII lines
+    longer than ``max_line`` bytes are cut there."""
 
-    def __init__(self, max_line: int = 128):
+    def __init__(self, max_line: int = 128, args: dict[int, int] | None = None):
         self.max_line = max_line
+        self.args = CHAIN_ARGS_V1 if args is None else args
         self._buf = bytearray()
         self._in_chain = False
         self._line: bytearray | None = None
@@ -220,8 +265,11 @@ class AsercomParser:
                     out.append(GetEncoders())
                     del buf[0]
                 else:
-                    out.append(Ignored(b))
-                    del buf[0]
+                    n = self.args.get(b, 0)
+                    if len(buf) < 1 + n:
+                        break
+                    out.append(Ignored(b, bytes(buf[1 : 1 + n])))
+                    del buf[: 1 + n]
             elif self._line is not None:
                 ends = [i for i in (buf.find(b"\r"), buf.find(b"\n")) if i >= 0]
                 if not ends:

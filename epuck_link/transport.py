@@ -142,6 +142,11 @@ class Transport(ABC):
     def read_exact(self, n: int, timeout: float) -> bytes:
         """Exactly ``n`` bytes, or LinkError once ``timeout`` [s] has passed."""
 
+    @abstractmethod
+    def read_some(self, n: int, timeout: float) -> bytes:
+        """Up to ``n`` bytes: what has arrived, else the first that arrive within ``timeout``
+        [s]; ``b""`` if none did (``timeout`` 0: only what is there now)."""
+
     def reopen(self) -> None:
         """Close, then open."""
         self.close()
@@ -215,6 +220,23 @@ class SerialTransport(Transport):
             raise LinkError(f"{self.name}: read failed: {_one_line(e)}") from None
         return bytes(buf)
 
+    def read_some(self, n: int, timeout: float) -> bytes:
+        import serial
+
+        if self._port is None:
+            raise LinkError(f"{self.name}: not open")
+        try:
+            waiting = int(self._port.in_waiting)
+            if waiting or timeout <= 0:
+                return bytes(self._port.read(min(n, waiting))) if waiting else b""
+            self._port.timeout = timeout
+            try:
+                return bytes(self._port.read(1))
+            finally:
+                self._port.timeout = self.timeout
+        except (serial.SerialException, OSError) as e:
+            raise LinkError(f"{self.name}: read failed: {_one_line(e)}") from None
+
 
 class TcpTransport(Transport):
     """A TCP client (the e-puck2's Wi-Fi server), with connect and I/O timeouts."""
@@ -284,6 +306,20 @@ class TcpTransport(Transport):
             buf += chunk
         return bytes(buf)
 
+    def read_some(self, n: int, timeout: float) -> bytes:
+        if self._sock is None:
+            raise LinkError(f"{self.name}: not open")
+        try:
+            self._sock.settimeout(max(timeout, 0.0))  # 0: non-blocking, only what is there
+            chunk = self._sock.recv(n)
+        except (TimeoutError, BlockingIOError):
+            return b""
+        except OSError as e:
+            raise LinkError(f"{self.name}: receive failed: {_one_line(e)}") from None
+        if not chunk:
+            raise LinkError(f"{self.name}: connection closed by the robot")
+        return chunk
+
 
 class LoopTransport(Transport):
     """An in-process pipe to a byte handler (the emulator's serial side): what is
@@ -324,6 +360,13 @@ class LoopTransport(Transport):
         del self._pending[:n]
         return out
 
+    def read_some(self, n: int, timeout: float) -> bytes:
+        if self._handler is None:
+            raise LinkError(f"{self.name}: not open")
+        out = bytes(self._pending[:n])
+        del self._pending[:n]
+        return out
+
 
 def _one_line(e: BaseException) -> str:
     return " ".join(str(e).split()) or type(e).__name__
@@ -347,6 +390,10 @@ class Codec(ABC):
     def stop_request(self) -> bytes:
         """Bytes that set zero speed and expect no reply."""
 
+    def reset(self) -> None:
+        """The link was (re-)opened: forget any partial reply of the last connection."""
+        return None
+
 
 class AsercomCodec(Codec):
     """Advanced sercom: ``0xBC l l r r 0xAF 0x00`` → 4 bytes."""
@@ -363,22 +410,69 @@ class AsercomCodec(Codec):
 
 
 class WifiCodec(Codec):
-    """e-puck2 Wi-Fi: a 21-byte command packet asking for the sensors → ``0x02`` + 104 bytes."""
+    """e-puck2 Wi-Fi: a 21-byte command packet asking for the sensors; the robot streams.
+
+    Once a command has arrived, the robot's Wi-Fi processor sends a packet (``0x02`` + 104
+    bytes of sensors, for the request bits used here) on every pass of its loop, new command or
+    not (:class:`epuck_link.emulator.TcpServer` models it).  So an exchange takes every
+    complete packet that has arrived and uses the newest sensor packet; it waits only when
+    none has come since the last exchange.  Reading one reply per command instead would fall
+    behind the stream without bound when it runs faster than the link polls."""
+
+    MAX_READS = 256
+    """Reads in one exchange at most: draining ends even if the stream never pauses."""
 
     def __init__(self, reply_timeout: float = 0.25, limit: int = P.MAX_STEPS_V2):
         super().__init__(reply_timeout, limit)
+        self._rx = bytearray()
+        self.packets = 0
+        """Complete packets received."""
+        self.skipped = 0
+        """Sensor packets passed over for a newer one."""
+
+    def reset(self) -> None:
+        self._rx.clear()
 
     def exchange(self, t: Transport, left: int, right: int) -> tuple[int, int]:
         t.write(P.wifi_command(left, right, request=P.REQUEST_SENSORS, limit=self.limit))
+        deadline = time.monotonic() + self.reply_timeout
+        newest: tuple[int, int] | None = None
         try:
-            for _ in range(3):  # at most an image, the sensors, one stray empty packet
-                header = t.read_exact(1, self.reply_timeout)[0]
-                payload = t.read_exact(P.wifi_payload_size(header), self.reply_timeout)
-                if header == P.HEADER_SENSORS:
-                    return P.encoders_from_sensors(payload)
+            for _ in range(self.MAX_READS):
+                chunk = t.read_some(1 << 16, 0.0)  # everything there now
+                if not chunk and newest is None:
+                    left_s = deadline - time.monotonic()
+                    if left_s <= 0:
+                        raise LinkError(f"{t.name}: no sensor packet within {self.reply_timeout:.2f} s")
+                    chunk = t.read_some(1 << 16, left_s)
+                if not chunk:
+                    if newest is not None:
+                        return newest
+                    continue
+                self._rx += chunk
+                for enc in self._packets():
+                    if newest is not None:
+                        self.skipped += 1
+                    newest = enc
         except P.ProtocolError as e:
             raise LinkError(str(e)) from None
-        raise LinkError(f"{t.name}: no sensor packet in the reply")
+        if newest is None:
+            raise LinkError(f"{t.name}: no complete sensor packet in {self.MAX_READS} reads")
+        return newest  # the stream outpaced the reads: the newest so far
+
+    def _packets(self) -> list[tuple[int, int]]:
+        """The encoder counts of each complete sensor packet in the buffer, oldest first; the
+        packets are consumed, a partial one is kept."""
+        rx, out = self._rx, []
+        while rx:
+            size = P.wifi_payload_size(rx[0])
+            if len(rx) < 1 + size:
+                break
+            if rx[0] == P.HEADER_SENSORS:
+                out.append(P.encoders_from_sensors(bytes(rx[1 : 1 + size])))
+            del rx[: 1 + size]
+            self.packets += 1
+        return out
 
     def stop_request(self) -> bytes:
         return P.wifi_command(0, 0, request=0, limit=self.limit)
@@ -484,6 +578,7 @@ class RobotPort:
                 else:
                     self.report(f"link {self.transport.name} open")
                 down_since, attempts, fresh = None, 0, True
+                self.codec.reset()
             with self._cond:
                 self._cond.wait_for(lambda: self._new or self._stop, self.period)
                 if self._stop:

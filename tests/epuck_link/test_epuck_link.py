@@ -347,6 +347,9 @@ class _Flaky(Transport):
     def read_exact(self, n: int, timeout: float) -> bytes:
         return bytes(n)
 
+    def read_some(self, n: int, timeout: float) -> bytes:
+        return bytes(min(n, 4))
+
 
 def test_robot_port_retries_with_backoff_and_reports_once():
     flaky = _Flaky(fail_opens=3)
@@ -555,6 +558,20 @@ def test_link_cli_refuses_bad_links_in_one_line():
         assert res.stderr.startswith("epuck_link: error: ") and why in res.stderr
 
 
+@pytest.mark.parametrize(
+    ("args", "why"),
+    [(("--stream-period", "0"), "emulator: error: --stream-period: 0.0 s outside [0.001, 1]"),
+     (("--stream-period", "nan"), "emulator: error: --stream-period: nan s outside"),
+     (("--speed-limit", "0"), "emulator: error: --speed-limit: 0 outside 1..32767")],
+)  # fmt: skip
+def test_emulator_cli_refuses_bad_options_in_one_line(args: tuple[str, ...], why: str):
+    res = subprocess.run(
+        [sys.executable, "-m", "epuck_link.emulator", "--tcp", "0", *args],
+        cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert res.returncode == 2 and res.stderr.count("\n") == 1 and res.stderr.startswith(why), res.stderr
+
+
 def test_in_process_emulator_link(hub):
     """``--link emulator``: the link drives an emulator of its own, which starts at the scenario's
     pose and publishes its truth on fleet/F/emu/R."""
@@ -584,31 +601,55 @@ def test_in_process_emulator_link(hub):
     assert code == 0 and "link emulator open" in link.stderr()
 
 
-def test_wifi_round_trip_against_the_emulator():
-    """The 21-byte packet and the header + 104-byte reply, against the emulator over loopback TCP."""
-    emu = Proc("-m", "epuck_link.emulator", "--tcp", "0", "--encoders", "32760", "-32760")
+def _wifi_packets(t: TcpTransport, seconds: float) -> list[tuple[int, bytes]]:
+    """Every complete packet (header, payload) the robot sends within ``seconds`` [s]."""
+    buf, out = bytearray(), []
+    deadline = time.monotonic() + seconds
+    while (left := deadline - time.monotonic()) > 0:
+        buf += t.read_some(1 << 16, left)
+        while buf and len(buf) >= 1 + P.wifi_payload_size(buf[0]):
+            n = 1 + P.wifi_payload_size(buf[0])
+            out.append((buf[0], bytes(buf[1:n])))
+            del buf[:n]
+    return out
+
+
+def test_wifi_stream_against_the_emulator():
+    """The 21-byte packet and the header + 104-byte reply, against the emulator over loopback
+    TCP, streamed as the ESP32 firmware does: nothing before the first valid command, then a
+    packet every stream period whether or not another command comes."""
+    period = 0.02
+    emu = Proc("-m", "epuck_link.emulator", "--tcp", "0", "--encoders", "32760", "-32760",
+               "--stream-period", str(period))  # fmt: skip
     t = None
     try:
         ready = emu.ready()
-        assert ready["robot"] is None and ready["pty"] is None
+        assert ready["robot"] is None and ready["pty"] is None and ready["model"] == "e-puck1"
         host, port = ready["tcp"].rsplit(":", 1)
         assert host == "127.0.0.1"
         t = TcpTransport(host, int(port), timeout=2.0)
         t.open()
+        assert _wifi_packets(t, 0.15) == []  # no command yet: silence
         t.write(P.wifi_command(0, 0, request=P.REQUEST_SENSORS))
-        reply = t.read_exact(105, 2.0)
-        assert reply[0] == P.HEADER_SENSORS and P.encoders_from_sensors(reply[1:]) == (32760, -32760)
-        assert reply[1 + 89] == 15  # selector
-        t.write(P.wifi_command(0, 0, request=0))  # neither stream: the empty packet
-        assert t.read_exact(1, 2.0) == b"\x03"
+        got = _wifi_packets(t, 0.5)
+        # One command, and the robot streams: about 0.5 / 0.02 = 25 packets (a loaded machine
+        # sends fewer, never more).
+        assert 8 <= len(got) <= 0.5 / period + 2, len(got)
+        assert all(h == P.HEADER_SENSORS for h, _ in got)
+        assert P.encoders_from_sensors(got[0][1]) == (32760, -32760) and got[0][1][89] == 15  # selector
+        t.write(P.wifi_command(0, 0, request=0))  # neither stream: empty packets, streamed too
+        got = _wifi_packets(t, 0.3)
+        assert got[-1] == (P.HEADER_EMPTY, b"") and sum(h == P.HEADER_EMPTY for h, _ in got) >= 4, got[-3:]
         # Settings bit 2: the int16s are motor positions: the counts become exactly these.
         t.write(P.wifi_command(-12345, 54, request=P.REQUEST_SENSORS, settings=P.SETTING_MOTOR_STEPS))
-        assert P.encoders_from_sensors(t.read_exact(105, 2.0)[1:]) == (-12345, 54)
-        # Image + sensors: 0x01 + 38400 bytes, then 0x02 + 104 bytes.
+        got = _wifi_packets(t, 0.2)
+        assert P.encoders_from_sensors(got[-1][1]) == (-12345, 54)
+        # Image + sensors: 0x01 + 38400 bytes, then 0x02 + 104 bytes, each cycle.
         t.write(P.wifi_command(0, 0, request=P.REQUEST_IMAGE | P.REQUEST_SENSORS))
-        both = t.read_exact(1 + P.IMAGE_SIZE + 105, 3.0)
-        assert both[0] == 0x01 and both[1 + P.IMAGE_SIZE] == 0x02
-        # Speeds: the wheels turn in opposite senses, by what the elapsed time allows.
+        got = [h for h, _ in _wifi_packets(t, 0.3)]
+        k = got.index(P.HEADER_IMAGE)
+        assert got[k : k + 4] == [P.HEADER_IMAGE, P.HEADER_SENSORS] * 2, got
+        # Speeds through the codec: the wheels turn in opposite senses, by what the time allows.
         codec = WifiCodec(reply_timeout=2.0)
         t0 = time.monotonic()
         c0 = codec.exchange(t, 800, -800)
