@@ -195,7 +195,12 @@ class Link:
             transport, codec = make_transport(link)
         odometry = WheelOdometry(geom, time.monotonic())
 
+        self.relinked = threading.Event()
+        """Set by the port's thread at the first read after a lost link came back."""
+
         def on_reading(r: Reading) -> None:
+            if r.fresh_link and self.port.lost:
+                self.relinked.set()
             pub_wheels.put(odometry.update(me, r).encode())
 
         self.period = 1.0 / args.rate
@@ -246,6 +251,12 @@ class Link:
             tick_at = inbox.arrived.get((Tick.TYPE, "tracker"), now)
             fresh_poses = list(inbox.history.pop(poses, {}).values())  # in order of arrival
             live = me in inbox.live
+        if self.relinked.is_set():
+            self.relinked.clear()
+            log(self.role, "link back after an outage: robot stopped; braked until its agent starts again")
+            judge.relinked()
+            drive.halt()
+            self.braked = True
         for pose in fresh_poses:
             drive.on_pose(pose.x, pose.y, pose.theta)
             vx, vy = drive.velocity()

@@ -145,6 +145,14 @@ class LinkDeadline:
         self.x: np.ndarray | None = None
         """The state measured at the tick (4,) [px, vx, py, vy] in m, m/s, world frame."""
 
+    def relinked(self) -> None:
+        """The link to the robot came back after an outage: the robot was uncontrolled, off its
+        plan.  Brake, apply no command of this step or the next, and so report the next step
+        braked: the agent then starts again from where the robot is, as a restarted agent does."""
+        self.side.brake()
+        if self.step is not None:
+            self.hold_until = max(self.hold_until, self.step + 1)
+
     @property
     def wake_at(self) -> float:
         """When the link must look again [s]: the deadline of an undecided step, else never."""

@@ -507,7 +507,9 @@ class RobotPort:
     encoders and passes each :class:`Reading` to ``on_reading``.  A failure is
     logged through ``report`` once per outage; the link is then re-opened with
     backoff from ``backoff[0]`` doubling up to ``backoff[1]`` [s], and the
-    re-opening is logged too.  :meth:`close` sends zero speed and closes."""
+    re-opening is logged too; the first command after it is zero speed, whatever was asked
+    meanwhile (the robot has no deadman: it drove on at its last speeds while the link was
+    down).  :meth:`close` sends zero speed and closes."""
 
     def __init__(
         self,
@@ -554,6 +556,7 @@ class RobotPort:
         down_since: float | None = None
         attempts = 0
         fresh = True
+        zero = False
         while True:
             with self._cond:
                 if self._stop:
@@ -573,18 +576,22 @@ class RobotPort:
                 if down_since is not None:
                     self.report(
                         f"link {self.transport.name} re-opened after {attempts} attempt(s), "
-                        f"{time.monotonic() - down_since:.2f} s down"
+                        f"{time.monotonic() - down_since:.2f} s down; zero speed first"
                     )
                 else:
                     self.report(f"link {self.transport.name} open")
+                # The firmware has no deadman: the robot drove on at its last speeds while the
+                # link was down.  The first command stops it, whatever was asked meanwhile.
+                zero = down_since is not None
                 down_since, attempts, fresh = None, 0, True
                 self.codec.reset()
             with self._cond:
                 self._cond.wait_for(lambda: self._new or self._stop, self.period)
                 if self._stop:
                     return
-                left, right = self._speeds
+                left, right = (0, 0) if zero else self._speeds
                 self._new = False
+            zero = False
             try:
                 raw = self.codec.exchange(self.transport, left, right)
             except LinkError as e:

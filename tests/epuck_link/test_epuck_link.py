@@ -351,6 +351,47 @@ class _Flaky(Transport):
         return bytes(min(n, 4))
 
 
+class _DropsOnce(_Flaky):
+    """Opens every time; the exchange after ``drop_at`` writes fails once (the radio link drops)."""
+
+    def __init__(self, drop_at: int):
+        super().__init__(fail_opens=0)
+        self.drop_at = drop_at
+
+    def write(self, data: bytes) -> None:
+        if len(self.written) == self.drop_at:
+            self.drop_at = -1
+            raise LinkError("flaky: link dropped")
+        super().write(data)
+
+
+def test_the_first_command_after_a_lost_link_is_zero_speed():
+    """The robot has no deadman: it drove on at its last speeds while the link was down.  The
+    first command after the re-open is zero speed, although 500 steps/s is still asked; the
+    ones after it are the asked speeds again."""
+    t = _DropsOnce(drop_at=3)
+    lines: list[str] = []
+    got: list[Reading] = []
+    done = threading.Event()
+
+    def on_reading(r: Reading) -> None:
+        got.append(r)
+        if len(got) >= 6:
+            done.set()
+
+    port = RobotPort(t, AsercomCodec(), lines.append, on_reading, period=0.01, backoff=(0.01, 0.04))
+    port.command(500, 500)
+    port.start()
+    try:
+        assert done.wait(5.0), lines
+    finally:
+        port.close()
+    sent = [P.parse_encoders(w[1:5]) for w in t.written[:6]]  # the set-speed arguments
+    assert sent[:3] == [(500, 500)] * 3 and sent[3] == (0, 0) and sent[4] == (500, 500), sent
+    assert port.lost == 1 and [r.fresh_link for r in got[:5]] == [True, False, False, True, False]
+    assert any("zero speed first" in m for m in lines), lines
+
+
 def test_robot_port_retries_with_backoff_and_reports_once():
     flaky = _Flaky(fail_opens=3)
     lines: list[str] = []

@@ -453,3 +453,32 @@ def test_a_target_chosen_without_the_neighbours_still_keeps_them_apart():
         closest = min(closest, float(np.linalg.norm(out.committed[-1] - nbs[0].last_point)))
     assert ctrl.counters.ahead == 120
     assert R - 1e-9 <= closest < R + 0.01
+
+
+def test_a_link_back_from_an_outage_brakes_until_the_agent_starts_again():
+    """The robot drove on uncontrolled while its link was down (the firmware has no deadman).
+    When the link comes back, the link applies no command of this step or the next and reports
+    the next step braked: tick k + 2 then tells the agent, which starts again where the robot
+    is (the restarted agent's path).  After that, commands are applied again."""
+    from epuck_link.robot_side import BRAKED, COMMAND, LinkDeadline
+    from ground.wire import Command
+
+    _, design = _controller()
+
+    def cmd(k: int) -> Command:
+        return Command(
+            robot="r1", step=k, ax=0.1, ay=0.0, fallback=True, x_next=np.zeros(4),
+            v_next=np.array([[0.1, 0.0], [0.2, 0.0]]), K=design.K,
+        )  # fmt: skip
+
+    x = np.zeros(4)
+    judge = LinkDeadline("r1", design.params, watchdog=0.5, deadline=0.05)
+    judge.tick(4, 10.0, x, None, True)
+    assert judge.command(cmd(4), 10.01, True)[0] == COMMAND
+    judge.relinked()  # during step 4: the link came back
+    judge.tick(5, 10.1, x, None, True)
+    assert judge.command(cmd(5), 10.11, True) is None  # in time, but held
+    what, _, rep = judge.expire(10.16, cmd(5), True)
+    assert (what, rep.step, rep.last, rep.braked) == (BRAKED, 5, 4, True)
+    judge.tick(6, 10.2, x, None, True)
+    assert judge.command(cmd(6), 10.21, True)[0] == COMMAND
