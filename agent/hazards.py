@@ -10,13 +10,13 @@ point, grown for every step its plans have been missing (:func:`agent.coordinati
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 import numpy as np
 
 from agent.coordination import Hazard, NeighbourInfo
 from ground.params import ControllerParams
-from ground.wire import BLIND, Plan
+from ground.wire import BLIND, LinkState, Plan
 
 
 def neighbour_of(plan: Plan) -> NeighbourInfo:
@@ -50,6 +50,7 @@ class Guard:
     def __init__(self, me: str, p: ControllerParams, log: Callable[[str], None]):
         self.me = me
         self.log = log
+        self.Ts = p.Ts
         self.eps = math.sqrt(2.0) * p.epsilon
         """Euclidean reach of one step [m]: ȳ moves at most ε per axis (the QP's ε box)."""
         self.N = p.horizon
@@ -62,16 +63,24 @@ class Guard:
     def classify(
         self, k: int, others: list[str], fresh: dict[str, Plan | None], last: dict[str, Plan | None],
         live: set[str], starts: dict[str, NeighbourInfo], braked: frozenset[str] | set[str] = frozenset(),
+        links: Mapping[str, LinkState | None] | None = None,
     ) -> tuple[list[NeighbourInfo], list[Hazard]]:  # fmt: skip
         """(neighbours, hazards) for step k from the plans of step k − 1 (``fresh``),
-        the latest plans (``last``), the live set and the robots their robot side braked
-        over step k − 1 (Tick.braked): those have left their plans as a dead robot's has."""
+        the latest plans (``last``), the live set, the robots their robot side braked
+        over step k − 1 (Tick.braked): those have left their plans as a dead robot's has,
+        and the newest link state of each robot (``links``): a robot whose link is down drives
+        on uncontrolled, a moving obstacle."""
         nbs: list[NeighbourInfo] = []
         hazards: list[Hazard] = []
         for j in others:
             pl = fresh.get(j)
             if k == 0:
                 nbs.append(starts[j])
+                continue
+            ls = None if links is None else links.get(j)
+            if ls is not None and not ls.up:
+                hazards.append(self._loose(k, j, ls, last.get(j), starts[j]))
+                self._note(j, "loose", k)
                 continue
             blind = pl is not None and pl.status == BLIND
             if pl is not None and j in live and j not in braked and not blind:
@@ -97,10 +106,24 @@ class Guard:
         self.hazard_steps += len(hazards)
         return nbs, hazards
 
+    def _loose(self, k: int, j: str, ls: LinkState, old: Plan | None, start: NeighbourInfo) -> Hazard:
+        """A robot whose link is down: a disc about its newest measured controlled point (else
+        its last committed point), grown by ``ls.speed`` for every step from that pose to the
+        step after the one ȳ is for (k + N, with a step to spare).  Not a static disc: it moves,
+        at its last wheel speeds."""
+        if ls.seq >= 0:
+            centre, since = np.array([ls.x, ls.y]), ls.seq
+        else:
+            centre = np.array(start.last_point if old is None else old.committed[-1], dtype=float)
+            since = max(ls.step, 0)
+        r_j = start.footprint if old is None else old.footprint
+        radius = r_j + ls.speed * self.Ts * max(k + self.N + 1 - since, 0)
+        return Hazard(j, centre, radius, None)
+
     def _note(self, j: str, state: str, k: int) -> None:
         before = self._state.get(j, "neighbour")
         self._state[j] = state
-        if state == before or (state == "stale" and before in ("dead", "braked", "blind")):
+        if state == before or (state == "stale" and before in ("dead", "braked", "blind", "loose")):
             return
         self.transitions += 1
         if (j, state, before) in self._logged:
@@ -112,5 +135,6 @@ class Guard:
             "dead": "not alive; kept clear of as a static obstacle while its robot stops",
             "braked": "braked by its robot side; kept clear of as a static obstacle while it stops",
             "blind": "without poses, braking; kept clear of as a static obstacle while it stops",
+            "loose": "link down, driving on uncontrolled; kept clear of as a moving obstacle",
         }[state]
         self.log(f"step {k}: {j}: {what}")

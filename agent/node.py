@@ -33,7 +33,7 @@ from ground.bus import Inbox, open_session, publisher, remember_steps
 from ground.geometry import controlled_point, measured_state
 from ground.process import add_common_args, announce, fault_plan, log
 from ground.scenario import ConfigError, Scenario, goal_problem, load_scenario
-from ground.wire import Command, Digest, Goal, Keys, Odom, Plan, Pose, Tick
+from ground.wire import Command, Digest, Goal, Keys, LinkState, Odom, Plan, Pose, Tick
 
 REJOIN_GAP = 5
 """Steps missed (0.5 s at Ts = 0.1 s, the link watchdog's time) after which an agent re-initialises."""
@@ -100,6 +100,8 @@ class Agent:
         self.a_prev = np.zeros(2)
         self.blind = 0
         self.goal_seen: Goal | None = None
+        self.links: dict[str, LinkState | None] = {}
+        """The newest link state of each other robot (real and emulated robots only)."""
         self.last: dict[str, Plan | None] = {}
         self.lockstep = args.clock == "lockstep"
         self.relay = args.exchange == "relay"
@@ -155,7 +157,7 @@ class Agent:
             self._take_goal(goal, k)
         ctrl, blind = self.ctrl, self.blind > args.blind_steps
         nbs, hazards = self.guard.classify(
-            k, self.others, fresh, self.last, live, self.starts, set(tick.braked)
+            k, self.others, fresh, self.last, live, self.starts, set(tick.braked), self.links
         )
         out = ctrl.hold(x) if blind else ctrl.step(x, nbs, hazards)
         self.ran.append(k)
@@ -244,6 +246,7 @@ class Agent:
                     self.last[j] = pl
             live = set(inbox.live)
             goal = inbox.get(Goal, me)
+            self.links = {j: inbox.get(LinkState, j) for j in self.others}
         return self._state(k, pose, odom), fresh, live, goal
 
     def _state(self, k: int, pose: Pose | None, odom: Odom | None) -> np.ndarray | None:
@@ -325,6 +328,7 @@ class _Link:
             if args.exchange == "relay"
             else inbox.subscribe(self.session, keys.plan(), Plan, keep=True, remote=True),
             inbox.subscribe(self.session, keys.goal(me), Goal),
+            inbox.subscribe(self.session, keys.link(), LinkState),
             inbox.subscribe(self.session, keys.clock, Tick),
             inbox.watch_liveliness(self.session),
         ]

@@ -18,7 +18,12 @@ Out:
   :class:`~ground.wire.Odom` of seq k, same ``t``, carrying the inner loop's ``q``
   [m/s] (what the agent needs with each pose, as from the simulated tracker);
 * with every encoder read, :class:`~ground.wire.Wheels` on ``fleet/F/wheels/R``:
-  the unwrapped counts and (v, ω) from their deltas.
+  the unwrapped counts and (v, ω) from their deltas;
+* when the radio link to the robot drops, at once and then at every tick until it
+  is back, :class:`~ground.wire.LinkState` on ``fleet/F/link/R``: the robot has no
+  deadman and drives on at the wheel speeds it last received; the message says how
+  fast, and where the camera saw it last.  Once the link is back, the first command
+  is zero speed and the next step is reported braked, so the agent starts again.
 
 Deadline (docs/design.md, "Missed deadlines"): step k starts when the
 link receives tick k on ``fleet/F/clock``, and its command must come within
@@ -59,10 +64,12 @@ from typing import Any
 import numpy as np
 
 from epuck_link.drive import MAX_DT, MIN_RATE, Drive, Watchdog, WheelOdometry
+from epuck_link.protocol import MODELS, step_rate
 from epuck_link.robot_side import BRAKED, CANDIDATE, LinkDeadline
 from epuck_link.transport import (
     AsercomCodec,
     Codec,
+    CutTransport,
     LinkSpec,
     LoopTransport,
     Reading,
@@ -71,12 +78,12 @@ from epuck_link.transport import (
     make_transport,
     parse_link,
 )
-from epuck_link.unicycle import make_inner_loop
+from epuck_link.unicycle import make_inner_loop, unicycle_from_wheels
 from ground.bus import Inbox, open_session, publisher
 from ground.geometry import measured_state
 from ground.process import add_common_args, announce, fault_plan, log
 from ground.scenario import ConfigError, RobotSpec, Scenario, load_scenario
-from ground.wire import Command, Keys, Odom, Pose, Tick
+from ground.wire import Command, Keys, LinkState, Odom, Pose, Tick
 
 _OFF = {
     CANDIDATE: "following the shifted candidate of the last command applied",
@@ -188,11 +195,23 @@ class Link:
         self.pub_odom = publisher(session, keys.odom(me))
         pub_wheels = publisher(session, keys.wheels(me))
         self.pub_applied = publisher(session, keys.applied(me))
+        self.pub_link = publisher(session, keys.link(me))
+        self.link_up = True
+        """The radio link to the robot is up (the port's thread sets it)."""
+        self.link_sent = (0, 0)
+        """The wheel speeds [steps/s] the robot last received."""
+        self.camera: Pose | None = None
+        """The newest camera pose."""
+        self.tick_step = -1
+        """The newest tick received (−1 before the first)."""
         self.truth = None
         if link.kind == "emulator":
             transport, codec, self.truth = _emulated(me, spec.start, publisher(session, keys.emu(me)))
         else:
             transport, codec = make_transport(link)
+        plan = inbox.faults
+        if plan is not None and plan.links.get(me):
+            transport = CutTransport(transport, lambda: plan.link_cut(me, self.tick_step))
         odometry = WheelOdometry(geom, time.monotonic())
 
         self.relinked = threading.Event()
@@ -203,8 +222,14 @@ class Link:
                 self.relinked.set()
             pub_wheels.put(odometry.update(me, r).encode())
 
+        def on_state(up: bool, sent: tuple[int, int]) -> None:
+            self.link_up, self.link_sent = up, sent
+            self._announce_link()
+
         self.period = 1.0 / args.rate
-        self.port = RobotPort(transport, codec, lambda m: log(role, m), on_reading, period=self.period)
+        self.port = RobotPort(
+            transport, codec, lambda m: log(role, m), on_reading, period=self.period, on_state=on_state
+        )
         self.seen_cmd: Command | None = None
         self.seen_tick: Tick | None = None
         self.last_cmd_at: float | None = None
@@ -217,6 +242,8 @@ class Link:
         self.episode = ""
         """What the robot did instead of the last commands: "", CANDIDATE or BRAKED (logged once)."""
         self.odoms = 0
+        self.links_down = 0
+        """Link-down announcements sent."""
         self.off_steps = {CANDIDATE: 0, BRAKED: 0}
         self.due = self.last = 0.0
         """When the next inner-loop step is due, and when the last one ran [s, time.monotonic]."""
@@ -257,6 +284,8 @@ class Link:
             judge.relinked()
             drive.halt()
             self.braked = True
+        if fresh_poses:
+            self.camera = fresh_poses[-1]
         for pose in fresh_poses:
             drive.on_pose(pose.x, pose.y, pose.theta)
             vx, vy = drive.velocity()
@@ -264,7 +293,9 @@ class Link:
             self.odoms += 1
         decisions = []
         if tick is not self.seen_tick and tick is not None:
-            self.seen_tick = tick
+            self.seen_tick, self.tick_step = tick, tick.step
+            if not self.link_up:  # uncontrolled: where it was seen last, at every tick
+                self._announce_link()
             inbox.release(tick.step)  # messages the fault plan delays
             inbox.prune(tick.step - 2)
             if not tick.stop:  # the state at the tick: the camera pose of this step, and q
@@ -282,6 +313,29 @@ class Link:
             self._decided(now, what, acc, report)
         if now >= self.due:
             self._drive(now, live)
+
+    def _announce_link(self) -> None:
+        """Publish the link's state (:class:`~ground.wire.LinkState`): while it is down the robot
+        drives on at ``link_sent``, so say how fast its controlled point can move, and where the
+        camera saw it last."""
+        left, right = self.link_sent
+        # The motors step a little faster than asked (whole timer periods): bound it for both models.
+        rates = [(step_rate(left, m), step_rate(right, m)) for m in MODELS]
+        speed = max(
+            math.hypot(v, w * self.p.lookahead)
+            for v, w in (unicycle_from_wheels(*r, self.p.wheel) for r in rates)
+        )
+        cam = self.camera
+        point = (0.0, 0.0) if cam is None else (
+            cam.x + self.p.lookahead * math.cos(cam.theta), cam.y + self.p.lookahead * math.sin(cam.theta)
+        )  # fmt: skip
+        msg = LinkState(
+            robot=self.me, up=self.link_up, step=self.tick_step, left=left, right=right, speed=speed,
+            seq=-1 if cam is None else cam.seq, x=point[0], y=point[1],
+        )  # fmt: skip
+        self.pub_link.put(msg.encode())
+        if not self.link_up:
+            self.links_down += 1
 
     def _decided(self, now: float, what: str, acc: np.ndarray | None, report: Any) -> None:
         """Apply and report one decision of the deadline's rule."""
@@ -329,7 +383,8 @@ class Link:
         log(
             self.role,
             f"stopped: zero speed {'sent' if sent else 'NOT sent'}; {self.port.reads} encoder reads, "
-            f"{self.port.lost} link losses, {self.watchdog.events} watchdog stops, {self.odoms} odometry "
+            f"{self.port.lost} link losses ({self.links_down} announced), {self.watchdog.events} watchdog "
+            f"stops, {self.odoms} odometry "
             f"messages, {self.drive.saturated_steps} saturated steps, "
             f"{self.off_steps[CANDIDATE]} steps on the candidate, {self.off_steps[BRAKED]} braked by the "
             f"deadline's rule, {self.inbox.rejects.total} rejected payloads",

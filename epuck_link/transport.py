@@ -368,6 +368,47 @@ class LoopTransport(Transport):
         return out
 
 
+class CutTransport(Transport):
+    """Another transport whose radio link is cut while ``cut()`` holds (a fault plan's
+    ``links``): opening, writing and reading fail as on a dropped link.  The robot behind it
+    gets nothing, so it drives on at the speeds it last received."""
+
+    def __init__(self, inner: Transport, cut: Callable[[], bool]):
+        self.inner = inner
+        self.cut = cut
+
+    @property
+    def name(self) -> str:
+        return self.inner.name
+
+    @property
+    def is_open(self) -> bool:
+        return self.inner.is_open
+
+    def _check(self) -> None:
+        if self.cut():
+            raise LinkError(f"{self.name}: link cut (fault plan)")
+
+    def open(self) -> None:
+        self._check()
+        self.inner.open()
+
+    def close(self) -> None:
+        self.inner.close()
+
+    def write(self, data: bytes) -> None:
+        self._check()
+        self.inner.write(data)
+
+    def read_exact(self, n: int, timeout: float) -> bytes:
+        self._check()
+        return self.inner.read_exact(n, timeout)
+
+    def read_some(self, n: int, timeout: float) -> bytes:
+        self._check()
+        return self.inner.read_some(n, timeout)
+
+
 def _one_line(e: BaseException) -> str:
     return " ".join(str(e).split()) or type(e).__name__
 
@@ -519,8 +560,14 @@ class RobotPort:
         on_reading: Callable[[Reading], None],
         period: float = 0.02,
         backoff: tuple[float, float] = (0.1, 2.0),
+        on_state: Callable[[bool, tuple[int, int]], None] | None = None,
     ):
         self.transport = transport
+        self.on_state = on_state
+        """Called on the port's thread when a link that was up is lost (False) and when it is
+        back (True), with the wheel speeds [steps/s] the robot last received."""
+        self.sent = (0, 0)
+        """The wheel speeds [steps/s] of the last exchange that went through."""
         self.codec = codec
         self.report = report
         self.on_reading = on_reading
@@ -583,6 +630,8 @@ class RobotPort:
                 # The firmware has no deadman: the robot drove on at its last speeds while the
                 # link was down.  The first command stops it, whatever was asked meanwhile.
                 zero = down_since is not None
+                if zero and self.lost:
+                    self._state(True)
                 down_since, attempts, fresh = None, 0, True
                 self.codec.reset()
             with self._cond:
@@ -598,17 +647,27 @@ class RobotPort:
                 self.lost += 1
                 down_since = time.monotonic()
                 self.report(f"link lost: {e.reason}; re-opening with backoff")
+                self._state(False)
                 self.transport.close()
                 attempts = 1
                 if self._sleep(self.backoff[0]):
                     return
                 continue
             self.reads += 1
+            self.sent = (left, right)
             try:
                 self.on_reading(Reading(time.monotonic(), raw[0], raw[1], fresh))
             except Exception as e:  # a publishing failure must not end the link thread
                 self.report(f"encoder reading not handled: {type(e).__name__}: {_one_line(e)}")
             fresh = False
+
+    def _state(self, up: bool) -> None:
+        if self.on_state is None:
+            return
+        try:
+            self.on_state(up, self.sent)
+        except Exception as e:  # a publishing failure must not end the link thread
+            self.report(f"link state not handled: {type(e).__name__}: {_one_line(e)}")
 
     def close(self, timeout: float = 2.0) -> bool:
         """Stop the thread, send zero speed (best effort, bounded) and close.

@@ -20,7 +20,7 @@ default-deny and grants, for fleet ``F`` (keys of :mod:`ground.wire`):
 identity        may publish (put)                                       liveliness token
 ==============  ======================================================  =====================
 robot ``R``     ``F/plan/R`` ``F/cmd/R`` ``F/odom/R`` ``F/wheels/R``     ``F/alive/R``
-                ``F/emu/R`` ``F/applied/R``
+                ``F/emu/R`` ``F/applied/R`` ``F/link/R``
 ``tracker``     ``F/pose/*`` ``F/truth/*`` ``F/clock``                  —
                 (and ``F/odom/*`` and ``F/digest`` with ``sim_tracker``:
                 the simulated tracker plays every robot's side and
@@ -219,7 +219,7 @@ def acl_json(robots: Sequence[str], fleet: str = "lab", sim_tracker: bool = Fals
                 f"publish-{r}",
                 ["put"],
                 "ingress",
-                [k.plan(r), k.cmd(r), k.odom(r), k.wheels(r), k.emu(r), k.applied(r)],
+                [k.plan(r), k.cmd(r), k.odom(r), k.wheels(r), k.emu(r), k.applied(r), k.link(r)],
             ),
             rule(f"token-{r}", ["liveliness_token"], "ingress", [k.alive(r)]),
         ]

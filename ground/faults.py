@@ -11,6 +11,11 @@ deterministic as one without.  A JSON plan (a file path, or the text itself)::
         {"key": "pose/r1", "delay": 2}                          # delivered 2 steps late
     ]}
 
+A plan may also cut robots' radio links: ``"links": {"r2": [[150, 170]]}`` cuts
+r2's link between ``epuck_link`` and its robot over steps 150..169 (by the
+link's clock); the robot drives on at its last wheel speeds, as a real one does
+(its firmware has no deadman).
+
 ``key`` is an ``fnmatch`` pattern on the key below ``fleet/F/`` (``plan/r2``,
 ``pose/*``, ``clock``); ``to`` (optional) lists the receiving roles (``agent
 r1``, ``tracker``, ``supervisor``; default: every receiver).  ``drop`` is a
@@ -57,9 +62,16 @@ class FaultRule:
 class FaultPlan:
     """Decides the fate of each received message, reproducibly."""
 
-    def __init__(self, rules: list[FaultRule], seed: int = 0):
+    def __init__(
+        self,
+        rules: list[FaultRule],
+        seed: int = 0,
+        links: dict[str, tuple[tuple[int, int], ...]] | None = None,
+    ):
         self.rules = rules
         self.seed = seed
+        self.links = links or {}
+        """Per robot, the half-open step ranges over which its radio link is cut."""
 
     @classmethod
     def parse(cls, text_or_path: str) -> FaultPlan:
@@ -74,15 +86,23 @@ class FaultPlan:
             raw = json.loads(text)
         except json.JSONDecodeError as e:
             raise FaultPlanError(f"faults: not JSON ({e.msg} at line {e.lineno})") from None
-        if not isinstance(raw, dict) or set(raw) - {"seed", "rules"}:
-            raise FaultPlanError("faults: expected an object with 'seed' and 'rules'")
+        if not isinstance(raw, dict) or set(raw) - {"seed", "rules", "links"}:
+            raise FaultPlanError("faults: expected an object with 'seed', 'rules' and 'links'")
         seed = raw.get("seed", 0)
         if isinstance(seed, bool) or not isinstance(seed, int):
             raise FaultPlanError("faults.seed: expected an integer")
         rules_raw = raw.get("rules", [])
         if not isinstance(rules_raw, list):
             raise FaultPlanError("faults.rules: expected a list")
-        return cls([_rule(r, f"faults.rules[{i}]") for i, r in enumerate(rules_raw)], seed)
+        links_raw = raw.get("links", {})
+        if not isinstance(links_raw, dict):
+            raise FaultPlanError("faults.links: expected an object of robot ids")
+        links = {str(r): _bursts(b, f"faults.links.{r}") for r, b in links_raw.items()}
+        return cls([_rule(r, f"faults.rules[{i}]") for i, r in enumerate(rules_raw)], seed, links)
+
+    def link_cut(self, robot: str, step: int) -> bool:
+        """The radio link of ``robot`` is cut at ``step``."""
+        return any(a <= step < b for a, b in self.links.get(robot, ()))
 
     def decide(self, receiver: str, key: str, step: int) -> tuple[str, int]:
         """(DELIVER, 0), (DROP, 0) or (DELIVER, d): delivered ``d`` steps late.
@@ -120,18 +140,20 @@ def _rule(raw: Any, path: str) -> FaultRule:
         raise FaultPlanError(f"{path}.drop: expected a probability in [0, 1]")
     if isinstance(drop, float) and math.isnan(drop):
         raise FaultPlanError(f"{path}.drop: expected a probability in [0, 1]")
-    bursts = raw.get("bursts", [])
-    if not isinstance(bursts, list) or not all(
-        isinstance(b, list) and len(b) == 2 and all(type(v) is int for v in b) and 0 <= b[0] <= b[1]
-        for b in bursts
-    ):
-        raise FaultPlanError(f"{path}.bursts: expected [[first, end), ...] step pairs")
+    bursts = _bursts(raw.get("bursts", []), f"{path}.bursts")
     delay = raw.get("delay", 0)
     if type(delay) is not int or delay < 0:
         raise FaultPlanError(f"{path}.delay: expected a whole number of steps >= 0")
     to = raw.get("to")
     if to is not None and (not isinstance(to, list) or not all(isinstance(r, str) for r in to)):
         raise FaultPlanError(f"{path}.to: expected a list of receiving roles")
-    return FaultRule(
-        key, float(drop), tuple((b[0], b[1]) for b in bursts), delay, None if to is None else tuple(to)
-    )
+    return FaultRule(key, float(drop), bursts, delay, None if to is None else tuple(to))
+
+
+def _bursts(bursts: Any, path: str) -> tuple[tuple[int, int], ...]:
+    if not isinstance(bursts, list) or not all(
+        isinstance(b, list) and len(b) == 2 and all(type(v) is int for v in b) and 0 <= b[0] <= b[1]
+        for b in bursts
+    ):
+        raise FaultPlanError(f"{path}: expected [[first, end), ...] step pairs")
+    return tuple((b[0], b[1]) for b in bursts)

@@ -103,6 +103,9 @@ class Keys:
     def applied(self, robot: str = "*") -> str:
         return f"{self.root}/applied/{robot}"
 
+    def link(self, robot: str = "*") -> str:
+        return f"{self.root}/link/{robot}"
+
     @property
     def clock(self) -> str:
         return f"{self.root}/clock"
@@ -631,8 +634,55 @@ class Applied(Message):
         return self.last == self.step
 
 
+@dataclass(frozen=True)
+class LinkState(Message):
+    """``epuck_link`` → all, on ``fleet/F/link/R``: the radio link to the robot is down (or up
+    again).  The firmware has no deadman: while the link is down the robot drives on at the
+    wheel speeds it last received, uncontrolled.  Sent at once when the link is lost, again at
+    every tick while it stays down (with the newest camera pose), and once when it is back.
+
+    The neighbours keep clear of a robot whose link is down as of a moving obstacle: a disc
+    about its newest measured controlled point, grown by ``speed`` for every second since that
+    pose (docs/method.md §6.4)."""
+
+    TYPE: ClassVar[str] = "link"
+    up: bool
+    """The link is up (again)."""
+    step: int
+    """The newest tick the link had received, −1 before the first."""
+    left: int
+    right: int
+    """The wheel speeds the robot last received [steps/s]: what it drives on at."""
+    speed: float
+    """Speed [m/s] of the robot's controlled point at those wheel speeds (a bound on how fast it
+    moves while uncontrolled)."""
+    seq: int
+    """Sequence number of the newest camera pose below (−1: none yet)."""
+    x: float
+    y: float
+    """Newest measured position of the controlled point [m], world frame (0 when ``seq`` is −1)."""
+
+    @classmethod
+    def _check(cls, d: dict[str, Any]) -> dict[str, Any]:
+        if not isinstance(d["up"], bool):
+            raise WireError("up: expected a boolean")
+        speed = _num(d["speed"], "speed")
+        if not 0.0 <= speed <= 10.0:
+            raise WireError("speed: outside [0, 10] m/s")
+        return {
+            "up": d["up"],
+            "step": _int(d["step"], "step", -1),
+            "left": _int(d["left"], "left", -32768, 32767),
+            "right": _int(d["right"], "right", -32768, 32767),
+            "speed": speed,
+            "seq": _int(d["seq"], "seq", -1),
+            "x": _num(d["x"], "x"),
+            "y": _num(d["y"], "y"),
+        }
+
+
 MESSAGES: dict[str, type[Message]] = {
-    m.TYPE: m for m in (Pose, Truth, Odom, Plan, Command, Goal, Tick, Digest, Wheels, Applied)
+    m.TYPE: m for m in (Pose, Truth, Odom, Plan, Command, Goal, Tick, Digest, Wheels, Applied, LinkState)
 }
 
 

@@ -83,7 +83,7 @@ class Judge:
         """Per robot, recent steps whose plan was reported not executed."""
         self.robot: dict[str, dict[str, Any]] = {
             r: {"solves": 0, "failures": 0, "tube_exits": 0, "status": {}, "solve_ms": [], "candidate": 0,
-                "braked": 0, "breaks": 0, "blind": 0}
+                "braked": 0, "breaks": 0, "blind": 0, "link_losses": 0}
             for r in self.ids
         }  # fmt: skip
         self.extras: dict[str, dict[str, Any]] = {r: {} for r in self.ids}
@@ -186,6 +186,11 @@ class Judge:
             self.refs[a].append(pa.committed[at].copy())
         self.steps += 1
 
+    def link_lost(self, robot: str) -> None:
+        """The radio link to ``robot`` was lost: it drove on uncontrolled (no deadman)."""
+        if robot in self.robot:
+            self.robot[robot]["link_losses"] += 1
+
     def off_plan(self, robot: str, kind: str) -> None:
         """The robot side did not apply ``robot``'s command of a step: it followed the shifted
         candidate (``kind`` "candidate") or braked ("braked")."""
@@ -259,6 +264,7 @@ class Judge:
             "steps_on_candidate": st["candidate"],
             "steps_braked": st["braked"],
             "steps_blind": st["blind"],
+            "link_losses": st["link_losses"],
             "reference_breaks": st["breaks"],
             "status_counts": dict(st["status"]),
             "max_reference_deviation_m": self.deviation(r),

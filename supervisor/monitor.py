@@ -28,7 +28,7 @@ import numpy as np
 from ground.bus import Inbox, open_session
 from ground.process import add_common_args, announce, log
 from ground.scenario import ConfigError, Scenario, load_scenario
-from ground.wire import Keys, Plan, Pose, Tick, Truth
+from ground.wire import Keys, LinkState, Plan, Pose, Tick, Truth
 from supervisor.judge import Judge
 from supervisor.recorder import Recorder
 from supervisor.trace import Trace, outlines
@@ -68,6 +68,7 @@ def main(argv: list[str] | None = None) -> int:
         inbox.subscribe(session, keys.pose(), Pose, keep=True),
         inbox.subscribe(session, keys.plan(), Plan, keep=True),
         inbox.subscribe(session, keys.clock, Tick, keep=True),
+        inbox.subscribe(session, keys.link(), LinkState),
         inbox.watch_liveliness(session),
     ]
     stopping = threading.Event()
@@ -123,6 +124,8 @@ class Monitor:
         self.off_plan: set[str] = set()
         """Robots whose robot side did not apply the last command (each episode logged once)."""
         self.stop_deadline = 0.0
+        self.link_down: set[str] = set()
+        """Robots whose radio link is down (epuck_link's LinkState)."""
 
     def progress(self) -> bool:
         """Something to take: a complete sample of ground truth or a complete step of plans
@@ -199,6 +202,21 @@ class Monitor:
             tick = self.inbox.get(Tick, "tracker")
             live = set(self.inbox.live)
             self.inbox.prune(min(self.k_truth, self.k_plan) - 1)
+            links = {r: ls for r in self.ids if (ls := self.inbox.get(LinkState, r)) is not None}
+        for rid, ls in links.items():
+            if ls.up == (rid not in self.link_down):
+                continue
+            if ls.up:
+                self.link_down.discard(rid)
+                self.recorder.event(f"{rid}: link back at step {ls.step}; robot stopped, agent starts again")
+            else:
+                self.link_down.add(rid)
+                self.judge.link_lost(rid)
+                self.recorder.event(
+                    f"{rid}: link lost at step {ls.step}; driving on uncontrolled at wheel speeds "
+                    f"({ls.left}, {ls.right}) steps/s, up to {ls.speed:.3f} m/s", "WARN",
+                )  # fmt: skip
+            log(ROLE, f"step {ls.step}: {rid}: link {'back' if ls.up else 'lost'}")
         changed = sorted(live ^ self.live_seen)
         for rid in changed:
             what = "joined" if rid in live else "left"

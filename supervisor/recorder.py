@@ -276,3 +276,19 @@ def nearest(points: np.ndarray) -> list[float]:
     d = np.linalg.norm(points[:, None, :] - points[None, :, :], axis=-1)
     np.fill_diagonal(d, np.inf)
     return [float(v) for v in d.min(axis=1)]
+
+
+def read_events(rrd: Path) -> list[tuple[float, str]]:
+    """The events a recording holds (its ``/events`` text log): (log time [s, time.time], text),
+    in order."""
+    from rerun.chunk import RrdReader
+
+    rows = []
+    for ch in RrdReader(rrd).stream():
+        if str(ch.entity_path) != "/events":
+            continue
+        batch = ch.to_record_batch()
+        times_ns = batch.column("log_time").cast("int64").to_pylist()
+        for when, texts in zip(times_ns, batch.column("TextLog:text").to_pylist(), strict=True):
+            rows += [(when * 1e-9, text) for text in texts]
+    return sorted(rows)

@@ -377,7 +377,7 @@ def test_acl_grants_exactly_the_documented_rights() -> None:
     rules = {r["id"]: r for r in acl["rules"]}
     assert acl["default_permission"] == "deny"
     assert rules["publish-r1"]["key_exprs"] == [K.plan("r1"), K.cmd("r1"), K.odom("r1"), K.wheels("r1"),
-                                                K.emu("r1"), K.applied("r1")]  # fmt: skip
+                                                K.emu("r1"), K.applied("r1"), K.link("r1")]  # fmt: skip
     assert rules["token-r1"] == {"id": "token-r1", "messages": ["liveliness_token"], "flows": ["ingress"],
                                  "permission": "allow", "key_exprs": [K.alive("r1")]}  # fmt: skip
     assert rules["publish-tracker"]["key_exprs"] == [K.pose(), K.truth(), K.clock]

@@ -20,6 +20,7 @@ from ground.wire import (
     Digest,
     Goal,
     Keys,
+    LinkState,
     Odom,
     Plan,
     Pose,
@@ -70,6 +71,7 @@ SAMPLES = {
     ),
     "digest": Digest.of("tracker", 7, 0.1, 20, [_plan("r1"), _plan("r2"), _plan("r3")]),
     "applied": Applied(robot="r1", step=9, last=7, braked=False),
+    "link": LinkState(robot="r1", up=False, step=61, left=480, right=-20, speed=0.06, seq=60, x=0.2, y=-0.1),
 }
 
 
@@ -164,6 +166,9 @@ BAD = [
      Applied, "braked"),
     ("applied: followed with nothing applied", lambda: _mutate(SAMPLES["applied"], last=-1), Applied, "last"),
     ("applied: non-bool braked", lambda: _mutate(SAMPLES["applied"], braked=0), Applied, "braked"),
+    ("link: non-bool up", lambda: _mutate(SAMPLES["link"], up=0), LinkState, "up"),
+    ("link: negative speed", lambda: _mutate(SAMPLES["link"], speed=-0.1), LinkState, "speed"),
+    ("link: wheel speed past int16", lambda: _mutate(SAMPLES["link"], left=40000), LinkState, "left"),
 ]  # fmt: skip
 
 

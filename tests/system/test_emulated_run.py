@@ -15,6 +15,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 pytestmark = pytest.mark.realtime
@@ -132,3 +133,37 @@ def test_a_link_without_its_command_in_time_follows_the_candidate_and_the_tick_s
     assert s["deadline_misses"] == int(link["r1"]) + int(link["r2"]) + braked
     for rid, r in s["robots"].items():
         assert r["tube_exits"] == 0 and r["reference_breaks"] == 0 and r["qp_failures"] == 0, (rid, r)
+
+
+def test_a_robot_whose_link_is_cut_drives_on_and_is_kept_clear_of(tmp_path):
+    """r1's link to its emulator is cut for 15 steps as the two robots close in head-on.  The
+    emulator, like the firmware, has no deadman: r1 drives on at its last wheel speeds.  The
+    link announces the loss at once; r2 keeps clear of r1 as a moving obstacle, not a static
+    disc; the supervisor records the event.  When the link is back its first command stops the
+    robot, r1's agent starts again where the robot is, and both robots get home safely."""
+    from supervisor.recorder import read_events
+    from supervisor.trace import Trace
+
+    cut = (60, 75)
+    faults = json.dumps({"links": {"r1": [list(cut)]}})
+    out = tmp_path / "run"
+    res = _fleet("run", str(SCENARIO), "--out", str(out), "--faults", faults)
+    err = res.stderr
+    assert res.returncode == 0, err[-3000:]
+    s = json.loads((out / "summary.json").read_text())
+    assert s["completed"] and s["collisions"] == 0 and s["all_goals_reached"], s
+    assert s["robots"]["r1"]["link_losses"] == 1 and s["robots"]["r2"]["link_losses"] == 0
+    # The robot moved while nobody controlled it: its last speeds, as the firmware keeps them.
+    trace = Trace.load(out / "trace.npz")
+    r1 = trace.ids.index("r1")
+    moved = float(np.linalg.norm(trace.poses[r1, cut[1] - 1, :2] - trace.poses[r1, cut[0] + 1, :2]))
+    assert moved > 0.05, moved
+    assert "[epuck_link r1] link lost: " in err and "link cut (fault plan)" in err
+    assert re.search(
+        r"\[agent r2\] step 6\d: r1: link down, driving on uncontrolled; kept clear of as a moving", err
+    )
+    assert "zero speed first" in err and "[epuck_link r1] link back after an outage" in err
+    assert re.search(r"\[agent r1\] step \d+: robot braked after step \d+; starting again where it is", err)
+    events = [text for _, text in read_events(out / "recording.rrd")]
+    assert any(t.startswith("r1: link lost at step") and "uncontrolled" in t for t in events), events
+    assert any(t.startswith("r1: link back at step") for t in events), events

@@ -36,7 +36,7 @@ from ground.faults import DELIVER, DROP, FaultPlan, FaultPlanError
 from ground.geometry import controlled_point
 from ground.net import free_port, loopback
 from ground.scenario import load_scenario
-from ground.wire import BLIND, Plan
+from ground.wire import BLIND, LinkState, Plan
 from tracker.world import Disturbance, PoseNoise, make_plant, measure
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -75,12 +75,20 @@ def test_fault_plan_is_reproducible_and_has_the_asked_rates():
         ('{"rules": [{"drop": 0.1}]}', "faults.rules[0].key"),
         ('{"rules": [{"key": "plan/*", "loss": 0.1}]}', "faults.rules[0]: unknown field 'loss'"),
         ('{"seed": true}', "faults.seed"),
+        ('{"links": [1]}', "faults.links"),
+        ('{"links": {"r2": [[9, 3]]}}', "faults.links.r2"),
     ],
 )
 def test_bad_fault_plans_name_the_field(text, field):
     with pytest.raises(FaultPlanError) as e:
         FaultPlan.parse(text)
     assert str(e.value).startswith(field)
+
+
+def test_a_fault_plan_cuts_a_robots_link_over_its_steps():
+    plan = FaultPlan.parse('{"links": {"r2": [[150, 170], [300, 301]]}}')
+    assert [s for s in range(140, 320) if plan.link_cut("r2", s)] == [*range(150, 170), 300]
+    assert not any(plan.link_cut("r1", s) for s in range(400))
 
 
 # ------------------------------------------------------------------ theory
@@ -213,6 +221,18 @@ def test_guard_grows_stale_discs_by_epsilon_and_caps_dead_ones():
     nbs, hz = g.classify(12, ["r2"], {"r2": blind}, {"r2": blind}, {"r2"}, starts)
     assert not nbs and hz[0].radius == pytest.approx(design.footprint + p.horizon * reach + brake)
     assert hz[0].info is None and np.array_equal(hz[0].centre, [0.3, 0.2])
+    # A robot whose link is down drives on uncontrolled: a disc about where the camera saw its
+    # controlled point last (seq 10), grown by its speed until the step after the one ȳ is for
+    # (k + N), from that pose: a moving obstacle, whose disc grows step by step.
+    down = LinkState(robot="r2", up=False, step=11, left=400, right=400, speed=0.05, seq=10, x=-0.1, y=0.4)
+    for k in (12, 13):
+        nbs, hz = g.classify(k, ["r2"], {"r2": old}, {"r2": old}, {"r2"}, starts, links={"r2": down})
+        assert not nbs and np.array_equal(hz[0].centre, [-0.1, 0.4]) and hz[0].info is None
+        assert hz[0].radius == pytest.approx(design.footprint + 0.05 * p.Ts * (k + p.horizon + 1 - 10))
+    # Back up: a neighbour again.
+    back = dataclasses.replace(down, up=True)
+    nbs, hz = g.classify(14, ["r2"], {"r2": old}, {"r2": old}, {"r2"}, starts, links={"r2": back})
+    assert [n.id for n in nbs] == ["r2"] and not hz
 
 
 # -------------------------------------------------------------- processes

@@ -72,6 +72,7 @@ from procfs import tcp_sockets
 
 from fleet.secure import client_json
 from ground.wire import Keys
+from supervisor.recorder import read_events
 
 SCENARIO = ROOT / "scenarios" / "paper_three_robots.toml"
 PLACEMENT = {"r1": "a", "r2": "b", "r3": "b"}
@@ -328,21 +329,6 @@ def _check_safe(s: dict[str, Any]) -> None:
     assert s["rejected_payloads"] == 0, s
 
 
-def _supervisor_events(rrd: Path) -> list[tuple[float, str]]:
-    """(log time [s, time.time], text) of the supervisor's ``events`` entries, in order."""
-    from rerun.chunk import RrdReader
-
-    rows = []
-    for ch in RrdReader(rrd).stream():
-        if str(ch.entity_path) != "/events":
-            continue
-        batch = ch.to_record_batch()
-        times_ns = batch.column("log_time").cast("int64").to_pylist()
-        for when, texts in zip(times_ns, batch.column("TextLog:text").to_pylist(), strict=True):
-            rows += [(when * 1e-9, text) for text in texts]
-    return sorted(rows)
-
-
 # ------------------------------------------------------------------ tests
 @pytest.mark.parametrize(
     ("clock", "exchange"),
@@ -404,7 +390,7 @@ def test_a_cut_link_is_a_partition_and_the_host_rejoins(topo: Any, certs: Path, 
         back = run.wait_tokens("put", cut_robots, t_up, REJOIN_S)
         run.finish()
     # Everything observed, printed (and kept in logs/partition.json) before it is judged.
-    events = _supervisor_events(run.out / "recording.rrd")
+    events = read_events(run.out / "recording.rrd")
     summary_path = run.out / "summary.json"
     s = json.loads(summary_path.read_text()) if summary_path.exists() else {}
     t_gone = max(gone.values(), default=t_up)
