@@ -82,7 +82,8 @@ class Guard:
                 hazards.append(self._loose(k, j, ls, last.get(j), starts[j]))
                 self._note(j, "loose", k)
                 continue
-            blind = pl is not None and pl.status == BLIND
+            newest = pl if pl is not None else last.get(j)
+            blind = newest is not None and newest.status == BLIND
             if pl is not None and j in live and j not in braked and not blind:
                 nbs.append(neighbour_of(pl))
                 if self._state.get(j, "neighbour") != "neighbour":

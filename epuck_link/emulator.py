@@ -229,7 +229,7 @@ class WifiSide:
         """Read at most one block, then answer the last valid command (empty until there is one)."""
         size = P.WIFI_COMMAND_SIZE
         if len(self.rx) >= self.BACKLOG_BLOCKS * size:
-            keep = len(self.rx) % size or size
+            keep = size + len(self.rx) % size  # the last whole block, and a partial one after it
             self.dropped += (len(self.rx) - keep) // size
             del self.rx[: len(self.rx) - keep]
         if len(self.rx) >= size:

@@ -196,6 +196,7 @@ class Link:
         pub_wheels = publisher(session, keys.wheels(me))
         self.pub_applied = publisher(session, keys.applied(me))
         self.pub_link = publisher(session, keys.link(me))
+        self.link_lock = threading.RLock()
         self.link_up = True
         """The radio link to the robot is up (the port's thread sets it)."""
         self.link_sent = (0, 0)
@@ -223,7 +224,8 @@ class Link:
             pub_wheels.put(odometry.update(me, r).encode())
 
         def on_state(up: bool, sent: tuple[int, int]) -> None:
-            self.link_up, self.link_sent = up, sent
+            with self.link_lock:
+                self.link_up, self.link_sent = up, sent
             self._announce_link()
 
         self.period = 1.0 / args.rate
@@ -294,8 +296,8 @@ class Link:
         decisions = []
         if tick is not self.seen_tick and tick is not None:
             self.seen_tick, self.tick_step = tick, tick.step
-            if not self.link_up:  # uncontrolled: where it was seen last, at every tick
-                self._announce_link()
+            # At every tick, up or down: one lost or out-of-order message never sticks.
+            self._announce_link()
             inbox.release(tick.step)  # messages the fault plan delays
             inbox.prune(tick.step - 2)
             if not tick.stop:  # the state at the tick: the camera pose of this step, and q
@@ -318,6 +320,10 @@ class Link:
         """Publish the link's state (:class:`~ground.wire.LinkState`): while it is down the robot
         drives on at ``link_sent``, so say how fast its controlled point can move, and where the
         camera saw it last."""
+        with self.link_lock:  # the port's thread and the main loop both announce
+            self._put_link_state()
+
+    def _put_link_state(self) -> None:
         left, right = self.link_sent
         # The motors step a little faster than asked (whole timer periods): bound it for both models.
         rates = [(step_rate(left, m), step_rate(right, m)) for m in MODELS]

@@ -93,9 +93,9 @@ def step_rate(speed: int, model: str) -> float:
         return 0.0
     v = abs(int(speed))
     if model == "e-puck1":
-        rate = 10000.0 / (10000 // v)
+        rate = 10000.0 / max(10000 // v, 1)
     elif model == "e-puck2":
-        rate = 100000.0 / (2 * (100000 // (2 * v)))
+        rate = 100000.0 / (2 * max(100000 // (2 * v), 1))
     else:
         raise ValueError(f"model {model!r}: expected one of {', '.join(MODELS)}")
     return math.copysign(rate, speed)
