@@ -77,10 +77,16 @@ def lags(codec: Codec, seconds: float) -> np.ndarray:
 def test_the_link_uses_the_newest_packet_of_a_faster_stream():
     got = lags(WifiCodec(reply_timeout=1.0), 20.0)
     assert got.size > 0.5 * 20.0 / POLL, got.size  # it kept polling
-    # Never behind by more than a stream period, but for the time the newest packet spent on
-    # its way and the scheduling of two threads on a shared machine (p99 within a period).
-    assert np.percentile(got, 99) <= STREAM + 0.002, np.percentile(got, [50, 99, 100])
-    assert got.max() <= STREAM + 0.02, np.sort(got)[-5:]
+    # Behind by about one stream period at most, but for the time the newest packet spent on
+    # its way and the scheduling of two threads on a shared machine: the median within a
+    # period, p99 within two.  A single late reading is a scheduling stall, not a backlog; the
+    # codec that reads one reply per command is 0.1 s behind after seven polls.
+    assert np.median(got) <= STREAM + 0.001, np.percentile(got, [50, 99, 100])
+    assert np.percentile(got, 99) <= 2 * STREAM + 0.002, np.percentile(got, [50, 99, 100])
+    assert got.max() <= 0.1, np.sort(got)[-5:]
+    # No backlog builds up: the last quarter is no further behind than the first.
+    quarter = got.size // 4
+    assert np.median(got[-quarter:]) <= np.median(got[:quarter]) + 0.002, (got[:quarter], got[-quarter:])
     assert got.min() >= -0.002  # never ahead of the truth either
 
 
