@@ -78,11 +78,12 @@ class Guard:
                 nbs.append(starts[j])
                 continue
             ls = None if links is None else links.get(j)
-            if ls is not None and not ls.up:
+            newest = pl if pl is not None else last.get(j)
+            if ls is not None and (not ls.up or (-1 if newest is None else newest.step) < ls.back):
+                # Down, or back but with no plan yet made from where the robot stands.
                 hazards.append(self._loose(k, j, ls, last.get(j), starts[j]))
                 self._note(j, "loose", k)
                 continue
-            newest = pl if pl is not None else last.get(j)
             blind = newest is not None and newest.status == BLIND
             if pl is not None and j in live and j not in braked and not blind:
                 nbs.append(neighbour_of(pl))
@@ -108,16 +109,19 @@ class Guard:
         return nbs, hazards
 
     def _loose(self, k: int, j: str, ls: LinkState, old: Plan | None, start: NeighbourInfo) -> Hazard:
-        """A robot whose link is down: a disc about its newest measured controlled point (else
-        its last committed point), grown by ``ls.speed`` for every step from that pose to the
-        step after the one ȳ is for (k + N, with a step to spare).  Not a static disc: it moves,
-        at its last wheel speeds."""
+        """A robot whose link is down (or back, with no plan yet from where it stands): a disc
+        about its newest measured controlled point, grown by ``ls.speed`` for every step from
+        that pose to the step after the one ȳ is for (k + N, with a step to spare).  With no
+        pose, the disc is about its last committed point (its reference was within N steps of
+        it when the link was lost) and grows from the loss.  Not a static disc: it moves, at
+        its last wheel speeds."""
+        r_j = start.footprint if old is None else old.footprint
         if ls.seq >= 0:
             centre, since = np.array([ls.x, ls.y]), ls.seq
         else:
             centre = np.array(start.last_point if old is None else old.committed[-1], dtype=float)
-            since = max(ls.step, 0)
-        r_j = start.footprint if old is None else old.footprint
+            since = max(ls.lost, 0)
+            r_j += self.N * self.eps
         radius = r_j + ls.speed * self.Ts * max(k + self.N + 1 - since, 0)
         return Hazard(j, centre, radius, None)
 

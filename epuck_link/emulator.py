@@ -365,8 +365,11 @@ class TcpServer:
                 or (not side.valid and len(side.rx) < P.WIFI_COMMAND_SIZE)
             ):
                 continue
+            was_valid = side.valid
             reply = side.cycle()
-            due = max(due + self.stream_period, now) if side.valid else now
+            # The next packet a stream period on (from this one, for the first of the stream),
+            # or now if the server fell behind: never a burst to catch up.
+            due = max(due + self.stream_period, now) if was_valid else now + self.stream_period
             try:
                 if reply:
                     conn.sendall(reply)

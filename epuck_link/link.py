@@ -198,9 +198,14 @@ class Link:
         self.pub_link = publisher(session, keys.link(me))
         self.link_lock = threading.RLock()
         self.link_up = True
-        """The radio link to the robot is up (the port's thread sets it)."""
-        self.link_sent = (0, 0)
-        """The wheel speeds [steps/s] the robot last received."""
+        """The radio link to the robot is up: False from the port's thread at a loss, True from
+        the main loop once the robot took the zero speed after it."""
+        self.link_sent: tuple[tuple[int, int], ...] = ((0, 0),)
+        """The wheel speeds [steps/s] the robot may have last received (one pair or two)."""
+        self.link_lost = -1
+        """The newest tick when the link was last lost (−1: never)."""
+        self.link_back = -1
+        """The first step planned from where the robot stands after the last outage (−1: none)."""
         self.camera: Pose | None = None
         """The newest camera pose."""
         self.tick_step = -1
@@ -223,14 +228,15 @@ class Link:
                 self.relinked.set()
             pub_wheels.put(odometry.update(me, r).encode())
 
-        def on_state(up: bool, sent: tuple[int, int]) -> None:
+        def on_lost(possible: tuple[tuple[int, int], ...]) -> None:
             with self.link_lock:
-                self.link_up, self.link_sent = up, sent
-            self._announce_link()
+                self.link_up, self.link_sent = False, possible
+                self.link_lost, self.link_back = self.tick_step, -1
+                self._announce_link()
 
         self.period = 1.0 / args.rate
         self.port = RobotPort(
-            transport, codec, lambda m: log(role, m), on_reading, period=self.period, on_state=on_state
+            transport, codec, lambda m: log(role, m), on_reading, period=self.period, on_lost=on_lost
         )
         self.seen_cmd: Command | None = None
         self.seen_tick: Tick | None = None
@@ -283,9 +289,12 @@ class Link:
         if self.relinked.is_set():
             self.relinked.clear()
             log(self.role, "link back after an outage: robot stopped; braked until its agent starts again")
-            judge.relinked()
+            back = judge.relinked()
             drive.halt()
             self.braked = True
+            with self.link_lock:  # the robot took the zero speed: up, and trusted from step `back`
+                self.link_up, self.link_back = True, back
+                self._announce_link()
         if fresh_poses:
             self.camera = fresh_poses[-1]
         for pose in fresh_poses:
@@ -324,24 +333,26 @@ class Link:
             self._put_link_state()
 
     def _put_link_state(self) -> None:
-        left, right = self.link_sent
-        # The motors step a little faster than asked (whole timer periods): bound it for both models.
-        rates = [(step_rate(left, m), step_rate(right, m)) for m in MODELS]
-        speed = max(
-            math.hypot(v, w * self.p.lookahead)
-            for v, w in (unicycle_from_wheels(*r, self.p.wheel) for r in rates)
-        )
+        # The motors step a little faster than asked (whole timer periods): bound it for both
+        # models, and for every speed pair the robot may be driving on at.
+        speed, (left, right) = max((self._speed(pair, m), pair) for pair in self.link_sent for m in MODELS)
         cam = self.camera
         point = (0.0, 0.0) if cam is None else (
             cam.x + self.p.lookahead * math.cos(cam.theta), cam.y + self.p.lookahead * math.sin(cam.theta)
         )  # fmt: skip
         msg = LinkState(
-            robot=self.me, up=self.link_up, step=self.tick_step, left=left, right=right, speed=speed,
+            robot=self.me, up=self.link_up, step=self.tick_step, lost=self.link_lost, back=self.link_back,
+            left=left, right=right, speed=speed,
             seq=-1 if cam is None else cam.seq, x=point[0], y=point[1],
         )  # fmt: skip
         self.pub_link.put(msg.encode())
         if not self.link_up:
             self.links_down += 1
+
+    def _speed(self, wheels: tuple[int, int], model: str) -> float:
+        """Speed [m/s] of the controlled point at these wheel speeds [steps/s] on ``model``."""
+        v, w = unicycle_from_wheels(step_rate(wheels[0], model), step_rate(wheels[1], model), self.p.wheel)
+        return math.hypot(v, w * self.p.lookahead)
 
     def _decided(self, now: float, what: str, acc: np.ndarray | None, report: Any) -> None:
         """Apply and report one decision of the deadline's rule."""

@@ -145,13 +145,17 @@ class LinkDeadline:
         self.x: np.ndarray | None = None
         """The state measured at the tick (4,) [px, vx, py, vy] in m, m/s, world frame."""
 
-    def relinked(self) -> None:
+    def relinked(self) -> int:
         """The link to the robot came back after an outage: the robot was uncontrolled, off its
         plan.  Brake, apply no command of this step or the next, and so report the next step
-        braked: the agent then starts again from where the robot is, as a restarted agent does."""
+        braked: the agent then starts again from where the robot is, as a restarted agent does.
+        Returns that step, the first whose plan is made from where the robot stands (0 before
+        the first tick)."""
         self.side.brake()
-        if self.step is not None:
-            self.hold_until = max(self.hold_until, self.step + 1)
+        if self.step is None:
+            return 0
+        self.hold_until = max(self.hold_until, self.step + 1)
+        return self.hold_until + 1
 
     @property
     def wake_at(self) -> float:

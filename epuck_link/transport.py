@@ -560,12 +560,15 @@ class RobotPort:
         on_reading: Callable[[Reading], None],
         period: float = 0.02,
         backoff: tuple[float, float] = (0.1, 2.0),
-        on_state: Callable[[bool, tuple[int, int]], None] | None = None,
+        on_lost: Callable[[tuple[tuple[int, int], ...]], None] | None = None,
     ):
         self.transport = transport
-        self.on_state = on_state
-        """Called on the port's thread when a link that was up is lost (False) and when it is
-        back (True), with the wheel speeds [steps/s] the robot last received."""
+        self.on_lost = on_lost
+        """Called on the port's thread when a link that was up is lost, with the wheel speeds
+        [steps/s] the robot may be driving on at: those of the last exchange that went through,
+        and those of the failed one (its command may have arrived; its reply did not).  That the
+        link is back shows as the first :class:`Reading` with ``fresh_link`` after a loss: its
+        command was zero speed."""
         self.sent = (0, 0)
         """The wheel speeds [steps/s] of the last exchange that went through."""
         self.codec = codec
@@ -630,8 +633,6 @@ class RobotPort:
                 # The firmware has no deadman: the robot drove on at its last speeds while the
                 # link was down.  The first command stops it, whatever was asked meanwhile.
                 zero = down_since is not None
-                if zero and self.lost:
-                    self._state(True)
                 down_since, attempts, fresh = None, 0, True
                 self.codec.reset()
             with self._cond:
@@ -647,7 +648,7 @@ class RobotPort:
                 self.lost += 1
                 down_since = time.monotonic()
                 self.report(f"link lost: {e.reason}; re-opening with backoff")
-                self._state(False)
+                self._lost((self.sent, (left, right)))
                 self.transport.close()
                 attempts = 1
                 if self._sleep(self.backoff[0]):
@@ -661,11 +662,11 @@ class RobotPort:
                 self.report(f"encoder reading not handled: {type(e).__name__}: {_one_line(e)}")
             fresh = False
 
-    def _state(self, up: bool) -> None:
-        if self.on_state is None:
+    def _lost(self, possible: tuple[tuple[int, int], ...]) -> None:
+        if self.on_lost is None:
             return
         try:
-            self.on_state(up, self.sent)
+            self.on_lost(possible)
         except Exception as e:  # a publishing failure must not end the link thread
             self.report(f"link state not handled: {type(e).__name__}: {_one_line(e)}")
 

@@ -141,14 +141,21 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     scn = load_scenario(args.scenario)
     design = validated_design(scn)  # every agent checks it too: fail here, once, before starting
+    links = _run_links(scn)
     if args.faults:
         from ground.faults import FaultPlan, FaultPlanError
 
         try:
-            FaultPlan.parse(args.faults)
+            plan = FaultPlan.parse(args.faults)
         except FaultPlanError as e:
             return _bad(f"--faults: {e}")
-    links = _run_links(scn)
+        for rid in plan.links:  # a cut that cuts nothing would pass for a tested fault
+            if rid not in links:
+                return _bad(f"--faults: faults.links.{rid}: no robot {rid!r} in the scenario")
+            if links[rid] == "sim":
+                return _bad(
+                    f"--faults: faults.links.{rid}: {rid} has no radio link (link 'sim'); cut emulator links"
+                )
     emulated = "emulator" in links.values()
     clock = args.clock or ("realtime" if emulated else "lockstep")
     if emulated and clock != "realtime":

@@ -643,13 +643,20 @@ class LinkState(Message):
 
     The neighbours keep clear of a robot whose link is down as of a moving obstacle: a disc
     about its newest measured controlled point, grown by ``speed`` for every second since that
-    pose (docs/method.md §6.4)."""
+    pose (docs/method.md §6.4).  They go on doing so after the link is back, until they have
+    a plan of that robot's of step ``back`` or later: the plans before were made for a robot
+    that was not following them."""
 
     TYPE: ClassVar[str] = "link"
     up: bool
-    """The link is up (again)."""
+    """The link is up (again): the robot took a zero-speed command and stands."""
     step: int
     """The newest tick the link had received, −1 before the first."""
+    lost: int
+    """The newest tick when the link was last lost (−1: never lost)."""
+    back: int
+    """The first step whose plan of this robot's is made from where it stands after the
+    outage: its agent starts again then (−1: never lost, or still down)."""
     left: int
     right: int
     """The wheel speeds the robot last received [steps/s]: what it drives on at."""
@@ -672,6 +679,8 @@ class LinkState(Message):
         return {
             "up": d["up"],
             "step": _int(d["step"], "step", -1),
+            "lost": _int(d["lost"], "lost", -1),
+            "back": _int(d["back"], "back", -1),
             "left": _int(d["left"], "left", -32768, 32767),
             "right": _int(d["right"], "right", -32768, 32767),
             "speed": speed,

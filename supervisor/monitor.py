@@ -126,6 +126,8 @@ class Monitor:
         self.stop_deadline = 0.0
         self.link_down: set[str] = set()
         """Robots whose radio link is down (epuck_link's LinkState)."""
+        self.lost_at: dict[str, int] = {}
+        """The tick each robot's last outage began at, as its LinkState says."""
 
     def progress(self) -> bool:
         """Something to take: a complete sample of ground truth or a complete step of plans
@@ -204,19 +206,24 @@ class Monitor:
             self.inbox.prune(min(self.k_truth, self.k_plan) - 1)
             links = {r: ls for r in self.ids if (ls := self.inbox.get(LinkState, r)) is not None}
         for rid, ls in links.items():
-            if ls.up == (rid not in self.link_down):
-                continue
-            if ls.up:
-                self.link_down.discard(rid)
-                self.recorder.event(f"{rid}: link back at step {ls.step}; robot stopped, agent starts again")
-            else:
+            # An outage is known by the tick it began at: one that began and ended between two
+            # looks shows as an "up" state with a loss not seen before.
+            if ls.lost >= 0 and ls.lost != self.lost_at.get(rid):
+                self.lost_at[rid] = ls.lost
                 self.link_down.add(rid)
                 self.judge.link_lost(rid)
                 self.recorder.event(
-                    f"{rid}: link lost at step {ls.step}; driving on uncontrolled at wheel speeds "
+                    f"{rid}: link lost at step {ls.lost}; driving on uncontrolled at wheel speeds "
                     f"({ls.left}, {ls.right}) steps/s, up to {ls.speed:.3f} m/s", "WARN",
                 )  # fmt: skip
-            log(ROLE, f"step {ls.step}: {rid}: link {'back' if ls.up else 'lost'}")
+                log(ROLE, f"step {ls.lost}: {rid}: link lost")
+            if ls.up and rid in self.link_down:
+                self.link_down.discard(rid)
+                self.recorder.event(
+                    f"{rid}: link back at step {ls.step}; robot stopped, its agent starts again at "
+                    f"step {ls.back}"
+                )
+                log(ROLE, f"step {ls.step}: {rid}: link back")
         changed = sorted(live ^ self.live_seen)
         for rid in changed:
             what = "joined" if rid in live else "left"

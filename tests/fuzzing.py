@@ -2,7 +2,7 @@
 
 ``Generator(name, rng).make(robot)`` returns one :class:`Payload` aimed at the decoder of
 the message type ``name`` (``pose``, ``truth``, ``odom``, ``plan``, ``cmd``, ``goal``,
-``tick``, ``wheels``, ``digest``, ``applied``) on the key of robot ``robot``. Every *kind*
+``tick``, ``wheels``, ``digest``, ``applied``, ``link``) on the key of robot ``robot``. Every *kind*
 but two builds a payload that the wire contract (``ground/wire.py``) rejects by construction
 (``strict``): garbage that is not msgpack, msgpack that is not a map, a wrong schema version
 or message type, missing or extra fields, NaN/±inf in a number or inside an array, a wrong
@@ -34,6 +34,7 @@ from ground.wire import (
     Command,
     Digest,
     Goal,
+    LinkState,
     Message,
     Odom,
     Plan,
@@ -44,7 +45,7 @@ from ground.wire import (
 )
 
 TYPES: dict[str, type[Message]] = {
-    m.TYPE: m for m in (Pose, Truth, Odom, Plan, Command, Goal, Tick, Wheels, Digest, Applied)
+    m.TYPE: m for m in (Pose, Truth, Odom, Plan, Command, Goal, Tick, Wheels, Digest, Applied, LinkState)
 }
 NAMES = tuple(TYPES)
 
@@ -60,6 +61,7 @@ FLOATS: dict[str, tuple[str, ...]] = {
     "wheels": ("t", "v", "omega"),
     "digest": ("Ts",),
     "applied": (),
+    "link": ("speed", "x", "y"),
 }
 """Number fields (int or float accepted, finite)."""
 INTS: dict[str, dict[str, tuple[int, int]]] = {
@@ -73,10 +75,18 @@ INTS: dict[str, dict[str, tuple[int, int]]] = {
     "wheels": {"seq": _SEQ, "left_steps": (-(2**62), 2**62), "right_steps": (-(2**62), 2**62)},
     "digest": {"step": _SEQ},
     "applied": {"step": _SEQ, "last": (-1, 2**62)},
+    "link": {
+        "step": (-1, 2**62),
+        "lost": (-1, 2**62),
+        "back": (-1, 2**62),
+        "seq": (-1, 2**62),
+        "left": (-32768, 32767),
+        "right": (-32768, 32767),
+    },
 }
 """Integer fields and their accepted closed ranges."""
 BOOLS: dict[str, tuple[str, ...]] = {
-    "plan": ("tube_ok",), "tick": ("stop",), "cmd": ("fallback",), "applied": ("braked",),
+    "plan": ("tube_ok",), "tick": ("stop",), "cmd": ("fallback",), "applied": ("braked",), "link": ("up",),
 }  # fmt: skip
 ARRAYS: dict[str, dict[str, tuple[int | None, ...]]] = {
     "plan": {"committed": (None, 2), "nominal": (None, 2), "target": (2,), "goal": (2,)},
@@ -188,6 +198,14 @@ def realistic(name: str, robot: str, rng: np.random.Generator) -> Message:
         return Applied(
             robot=robot, step=k, last=max(last, -1), braked=last < 0 or (last < k and rng.random() < 0.3)
         )
+    if name == "link":
+        lost = k - int(rng.integers(0, 20))
+        up = bool(rng.random() < 0.5)
+        return LinkState(
+            robot=robot, up=up, step=k, lost=lost, back=k + 2 if up else -1,
+            left=int(rng.integers(-1000, 1001)), right=int(rng.integers(-1000, 1001)), speed=u(0.0, 0.16),
+            seq=k - 1, x=u(-0.9, 0.9), y=u(-0.9, 0.9),
+        )  # fmt: skip
     if name == "digest":
         plans = [realistic("plan", r, rng) for r in ("r1", "r2", "r3")[: int(rng.integers(1, 4))]]
         step = max(pl.step for pl in plans) + int(rng.integers(0, 3))

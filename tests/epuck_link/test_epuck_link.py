@@ -392,6 +392,51 @@ def test_the_first_command_after_a_lost_link_is_zero_speed():
     assert any("zero speed first" in m for m in lines), lines
 
 
+class _ReplyLost(_Flaky):
+    """Opens every time; the reply to the first command of ``speeds`` never comes (the command
+    went out, the link dropped before the answer)."""
+
+    def __init__(self, speeds: tuple[int, int]):
+        super().__init__(fail_opens=0)
+        self.speeds: tuple[int, int] | None = speeds
+
+    def read_exact(self, n: int, timeout: float) -> bytes:
+        if self.speeds is not None and P.parse_encoders(self.written[-1][1:5]) == self.speeds:
+            self.speeds = None
+            raise LinkError("flaky: reply lost")
+        return super().read_exact(n, timeout)
+
+
+def test_a_lost_link_reports_every_speed_the_robot_may_drive_on_at():
+    """The command of 300 steps/s was written and its reply lost: the robot may have taken it,
+    or still drive at the 100 steps/s confirmed before.  The loss reports both, so the fleet
+    bounds the robot's speed by the faster one, not by the last confirmed one alone."""
+    t = _ReplyLost((300, -300))
+    lost: list[tuple[tuple[int, int], ...]] = []
+    got: list[Reading] = []
+    two, done = threading.Event(), threading.Event()
+
+    def on_reading(r: Reading) -> None:
+        got.append(r)
+        if len(got) == 2:
+            two.set()
+        if r.fresh_link and len(got) > 1:
+            done.set()
+
+    port = RobotPort(t, AsercomCodec(), lambda m: None, on_reading, period=0.01, backoff=(0.01, 0.04),
+                     on_lost=lost.append)  # fmt: skip
+    port.command(100, 100)
+    port.start()
+    try:
+        assert two.wait(5.0)
+        port.command(300, -300)
+        assert done.wait(5.0)
+    finally:
+        port.close()
+    assert lost == [((100, 100), (300, -300))], lost
+    assert port.sent == (0, 0)  # the first command after the re-open stops the robot
+
+
 def test_robot_port_retries_with_backoff_and_reports_once():
     flaky = _Flaky(fail_opens=3)
     lines: list[str] = []

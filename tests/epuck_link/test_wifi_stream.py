@@ -94,3 +94,41 @@ def test_one_reply_per_command_falls_behind_the_stream():
     got = lags(OneReplyPerCommand(reply_timeout=1.0), 5.0)
     # Four packets come per poll and one is read: the backlog grows by 15 ms a poll.
     assert got[-1] > 2.0 and got[-1] > 100 * STREAM, got[-5:]
+
+
+def test_the_emulated_stream_starts_with_one_packet_and_keeps_its_period():
+    """Nothing comes before a valid command; then one sensor packet at once, and one every
+    stream period after it: never two at the start of the stream, nor a burst."""
+    import socket
+    import time
+
+    period = 0.05
+    emu = EpuckEmulator()
+    server = TcpServer(emu, 0, stream_period=period)
+    size = 1 + P.wifi_payload_size(P.HEADER_SENSORS)
+    arrivals: list[float] = []
+    try:
+        with socket.create_connection(("127.0.0.1", server.port), timeout=2.0) as s:
+            s.settimeout(0.3)
+            try:  # a silent robot until the first command
+                assert s.recv(1) == b"", "a packet before any command"
+            except TimeoutError:
+                pass
+            sent = time.monotonic()
+            s.sendall(P.wifi_command(0, 0, request=P.REQUEST_SENSORS, limit=P.MAX_STEPS_V2))
+            buf = b""
+            s.settimeout(1.0)
+            while len(arrivals) < 8:
+                chunk = s.recv(4096)
+                assert chunk, "the emulator closed the stream"
+                now = time.monotonic()
+                buf += chunk
+                while len(buf) >= size * (len(arrivals) + 1):
+                    arrivals.append(now)
+    finally:
+        server.close()
+    gaps = np.diff(arrivals)
+    assert arrivals[0] - sent < period, arrivals[0] - sent  # the first answers the command
+    # Two packets of one pass would arrive together; scheduling may delay one, never split it.
+    assert gaps.min() > 0.5 * period, gaps
+    assert np.median(gaps) == pytest.approx(period, rel=0.3), gaps

@@ -71,7 +71,19 @@ SAMPLES = {
     ),
     "digest": Digest.of("tracker", 7, 0.1, 20, [_plan("r1"), _plan("r2"), _plan("r3")]),
     "applied": Applied(robot="r1", step=9, last=7, braked=False),
-    "link": LinkState(robot="r1", up=False, step=61, left=480, right=-20, speed=0.06, seq=60, x=0.2, y=-0.1),
+    "link": LinkState(
+        robot="r1",
+        up=False,
+        step=61,
+        lost=58,
+        back=-1,
+        left=480,
+        right=-20,
+        speed=0.06,
+        seq=60,
+        x=0.2,
+        y=-0.1,
+    ),
 }
 
 

@@ -475,7 +475,9 @@ def test_a_link_back_from_an_outage_brakes_until_the_agent_starts_again():
     judge = LinkDeadline("r1", design.params, watchdog=0.5, deadline=0.05)
     judge.tick(4, 10.0, x, None, True)
     assert judge.command(cmd(4), 10.01, True)[0] == COMMAND
-    judge.relinked()  # during step 4: the link came back
+    # During step 4 the link came back: step 5 is held, tick 6 says so, and the plan of step 6
+    # is the first made from where the robot stands (what the neighbours wait for).
+    assert judge.relinked() == 6
     judge.tick(5, 10.1, x, None, True)
     assert judge.command(cmd(5), 10.11, True) is None  # in time, but held
     what, _, rep = judge.expire(10.16, cmd(5), True)

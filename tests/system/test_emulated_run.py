@@ -166,4 +166,13 @@ def test_a_robot_whose_link_is_cut_drives_on_and_is_kept_clear_of(tmp_path):
     assert re.search(r"\[agent r1\] step \d+: robot braked after step \d+; starting again where it is", err)
     events = [text for _, text in read_events(out / "recording.rrd")]
     assert any(t.startswith("r1: link lost at step") and "uncontrolled" in t for t in events), events
-    assert any(t.startswith("r1: link back at step") for t in events), events
+    back = [
+        int(m.group(1))
+        for t in events
+        if (m := re.search(r"^r1: link back at step \d+;.* at step (\d+)$", t))
+    ]
+    assert len(back) == 1, events
+    # r2 coordinates with r1 again only on a plan made from where r1 stands (of step `back` or
+    # later, which r2 uses a step after): the plans before were made for a robot adrift.
+    again = [int(k) for k in re.findall(r"\[agent r2\] step (\d+): r1: coordinating again", err)]
+    assert again and min(k for k in again if k > cut[0]) >= back[0] + 1, (again, back)

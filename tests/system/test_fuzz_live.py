@@ -97,6 +97,7 @@ TARGETS: dict[str, list[tuple[str, int | None]]] = {
     "digest": [("digest", None)],
     "applied": [("applied/r1", None), ("applied/r2", None), ("applied/r3", None), ("applied/r9", 50)],
     "wheels": [("wheels/r1", None), ("wheels/r2", None), ("wheels/r3", None)],
+    "link": [("link/r1", None), ("link/r2", None), ("link/r3", None), ("link/r9", 50)],
 }
 """Where each type's payloads go.  Nothing decodes Wheels in a fleet (epuck_link publishes
 them, no process subscribes), so the Wheels payloads also go to the agents' odometry key,
@@ -106,8 +107,8 @@ MIRROR = {"wheels": ("odom", Odom)}
 RECEIVERS: dict[str, dict[str, tuple[str, ...]]] = {
     exchange: {
         "tracker": ("cmd/*", "plan/*", "applied/*"),
-        "supervisor": ("truth/*", "pose/*", "plan/*", "clock"),
-        **{f"agent {r}": (f"pose/{r}", f"odom/{r}", theirs, f"goal/{r}", "clock") for r in ROBOTS},
+        "supervisor": ("truth/*", "pose/*", "plan/*", "clock", "link/*"),
+        **{f"agent {r}": (f"pose/{r}", f"odom/{r}", theirs, f"goal/{r}", "clock", "link/*") for r in ROBOTS},
     }
     for exchange, theirs in (("mesh", "plan/*"), ("relay", "digest"))
 }
