@@ -222,9 +222,12 @@ class Link:
 
         self.relinked = threading.Event()
         """Set by the port's thread at the first read after a lost link came back."""
+        self.relinked_after = 0
+        """The outages (``port.lost``) counted when the link last came back."""
 
         def on_reading(r: Reading) -> None:
             if r.fresh_link and self.port.lost:
+                self.relinked_after = self.port.lost
                 self.relinked.set()
             pub_wheels.put(odometry.update(me, r).encode())
 
@@ -293,7 +296,8 @@ class Link:
             drive.halt()
             self.braked = True
             with self.link_lock:  # the robot took the zero speed: up, and trusted from step `back`
-                self.link_up, self.link_back = True, back
+                if self.port.lost == self.relinked_after:  # and not lost again since
+                    self.link_up, self.link_back = True, back
                 self._announce_link()
         if fresh_poses:
             self.camera = fresh_poses[-1]
