@@ -194,15 +194,20 @@ class WifiSide:
     ``e-puck2/esp-idf`` (branch ``wifi``, e2f4883) ``Projects/ESP32_E-Puck_2/main/
     socket_e-puck2.c`` does it:
 
-    * Commands are read in whole 21-byte blocks, one a pass, never resynchronised byte by
-      byte (L164–177).  Only a block starting with ``0x80`` makes the connection valid
+    * Commands are read in whole 21-byte blocks, one a reading pass, never resynchronised
+      byte by byte (L164–177).  Only a block starting with ``0x80`` makes the connection valid
       (L171–172); after that every block is taken as a command whatever its first byte
       (L174–177): a stream that lost its alignment stays misaligned.
     * With five blocks or more waiting, all but the last are dropped (L146–161).
-    * Once a valid command has come, every pass re-applies the last command and answers it
-      by its request byte, new command or not (L182–195): ``0x00`` the empty packet, bit 0
-      the image (then the sensors if bit 1), bit 1 the sensors; a request byte with neither
-      bit answers nothing.  So the robot *streams*.
+    * Once a valid command has come, every reading pass re-applies the last command and
+      answers it by its request byte, new command or not (L182–195): ``0x00`` the empty
+      packet, bit 0 the image (then the sensors if bit 1), bit 1 the sensors; a request byte
+      with neither bit answers nothing.  So the robot *streams*.
+    * The loop is a state machine, one state a pass, each pass ended by ``vTaskDelay(10)``
+      (L279): state 3 reads at most one block and applies it (L145–197), the next pass sends
+      the answer (states 5 and 6, L240–277; the image, state 4 at L199, takes one more) and
+      goes back to state 3.  So one block is read per packet sent, two passes apart; a
+      :meth:`cycle` is those two passes.
 
     :meth:`take` queues received bytes; :meth:`cycle` is one packet's worth of passes and
     returns the bytes to send (the server paces it, :class:`TcpServer`)."""
