@@ -294,6 +294,11 @@ class CameraSpec:
     """Calibration file written by ``fleet calibrate`` (JSON, image px → world
     m), resolved against the scenario file's directory; None: the tracker
     calibrates from the fiducials of the first frames."""
+    intrinsics: Path | None = None
+    """Lens calibration file written by ``fleet calibrate --intrinsics`` (JSON: camera
+    matrix [px], distortion (k1, k2, p1, p2, k3), image size [px]), resolved against the
+    scenario file's directory; the tracker undistorts marker corners through it.  None:
+    lens distortion is not corrected."""
     device: int | None = None
     """Video device index (``/dev/videoN``) used when ``--device`` is not given."""
     position_noise: float | None = None
@@ -752,7 +757,7 @@ def _parse_obstacles(raw: object, path: str) -> tuple[Obstacle, ...]:
 
 
 _CAMERA_KEYS = (
-    "dictionary", "marker_size", "marker_offset", "fiducials", "homography", "device",
+    "dictionary", "marker_size", "marker_offset", "fiducials", "homography", "intrinsics", "device",
     "position_noise", "heading_noise",
 )  # fmt: skip
 
@@ -773,7 +778,7 @@ def _general_position(points: Sequence[tuple[float, float]]) -> bool:
 
 
 def _parse_camera(raw: object, path: str, base_dir: Path | None) -> CameraSpec:
-    """The ``[camera]`` table; ``homography`` is resolved against ``base_dir``."""
+    """The ``[camera]`` table; ``homography`` and ``intrinsics`` are resolved against ``base_dir``."""
     table = _table(raw, path)
     _check_keys(table, path, _CAMERA_KEYS, required=("fiducials",))
     spec = CameraSpec()
@@ -829,15 +834,19 @@ def _parse_camera(raw: object, path: str, base_dir: Path | None) -> CameraSpec:
             "no 4 fiducials in general position (three or more on a line): the homography is undetermined",
         )
     spec = dataclasses.replace(spec, fiducials=tuple(fiducials))
-    if "homography" in table:
-        hpath = _join(path, "homography")
-        h = _string(table["homography"], hpath)
-        if not h.strip():
-            raise ConfigError(hpath, "expected a non-empty file path")
-        hp = Path(h).expanduser()
-        if not hp.is_absolute() and base_dir is not None:
-            hp = base_dir / hp
-        spec = dataclasses.replace(spec, homography=hp)
+    for key in ("homography", "intrinsics"):
+        if key in table:
+            hpath = _join(path, key)
+            h = _string(table[key], hpath)
+            if not h.strip():
+                raise ConfigError(hpath, "expected a non-empty file path")
+            hp = Path(h).expanduser()
+            if not hp.is_absolute() and base_dir is not None:
+                hp = base_dir / hp
+            if key == "homography":
+                spec = dataclasses.replace(spec, homography=hp)
+            else:
+                spec = dataclasses.replace(spec, intrinsics=hp)
     if "device" in table:
         spec = dataclasses.replace(spec, device=_integer(table["device"], _join(path, "device"), ge=0))
     if "position_noise" in table:

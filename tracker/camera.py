@@ -52,6 +52,7 @@ from ground.geometry import wrap_angle
 from ground.process import add_common_args, announce, log
 from ground.scenario import CameraSpec, ConfigError, Scenario, load_scenario
 from ground.wire import Applied, Keys, Pose, Tick, Truth
+from tracker.intrinsics import Intrinsics
 from tracker.reports import REPORT_WAIT, Reports
 from tracker.vision import (
     CALIBRATION_FRAMES,
@@ -106,14 +107,14 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     quiet_opencv(cv2)
     try:
-        scn, camera, markers, calibration, source = _checked(args)
+        scn, camera, markers, calibration, intrinsics, source = _checked(args)
     except ConfigError as e:
         print(f"tracker: error: {e}", file=sys.stderr)
         return 2
     try:
         if calibration is None:
             try:
-                calibration = _calibrate_source(source, camera, args.calibration_frames)
+                calibration = _calibrate_source(source, camera, args.calibration_frames, intrinsics)
             except ConfigError as e:
                 print(f"tracker: error: {e}", file=sys.stderr)
                 return 1
@@ -124,7 +125,11 @@ def main(argv: list[str] | None = None) -> int:
                 f"max {calibration.max_error * 1000:.2f} mm",
             )
         _check_noise(scn, camera, calibration)
-        tracker = Tracker(camera, markers, calibration, report=_log)
+        try:
+            tracker = Tracker(camera, markers, calibration, report=_log, intrinsics=intrinsics)
+        except ConfigError as e:
+            print(f"tracker: error: {e}", file=sys.stderr)
+            return 2
         session = open_session(args)
         run = CameraRun(args, scn, source, tracker, session)
         try:
@@ -138,9 +143,10 @@ def main(argv: list[str] | None = None) -> int:
 
 def _checked(
     args: argparse.Namespace,
-) -> tuple[Scenario, CameraSpec, dict[int, str], Calibration | None, Any]:
+) -> tuple[Scenario, CameraSpec, dict[int, str], Calibration | None, Intrinsics | None, Any]:
     """The scenario, its camera, the robots' markers, the calibration file's homography if any,
-    and the opened frame source; ConfigError names the bad option (nothing is left open)."""
+    the lens intrinsics if any, and the opened frame source; ConfigError names the bad option
+    (nothing is left open)."""
     if args.exchange == "relay":
         raise ConfigError(
             "--exchange", "relay needs the simulated tracker; the camera tracker relays no plans"
@@ -154,6 +160,7 @@ def _checked(
     scn = load_scenario(args.scenario)
     camera, markers = camera_setup(scn)
     calibration = Calibration.load(camera.homography) if camera.homography is not None else None
+    intrinsics = Intrinsics.load(camera.intrinsics) if camera.intrinsics is not None else None
     source: VideoSource | DeviceSource
     if args.video is not None:
         source = VideoSource(args.video)
@@ -168,13 +175,23 @@ def _checked(
             f"{camera.homography} is for {w}×{h} px images, the source gives {size[0]}×{size[1]} px "
             "(calibrate again with fleet calibrate)",
         )
-    return scn, camera, markers, calibration, source
+    if intrinsics is not None and size is not None and size != intrinsics.image_size:
+        source.close()
+        w, h = intrinsics.image_size
+        raise ConfigError(
+            "camera.intrinsics",
+            f"{camera.intrinsics} is for {w}×{h} px images, the source gives {size[0]}×{size[1]} px",
+        )
+    return scn, camera, markers, calibration, intrinsics, source
 
 
-def _calibrate_source(source: VideoSource | DeviceSource, camera: CameraSpec, want: int) -> Calibration:
+def _calibrate_source(
+    source: VideoSource | DeviceSource, camera: CameraSpec, want: int, intrinsics: Intrinsics | None
+) -> Calibration:
     if isinstance(source, VideoSource):
         # The frames stay in the file: the run starts again from frame 0.
-        cal = calibrate_from((f.image for f in source.frames()), camera, want=want, tries=CALIBRATION_TRIES)
+        cal = calibrate_from((f.image for f in source.frames()), camera, want=want, tries=CALIBRATION_TRIES,
+                             intrinsics=intrinsics)  # fmt: skip
         source.rewind()
         return cal
 
@@ -182,7 +199,7 @@ def _calibrate_source(source: VideoSource | DeviceSource, camera: CameraSpec, wa
         for _ in range(CALIBRATION_TRIES):
             yield source.read_now()
 
-    return calibrate_from(reads(), camera, want=want, tries=CALIBRATION_TRIES)
+    return calibrate_from(reads(), camera, want=want, tries=CALIBRATION_TRIES, intrinsics=intrinsics)
 
 
 def _check_noise(scn: Scenario, camera: CameraSpec, cal: Calibration) -> None:

@@ -28,6 +28,11 @@ PNG (``--png DIR``, instead of the PDF unless ``--out`` is given too): one
 600) with the resolution stored in the file; the black square is
 round(marker_size / 0.0254 m · dpi) px.
 
+ChArUco board (``--charuco``, instead of the markers): the calibration board of
+``fleet calibrate --intrinsics`` (:data:`tracker.intrinsics.DEFAULT_BOARD`) on one
+landscape page at scale 1, as vector paths, with the same 100 mm ruler
+(``--out``, default ``charuco.pdf``).  Glue it flat on a rigid board.
+
 Exit codes: 0 written; 2 bad input, with one line ``fleet: error: <field>:
 <reason>`` (no OpenCV, no ``[camera]`` table, a robot without ``marker``, a
 marker too large for the paper, an unusable ``--dpi`` or output path).
@@ -46,6 +51,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ground.scenario import CameraSpec, ConfigError, Scenario, load_scenario
+from tracker.intrinsics import DEFAULT_BOARD, CharucoBoardSpec
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -389,6 +395,92 @@ def write_pdf(scn: Scenario, out: str | Path, paper: str = "a4") -> list[Page]:
     return pages
 
 
+# --------------------------------------------------------------------------- ChArUco board
+
+DEFAULT_CHARUCO_OUT = "charuco.pdf"
+
+
+def charuco_figure(board: CharucoBoardSpec = DEFAULT_BOARD, paper: str = "a4") -> Figure:
+    """The matplotlib figure (Agg canvas) of ``board`` on one landscape page of ``paper``:
+    figure size = paper size, one data unit = 1 m on paper (page frame, y up), the board
+    centred below a header and above a 100 mm ruler.  Squares and markers are vector paths;
+    which squares are black and where each marker sits come from OpenCV's board, so the
+    print is the board ``cv2.aruco.CharucoDetector`` looks for.  Raises
+    :class:`ConfigError` (``--paper``) when the board does not fit."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.patches import PathPatch, Rectangle
+
+    height, width = PAPERS[paper]  # landscape
+    bw, bh = board.size
+    if bw + 2 * MARGIN > width or bh + HEADER + RULER_BAND + 2 * MARGIN > height:
+        raise ConfigError("--paper", f"a {bw * 1000:.0f} × {bh * 1000:.0f} mm board does not fit on {paper}")
+    fig = Figure(figsize=(width / INCH, height / INCH), facecolor="white")
+    FigureCanvasAgg(fig)
+    ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
+    ax.set_xlim(0.0, width)
+    ax.set_ylim(0.0, height)
+    ax.set_axis_off()
+    ax.set_autoscale_on(False)
+    x0 = (width - bw) / 2.0
+    top = height - MARGIN - HEADER  # board frame y = 0 (board y runs down the page)
+    cv_board = board.board()
+    cols, rows = board.squares
+    k = 20  # px per square of the probe image
+    probe = np.asarray(cv_board.generateImage((cols * k, rows * k), marginSize=0, borderBits=1))
+    for r in range(rows):
+        for c in range(cols):
+            if probe[r * k + 1, c * k + 1] < 128:
+                xy = (x0 + c * board.square, top - (r + 1) * board.square)
+                ax.add_patch(
+                    Rectangle(xy, board.square, board.square, facecolor="black", edgecolor="none", lw=0)
+                )
+    obj = cv_board.getObjPoints()
+    for mid, corners in zip(np.asarray(cv_board.getIds()).reshape(-1), obj, strict=True):
+        mc = np.asarray(corners, dtype=float).reshape(4, 3)
+        centre = (x0 + float(mc[:, 0].mean()), top - float(mc[:, 1].mean()))
+        bits = marker_bits(int(mid), board.dictionary)
+        ax.add_patch(
+            PathPatch(marker_path(bits, centre, board.marker), facecolor="black", edgecolor="none", lw=0)
+        )
+    ax.text(
+        MARGIN, height - MARGIN,
+        f"ChArUco board for fleet calibrate --intrinsics: {cols} × {rows} squares of "
+        f"{board.square * 1000:.1f} mm, markers {board.marker * 1000:.1f} mm, {board.dictionary}",
+        ha="left", va="top", fontsize=9, fontweight="bold",
+    )  # fmt: skip
+    ax.text(
+        MARGIN, height - MARGIN - 0.0055,
+        "Print at 100 % (actual size) and check the ruler; glue flat on a rigid board. Show it to the "
+        "camera at 8 or more places and angles, near every edge and corner of the image.",
+        ha="left", va="top", fontsize=6.5,
+    )  # fmt: skip
+    _draw_ruler(ax, (MARGIN, MARGIN + 0.004))
+    return fig
+
+
+def write_charuco_pdf(out: str | Path, paper: str = "a4", board: CharucoBoardSpec = DEFAULT_BOARD) -> Path:
+    """Write :func:`charuco_figure` to the PDF ``out`` (parents created); returns its path.
+    Raises :class:`ConfigError` (``--out`` when it cannot be written)."""
+    import matplotlib
+    from matplotlib.backends.backend_pdf import PdfPages
+
+    path = Path(out)
+    if path.is_dir():
+        raise ConfigError("--out", f"{path}: is a directory, expected a PDF file name")
+    with matplotlib.rc_context():
+        matplotlib.rcdefaults()
+        fig = charuco_figure(board, paper)
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            meta = {"Title": "ChArUco calibration board", "Creator": "epuck-fleet: fleet markers --charuco"}
+            with PdfPages(path, metadata={**meta, "CreationDate": None}) as pdf:
+                pdf.savefig(fig)
+        except OSError as e:
+            raise ConfigError("--out", f"{path}: cannot write ({e.strerror or e})") from None
+    return path
+
+
 # --------------------------------------------------------------------------- PNG
 
 
@@ -461,6 +553,10 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument(
         "--dpi", type=int, default=DEFAULT_DPI, help=f"resolution of the PNGs (default {DEFAULT_DPI})"
     )
+    ap.add_argument(
+        "--charuco", action="store_true",
+        help=f"write the board of fleet calibrate --intrinsics instead (default {DEFAULT_CHARUCO_OUT})",
+    )  # fmt: skip
 
 
 def run(args: argparse.Namespace) -> int:
@@ -470,6 +566,21 @@ def run(args: argparse.Namespace) -> int:
     except ImportError:
         print(f"fleet: error: {OPENCV_MISSING}", file=sys.stderr)
         return 2
+    if args.charuco:
+        try:
+            load_scenario(args.scenario)
+            if args.png is not None:
+                raise ConfigError("--png", "the ChArUco board is printed as a PDF only")
+            out = write_charuco_pdf(args.out if args.out is not None else DEFAULT_CHARUCO_OUT, args.paper)
+        except ConfigError as e:
+            print(f"fleet: error: {e}", file=sys.stderr)
+            return 2
+        b = DEFAULT_BOARD
+        print(
+            f"wrote {out}: ChArUco board {b.squares[0]} × {b.squares[1]} squares of {b.square * 1000:.1f} mm "
+            f"on {args.paper} landscape; print at 100 % and check the 100 mm ruler"
+        )
+        return 0
     try:
         scn = load_scenario(args.scenario)
         items = printed_markers(scn)

@@ -8,6 +8,15 @@ exactly where the perspective model puts them.  The image is rendered at
 ``SUPERSAMPLE``× resolution and area-averaged down (anti-aliasing), then
 blurred (Gaussian, σ in px) and given additive Gaussian noise, seeded.
 
+Lens distortion (``PinholeCamera.distortion`` = (k₁, k₂, p₁, p₂, k₃), OpenCV's
+model, see :mod:`tracker.intrinsics`; default none): the ideal pinhole image is
+rendered first, on a canvas large enough for what the lens pulls into view,
+then each output pixel (u_d, v_d) takes the ideal image at its undistorted
+position (``cv2.undistortPoints`` iterated to convergence, once per renderer)
+through ``cv2.remap`` (bilinear), before the blur and the noise.
+:func:`board_view` renders a ChArUco board at any pose in front of the camera
+the same way, for intrinsic calibration.
+
 ``python -m tracker.synth --scenario S (--video OUT.avi | --image OUT.png)
 [--duration T] [--fps F] [--seed N]`` renders a scenario with a ``[camera]``
 table and robot ``marker`` ids: each robot drives in a straight line from its
@@ -21,16 +30,18 @@ coordinates, u to the right, v down; the image is (height, width) uint8.
 from __future__ import annotations
 
 import argparse
+import functools
 import math
 import sys
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from ground.process import seed_arg
+from tracker.intrinsics import CharucoBoardSpec, distort_normalised, distort_points, undistort_points
 from tracker.vision import OPENCV_MISSING, cv2_module
 
 SUPERSAMPLE = 2
@@ -44,7 +55,7 @@ PoseFn = Callable[[float], tuple[float, float, float]]
 
 @dataclass(frozen=True)
 class PinholeCamera:
-    """An undistorted pinhole camera looking at the floor plane z = 0.
+    """A pinhole camera, with optional lens distortion, looking at the floor plane z = 0.
 
     The camera sits at ``position`` and its optical axis passes through
     ``target`` on the floor; image "right" is the world direction
@@ -61,6 +72,20 @@ class PinholeCamera:
     """Camera centre, world frame (x, y, z) [m], z > 0."""
     target: tuple[float, float] = (0.0, 0.0)
     """Floor point (x, y) [m] on the optical axis."""
+    distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    """Lens distortion (k₁, k₂, p₁, p₂, k₃), OpenCV's model (:mod:`tracker.intrinsics`);
+    all zero: an ideal pinhole."""
+
+    @property
+    def distorted(self) -> bool:
+        """The lens distorts (some coefficient is non-zero)."""
+        return any(v != 0.0 for v in self.distortion)
+
+    def distort(self, points: np.ndarray) -> np.ndarray:
+        """Observed image points (N, 2) [px] of ideal pinhole image points (N, 2) [px]."""
+        if not self.distorted:
+            return np.asarray(points, dtype=float).reshape(-1, 2)
+        return distort_points(points, self.intrinsics(), self.distortion)
 
     def rotation(self) -> np.ndarray:
         """World → camera rotation (3, 3); rows are the camera's x (right), y (down), z (forward) axes."""
@@ -92,8 +117,8 @@ class PinholeCamera:
         return np.asarray(self.intrinsics() @ np.column_stack([R[:, 0], R[:, 1], t]))
 
     def project(self, points: np.ndarray) -> np.ndarray:
-        """Image points (N, 2) [px] of floor points (N, 2) [m, world frame]."""
-        return _apply(self.homography(), points)
+        """Image points (N, 2) [px] of floor points (N, 2) [m, world frame], through the lens."""
+        return self.distort(_apply(self.homography(), points))
 
     @staticmethod
     def viewing(
@@ -104,12 +129,13 @@ class PinholeCamera:
         width_px: int = 1600,
         height_px: int = 1200,
         margin: float = 0.04,
+        distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0),
     ) -> PinholeCamera:
         """A camera ``height`` [m] above the floor, behind (−y of) the centre of
         ``points`` (N, 2) [m, world frame] and looking at them ``tilt`` [rad] off
         vertical, aimed so their image is centred and with the focal length
-        [px] that fits them in the image with ``margin`` (fraction of the
-        image size) to spare."""
+        [px] that fits them in the image (through the lens ``distortion``)
+        with ``margin`` (fraction of the image size) to spare."""
         pts = np.asarray(points, dtype=float).reshape(-1, 2)
         lo, hi = pts.min(axis=0), pts.max(axis=0)
         cx, cy = (lo + hi) / 2.0
@@ -131,11 +157,16 @@ class PinholeCamera:
             if abs(v1) < 1e-9 or abs(v1 - v0) < 1e-15:
                 break
             ty0, ty1, v0 = ty1, ty1 - v1 * (ty1 - ty0) / (v1 - v0), v1
-        n = normalised(ty1)
+        n = distort_normalised(normalised(ty1), distortion)
         xn, yn = np.abs(n[:, 0]).max(), np.abs(n[:, 1]).max()
         f = min((0.5 - margin) * width_px / max(xn, 1e-9), (0.5 - margin) * height_px / max(yn, 1e-9))
         return PinholeCamera(
-            width=width_px, height=height_px, focal=float(f), position=position, target=(float(cx), ty1)
+            width=width_px,
+            height=height_px,
+            focal=float(f),
+            position=position,
+            target=(float(cx), ty1),
+            distortion=tuple(float(v) for v in distortion),  # type: ignore[arg-type]
         )
 
 
@@ -143,6 +174,55 @@ def _apply(H: np.ndarray, points: np.ndarray) -> np.ndarray:
     p = np.asarray(points, dtype=float).reshape(-1, 2)
     q = np.column_stack([p, np.ones(len(p))]) @ np.asarray(H, dtype=float).T
     return np.asarray(q[:, :2] / q[:, 2:3])
+
+
+LENS_CANVAS_GROWTH = 1.8
+"""The ideal canvas of a distorting camera is at most this many times the image's size per axis."""
+
+
+@dataclass(frozen=True)
+class LensMap:
+    """How a distorting lens forms the image: output px (u_d, v_d) shows the ideal pinhole
+    image at ``(map_u, map_v)[v_d, u_d]`` [px on the ideal canvas]; ideal px (u, v) sits
+    at canvas px (u + offset[0], v + offset[1])."""
+
+    map_u: np.ndarray = field(compare=False)
+    """(height, width) float32 [canvas px]."""
+    map_v: np.ndarray = field(compare=False)
+    """(height, width) float32 [canvas px]."""
+    offset: tuple[int, int]
+    """Canvas px of ideal px (0, 0)."""
+    canvas: tuple[int, int]
+    """Canvas (width, height) [px]: it holds every ideal point some output pixel shows
+    (up to :data:`LENS_CANVAS_GROWTH`)."""
+
+    def apply(self, ideal: np.ndarray) -> np.ndarray:
+        """The observed image (height, width) float32 of an ideal canvas image (float32)."""
+        cv2 = cv2_module()
+        return np.asarray(
+            cv2.remap(ideal, self.map_u, self.map_v, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        )
+
+
+@functools.lru_cache(maxsize=4)
+def lens_map(camera: PinholeCamera) -> LensMap | None:
+    """The :class:`LensMap` of ``camera`` (None for an ideal pinhole), computed once per camera:
+    every output pixel undistorted (``cv2.undistortPoints``, iterated to convergence)."""
+    if not camera.distorted:
+        return None
+    w, h = camera.width, camera.height
+    vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
+    ideal = undistort_points(
+        np.column_stack([uu.ravel(), vv.ravel()]), camera.intrinsics(), camera.distortion
+    )
+    g = (LENS_CANVAS_GROWTH - 1.0) / 2.0
+    lo = np.maximum(np.floor(ideal.min(axis=0)) - 2, [-g * w, -g * h]).astype(int)
+    hi = np.minimum(np.ceil(ideal.max(axis=0)) + 3, [w + g * w, h + g * h]).astype(int)
+    ox, oy = int(max(0, -lo[0])), int(max(0, -lo[1]))
+    canvas = (int(max(hi[0], w) + ox), int(max(hi[1], h) + oy))
+    mu = (ideal[:, 0] + ox).reshape(h, w).astype(np.float32)
+    mv = (ideal[:, 1] + oy).reshape(h, w).astype(np.float32)
+    return LensMap(map_u=mu, map_v=mv, offset=(ox, oy), canvas=canvas)
 
 
 def marker_image(marker_id: int, dictionary: str = "DICT_4X4_50", bit_px: int = 16) -> np.ndarray:
@@ -200,11 +280,15 @@ class Renderer:
         self.fiducial_size = float(fiducial_size)
         self.dictionary = dictionary
         ss = SUPERSAMPLE
+        self.lens = lens_map(camera)
+        """Where the ideal image is drawn and how the lens bends it (None: no distortion)."""
+        ox, oy = self.lens.offset if self.lens is not None else (0, 0)
+        canvas = self.lens.canvas if self.lens is not None else (camera.width, camera.height)
         # final px p ↔ supersampled px ss·p + (ss − 1)/2 (pixel centres at integers)
         S = np.array([[ss, 0.0, (ss - 1) / 2.0], [0.0, ss, (ss - 1) / 2.0], [0.0, 0.0, 1.0]])
-        self.H = S @ camera.homography()
-        """Floor → supersampled image homography (3, 3)."""
-        self.size = (camera.width * ss, camera.height * ss)
+        self.H = S @ np.array([[1.0, 0.0, ox], [0.0, 1.0, oy], [0.0, 0.0, 1.0]]) @ camera.homography()
+        """Floor → supersampled ideal canvas homography (3, 3)."""
+        self.size = (canvas[0] * ss, canvas[1] * ss)
         self._markers: dict[int, np.ndarray] = {}
         self._static = self._render_floor(floor_seed)
         for fid, pos in self.fiducials.items():
@@ -212,10 +296,8 @@ class Renderer:
         self._work = self._static.copy()
         """Supersampled scratch image: robots are pasted into it, their regions are
         downsampled into the frame, then restored from ``_static``."""
-        self._small = cv2_module().resize(
-            self._static, (camera.width, camera.height), interpolation=cv2_module().INTER_AREA
-        )
-        """The static scene at the camera's resolution, float32."""
+        self._small = cv2_module().resize(self._static, canvas, interpolation=cv2_module().INTER_AREA)
+        """The static scene on the ideal canvas at the camera's resolution, float32."""
 
     def _render_floor(self, seed: int) -> np.ndarray:
         """Grey floor with low-frequency shading and tile seams every 0.5 m, float32 (H·ss, W·ss)."""
@@ -332,11 +414,111 @@ class Renderer:
                 out[y0 // ss : y1 // ss, x0 // ss : x1 // ss] = patch
         for x0, y0, x1, y1 in rois:
             self._work[y0:y1, x0:x1] = self._static[y0:y1, x0:x1]
-        if blur > 0:
-            out = cv2.GaussianBlur(out, (0, 0), blur)
-        if noise > 0:
-            out += noise * np.random.default_rng(seed).standard_normal(out.shape, dtype=np.float32)
-        return np.asarray(np.clip(np.rint(out), 0, 255).astype(np.uint8))
+        return _sensor(out, self.lens, blur, noise, seed)
+
+
+def _sensor(out: np.ndarray, lens: LensMap | None, blur: float, noise: float, seed: int) -> np.ndarray:
+    """The ideal image ``out`` (height, width) float32 through the lens (None: none), the
+    optics' blur (Gaussian σ [px]) and the sensor's noise (σ [grey levels], seeded), quantised
+    to uint8."""
+    cv2 = cv2_module()
+    if lens is not None:
+        out = lens.apply(out)
+    if blur > 0:
+        out = cv2.GaussianBlur(out, (0, 0), blur)
+    if noise > 0:
+        out += noise * np.random.default_rng(seed).standard_normal(out.shape, dtype=np.float32)
+    return np.asarray(np.clip(np.rint(out), 0, 255).astype(np.uint8))
+
+
+def random_poses(
+    rng: np.random.Generator, n: int, half: float = 0.9, spacing: float = 0.12
+) -> dict[int, tuple[float, float, float]]:
+    """n robot poses (x, y, θ) [m, m, rad], world frame, drawn from ``rng`` in
+    [−half, half]² [m], markers at least ``spacing`` [m] apart, keyed by marker ids 1..n."""
+    out: dict[int, tuple[float, float, float]] = {}
+    while len(out) < n:
+        p = (
+            float(rng.uniform(-half, half)),
+            float(rng.uniform(-half, half)),
+            float(rng.uniform(-math.pi, math.pi)),
+        )
+        if all(math.hypot(p[0] - q[0], p[1] - q[1]) > spacing for q in out.values()):
+            out[len(out) + 1] = p
+    return out
+
+
+def board_view(
+    camera: PinholeCamera,
+    board: CharucoBoardSpec,
+    R: np.ndarray,
+    t: np.ndarray,
+    *,
+    px_per_square: int = 40,
+    background: float = 110.0,
+    blur: float = 0.8,
+    noise: float = 2.0,
+    seed: int = 0,
+) -> np.ndarray:
+    """One frame (height, width) uint8 of the ChArUco ``board`` (printed with a white margin
+    of one square) at pose ``R`` (3, 3), ``t`` (3,) [m]: board frame → camera frame
+    (x right, y down, z forward), in front of ``background`` [grey level], through the lens."""
+    cv2 = cv2_module()
+    ss = SUPERSAMPLE
+    cols, rows = board.squares
+    q = int(px_per_square)
+    tex = board.board().generateImage(((cols + 2) * q, (rows + 2) * q), marginSize=q, borderBits=1)
+    tex = np.asarray(tex, dtype=np.float32)
+    s = board.square / q  # [m] per texture px
+    A = np.array([[s, 0.0, 0.5 * s - board.square], [0.0, s, 0.5 * s - board.square], [0.0, 0.0, 1.0]])
+    R = np.asarray(R, dtype=float).reshape(3, 3)
+    t = np.asarray(t, dtype=float).reshape(3)
+    w_m, h_m = board.size
+    corners = np.array([[-board.square, -board.square, 0], [w_m + board.square, h_m + board.square, 0]])
+    if np.any((corners @ R.T + t)[:, 2] <= 0.01):
+        raise ValueError("the board is not in front of the camera")
+    lens = lens_map(camera)
+    ox, oy = lens.offset if lens is not None else (0, 0)
+    canvas = lens.canvas if lens is not None else (camera.width, camera.height)
+    S = np.array([[ss, 0.0, (ss - 1) / 2.0 + ss * ox], [0.0, ss, (ss - 1) / 2.0 + ss * oy], [0.0, 0.0, 1.0]])
+    G = S @ camera.intrinsics() @ np.column_stack([R[:, 0], R[:, 1], t]) @ A
+    big = cv2.warpPerspective(tex, G, (canvas[0] * ss, canvas[1] * ss), flags=cv2.INTER_LINEAR,
+                              borderMode=cv2.BORDER_CONSTANT, borderValue=float(background))  # fmt: skip
+    out = np.asarray(cv2.resize(big, canvas, interpolation=cv2.INTER_AREA), dtype=np.float32)
+    return _sensor(out, lens, blur, noise, seed)
+
+
+def board_poses(
+    camera: PinholeCamera, board: CharucoBoardSpec, n: int, *, fill: float = 0.35, tilt: float = 0.5,
+    seed: int = 0,
+) -> list[tuple[np.ndarray, np.ndarray]]:  # fmt: skip
+    """``n`` board poses (R (3, 3), t (3,) [m], board → camera frame) for an intrinsic
+    calibration: the board's centre on a jittered grid over the whole image (corners and
+    edges included), its width about ``fill`` of the image width, turned up to ``tilt``
+    [rad] about its x and y axes, random in sign (seeded)."""
+    rng = np.random.default_rng(seed)
+    K = camera.intrinsics()
+    w_m, h_m = board.size
+    depth = K[0, 0] * w_m / (fill * camera.width)
+    gx = max(2, math.ceil(math.sqrt(n * camera.width / camera.height)))
+    gy = max(2, math.ceil(n / gx))
+    cells = [(i, j) for j in range(gy) for i in range(gx)]
+    order = rng.permutation(len(cells))
+    out = []
+    for k in range(n):
+        i, j = cells[order[k % len(cells)]]
+        u = (i + 0.5 + rng.uniform(-0.3, 0.3)) / gx * camera.width
+        v = (j + 0.5 + rng.uniform(-0.3, 0.3)) / gy * camera.height
+        ideal = undistort_points(np.array([[u, v]]), K, camera.distortion)[0] if camera.distorted else (u, v)
+        z = depth * rng.uniform(0.85, 1.15)
+        centre = np.array([(ideal[0] - K[0, 2]) / K[0, 0] * z, (ideal[1] - K[1, 2]) / K[1, 1] * z, z])
+        a, b, c = rng.uniform(-tilt, tilt), rng.uniform(-tilt, tilt), rng.uniform(-0.3, 0.3)
+        Rx = np.array([[1, 0, 0], [0, math.cos(a), -math.sin(a)], [0, math.sin(a), math.cos(a)]])
+        Ry = np.array([[math.cos(b), 0, math.sin(b)], [0, 1, 0], [-math.sin(b), 0, math.cos(b)]])
+        Rz = np.array([[math.cos(c), -math.sin(c), 0], [math.sin(c), math.cos(c), 0], [0, 0, 1]])
+        R = Rx @ Ry @ Rz
+        out.append((R, centre - R @ np.array([w_m / 2.0, h_m / 2.0, 0.0])))
+    return out
 
 
 def write_video(

@@ -14,10 +14,12 @@ marker's top left, corner 0 → 1 along its x axis) map to w_i = H(c_i) on the p
 
 Corners come from OpenCV's detector with CORNER_REFINE_SUBPIX, then :func:`refine_edges` fits
 straight lines to the four outer edges.  The homography maps the plane of the fiducials; robot
-markers must lie in that plane (see :class:`ground.scenario.CameraSpec`).  Lens distortion is
-not modelled: undistort a distorting camera's images first, or the reprojection error of
-:class:`Calibration` shows it.  Markers should span ≥ 18 px in the image (3 px per bit for
-4×4): at 14–22 px about 1 % of them were missed.
+markers must lie in that plane (see :class:`ground.scenario.CameraSpec`).  With the camera's
+intrinsics (``camera.intrinsics``, :mod:`tracker.intrinsics`) the corners are undistorted
+(points, not frames) before the homography and the heading, and the homography is fitted to
+undistorted fiducial centres; without them a lens's distortion goes straight into the poses
+(at k₁ = −0.3, tens of mm towards the image edges) and the tracker says so once.
+Markers should span ≥ 18 px in the image (3 px per bit for 4×4): at 14–22 px about 1 % of them were missed.
 
 Accuracy on synthetic frames (``tests/tracker/test_camera.py``: 1600×1200 px, 30° oblique view, 5 cm
 markers of 18–28 px, Gaussian blur σ 0.8 px, noise σ 2 grey levels, fitted homography):
@@ -31,6 +33,7 @@ handedness on the plane is implausible.  The camera process (:mod:`tracker.camer
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import json
 import math
@@ -42,6 +45,7 @@ from typing import Any
 import numpy as np
 
 from ground.scenario import CameraSpec, ConfigError, Fiducial, Scenario
+from tracker.intrinsics import Intrinsics, read_json
 
 OPENCV_MISSING = "camera source needs OpenCV: pip install 'epuck-fleet[camera]'"
 """What a camera command says when OpenCV (the ``[camera]`` extra) is not installed."""
@@ -253,6 +257,9 @@ class Calibration:
     """Image (width, height) [px] the homography belongs to."""
     frames: int = 1
     """Frames whose fiducial centres were averaged."""
+    undistorted: bool = False
+    """The image points are undistorted through the camera's intrinsics (ideal pinhole px),
+    so H must be applied to undistorted points."""
 
     def errors(self) -> dict[int, float]:
         """Fiducial id → reprojection error |H(q_j) − p_j| [m]."""
@@ -261,6 +268,29 @@ class Calibration:
         p = np.array([self.world_points[i] for i in ids], dtype=float).reshape(-1, 2)
         e = np.linalg.norm(to_plane(self.H, q) - p, axis=1)
         return {i: float(x) for i, x in zip(ids, e, strict=True)}
+
+    def holdout_errors(self) -> dict[int, float]:
+        """Fiducial id → |H₋ⱼ(q_j) − p_j| [m], H₋ⱼ fitted without fiducial j: the floor error
+        at a place the fit did not see (empty with fewer than 5 fiducials).  Unlike the
+        reprojection error, it grows with what the homography cannot model (lens distortion,
+        a fiducial off the plane)."""
+        ids = sorted(self.image_points)
+        if len(ids) < 5:
+            return {}
+        out: dict[int, float] = {}
+        for j in ids:
+            rest = [i for i in ids if i != j]
+            try:
+                cal = fit_homography(
+                    {i: self.image_points[i] for i in rest},
+                    {i: self.world_points[i] for i in rest},
+                    self.image_size,
+                )
+                e = to_plane(cal.H, np.array([self.image_points[j]], dtype=float))[0] - self.world_points[j]
+            except (ConfigError, ValueError):
+                continue  # the others are degenerate on their own
+            out[j] = float(np.linalg.norm(e))
+        return out
 
     def to_json(self, **meta: Any) -> dict[str, Any]:
         """The calibration file's content (``meta``: extra top-level fields)."""
@@ -282,6 +312,7 @@ class Calibration:
             "rms_error_m": self.rms_error,
             "max_error_m": self.max_error,
             "frames": self.frames,
+            "undistorted": self.undistorted,
             "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
             **meta,
         }
@@ -294,14 +325,7 @@ class Calibration:
     def load(path: str | Path, field_name: str = "camera.homography") -> Calibration:
         """Read a calibration file; raises :class:`ConfigError` naming ``field_name``."""
         p = Path(path)
-        try:
-            d = json.loads(p.read_text())
-        except FileNotFoundError:
-            raise ConfigError(field_name, f"{p}: no such file (write it with fleet calibrate)") from None
-        except (OSError, UnicodeDecodeError) as e:
-            raise ConfigError(field_name, f"{p}: cannot read ({e})") from None
-        except json.JSONDecodeError as e:
-            raise ConfigError(field_name, f"{p}: invalid JSON ({e})") from None
+        d = read_json(p, field_name, "fleet calibrate")
         try:
             if not isinstance(d, dict) or d.get("format") != HOMOGRAPHY_FORMAT or d.get("version") != 1:
                 raise ValueError(f"not a version 1 {HOMOGRAPHY_FORMAT!r} file")
@@ -316,13 +340,24 @@ class Calibration:
             wld = {int(k): (float(v["world_m"][0]), float(v["world_m"][1])) for k, v in fids.items()}
             rms, mx = float(d["rms_error_m"]), float(d["max_error_m"])
             frames = int(d.get("frames", 1))
+            undistorted = d.get("undistorted", False)
+            if not isinstance(undistorted, bool):
+                raise ValueError("undistorted must be true or false")
         except (KeyError, TypeError, ValueError, IndexError, AttributeError) as e:
             reason = str(e) if isinstance(e, ValueError) else f"missing or malformed field {e}"
             raise ConfigError(field_name, f"{p}: {reason}") from None
         return Calibration(
             H=H / H[2, 2], image_points=img, world_points=wld, rms_error=rms, max_error=mx,
-            image_size=(w, h), frames=frames,
+            image_size=(w, h), frames=frames, undistorted=undistorted,
         )  # fmt: skip
+
+
+def undistort_corners(corners: np.ndarray, intrinsics: Intrinsics | None) -> np.ndarray:
+    """Marker corners (N, 4, 2) [px] undistorted through ``intrinsics`` (unchanged for None)."""
+    c = np.asarray(corners, dtype=float)
+    if intrinsics is None or c.size == 0:
+        return c
+    return intrinsics.undistort(c.reshape(-1, 2)).reshape(c.shape)
 
 
 def fit_homography(
@@ -364,19 +399,24 @@ def fit_homography(
 
 
 def calibrate(
-    detections: Sequence[Mapping[int, np.ndarray]], fiducials: Sequence[Fiducial], image_size: tuple[int, int]
+    detections: Sequence[Mapping[int, np.ndarray]],
+    fiducials: Sequence[Fiducial],
+    image_size: tuple[int, int],
+    intrinsics: Intrinsics | None = None,
 ) -> Calibration:
     """Fit the homography to the fiducials of several frames' detections (id → corners
-    (4, 2) [px]), averaging each fiducial's image centre over the frames that saw
-    it.  Raises :class:`ConfigError` (``camera.fiducials``)."""
+    (4, 2) [px, as observed]), averaging each fiducial's image centre over the frames
+    that saw it; with ``intrinsics`` the corners are undistorted first.  Raises
+    :class:`ConfigError` (``camera.fiducials``)."""
     world = {f.id: f.position for f in fiducials}
     sums: dict[int, list[np.ndarray]] = {}
     for det in detections:
         for fid, corners in det.items():
             if fid in world:
-                sums.setdefault(fid, []).append(image_centre(corners))
+                sums.setdefault(fid, []).append(image_centre(undistort_corners(corners, intrinsics)))
     centres = {fid: tuple(np.mean(v, axis=0)) for fid, v in sums.items()}
-    return fit_homography(centres, world, image_size, frames=len(detections))
+    cal = fit_homography(centres, world, image_size, frames=len(detections))
+    return dataclasses.replace(cal, undistorted=intrinsics is not None)
 
 
 # --------------------------------------------------------------------------- poses
@@ -479,8 +519,9 @@ class Tracker:
     No Zenoh: the process of :func:`main` and the tests both drive it."""
 
     def __init__(
-        self, camera: CameraSpec, markers: Mapping[int, str], calibration: Calibration, report: Any = None
-    ) -> None:
+        self, camera: CameraSpec, markers: Mapping[int, str], calibration: Calibration, report: Any = None,
+        intrinsics: Intrinsics | None = None,
+    ) -> None:  # fmt: skip
         self.camera = camera
         self.markers = dict(markers)
         """Marker id → robot id."""
@@ -490,6 +531,25 @@ class Tracker:
         self.counts = Counts(gaps={r: 0 for r in self.markers.values()})
         self._report = report
         self._told: set[str] = set()
+        self.intrinsics = intrinsics
+        """The lens (corners are undistorted through it), None: not corrected."""
+        if (intrinsics is None) == calibration.undistorted:
+            need = "with" if calibration.undistorted else "without"
+            raise ConfigError(
+                "camera.intrinsics", f"the homography was fitted {need} intrinsics; so must the tracker run"
+            )
+        if intrinsics is not None and intrinsics.image_size != calibration.image_size:
+            raise ConfigError(
+                "camera.intrinsics",
+                f"intrinsics for {intrinsics.image_size[0]}×{intrinsics.image_size[1]} px, the homography "
+                f"for {calibration.image_size[0]}×{calibration.image_size[1]} px",
+            )
+        if intrinsics is None:
+            self._once(
+                "lens",
+                "lens distortion is not corrected (no camera.intrinsics): floor errors grow towards the "
+                "image edges; calibrate with fleet calibrate --intrinsics",
+            )
 
     def _once(self, key: str, msg: str) -> None:
         if key not in self._told:
@@ -520,6 +580,7 @@ class Tracker:
                     f"{self.calibration.image_size[0]}×{self.calibration.image_size[1]} px"
                 )
             ids, pts = detect_markers(gray, self.detector)
+            pts = undistort_corners(pts, self.intrinsics)
         except BadFrame as e:
             self.skip(f"frame {label}: {e}")
             return {}
@@ -579,11 +640,14 @@ def camera_setup(scn: Scenario) -> tuple[CameraSpec, dict[int, str]]:
 
 
 def calibrate_from(
-    frames: Iterator[np.ndarray | None], camera: CameraSpec, *, want: int, tries: int
-) -> Calibration:
+    frames: Iterator[np.ndarray | None], camera: CameraSpec, *, want: int, tries: int,
+    intrinsics: Intrinsics | None = None,
+) -> Calibration:  # fmt: skip
     """Calibrate from the fiducials of up to ``want`` frames that show them all,
     reading at most ``tries`` frames; with fewer, from what was seen (≥ 4 in
-    general position).  Raises :class:`ConfigError` (``camera.fiducials``)."""
+    general position); with ``intrinsics`` on undistorted fiducial corners.
+    Raises :class:`ConfigError` (``camera.fiducials``, or ``camera.intrinsics``
+    for frames of another size than the intrinsics')."""
     detector = make_detector(camera.dictionary)
     fids = {f.id for f in camera.fiducials}
     dets: list[dict[int, np.ndarray]] = []
@@ -608,8 +672,13 @@ def calibrate_from(
             break
     if size is None:
         raise ConfigError("camera.fiducials", f"no readable frame in the first {read} frames")
+    if intrinsics is not None and intrinsics.image_size != size:
+        w, h = intrinsics.image_size
+        raise ConfigError(
+            "camera.intrinsics", f"intrinsics for {w}×{h} px, the frames are {size[0]}×{size[1]} px"
+        )
     try:
-        return calibrate(dets, camera.fiducials, size)
+        return calibrate(dets, camera.fiducials, size, intrinsics)
     except ConfigError as e:
         raise ConfigError(e.field, f"{e.reason}, in {read} frames") from None
 

@@ -29,7 +29,14 @@ cv2 = pytest.importorskip("cv2")
 from tracker import camera as C  # noqa: E402
 from tracker import vision as V  # noqa: E402
 from tracker.calibrate import main as calibrate_main  # noqa: E402
-from tracker.synth import PinholeCamera, Renderer, marker_centre, marker_corners, write_video  # noqa: E402
+from tracker.synth import (  # noqa: E402
+    PinholeCamera,
+    Renderer,
+    marker_centre,
+    marker_corners,
+    random_poses,
+    write_video,
+)  # fmt: skip
 
 ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONIOENCODING": "utf-8"}
@@ -237,20 +244,6 @@ def accuracy(label: str, pos: np.ndarray, head_deg: np.ndarray) -> str:
     )
 
 
-def _random_poses(rng: np.random.Generator, n: int) -> dict[int, tuple[float, float, float]]:
-    """n robot poses in [-0.9, 0.9]², markers at least 12 cm apart, marker ids 1..n."""
-    out: dict[int, tuple[float, float, float]] = {}
-    while len(out) < n:
-        p = (
-            float(rng.uniform(-0.9, 0.9)),
-            float(rng.uniform(-0.9, 0.9)),
-            float(rng.uniform(-math.pi, math.pi)),
-        )
-        if all(math.hypot(p[0] - q[0], p[1] - q[1]) > 0.12 for q in out.values()):
-            out[len(out) + 1] = p
-    return out
-
-
 def test_poses_of_60_random_robots_under_perspective_blur_and_noise(renderer):
     """12 images × 5 robots: every marker found, within 5 mm and 2° of the truth."""
     det = V.make_detector()
@@ -261,7 +254,7 @@ def test_poses_of_60_random_robots_under_perspective_blur_and_noise(renderer):
     markers = {i: f"r{i}" for i in range(1, 6)}
     pos_err, head_err = [], []
     for k in range(12):
-        truth = _random_poses(rng, 5)
+        truth = random_poses(rng, 5)
         image = renderer.render(truth, blur=0.8, noise=2.0, seed=100 + k)
         found = V.poses(V.detect(image, det), cal.H, markers, OFFSET, SIZE)
         assert set(found) == set(markers.values()), f"image {k}: found {sorted(found)}"
@@ -283,7 +276,7 @@ def test_edge_refinement_beats_subpixel_corners_alone(renderer, cam):
     rng = np.random.default_rng(7)
     err: dict[bool, list[float]] = {True: [], False: []}
     for k in range(4):
-        truth = _random_poses(rng, 5)
+        truth = random_poses(rng, 5)
         image = renderer.render(truth, seed=k)
         for refine in (True, False):
             found = V.detect(image, det, refine=refine)
