@@ -52,9 +52,41 @@ def _bad(msg: str) -> int:
     return EXIT_BAD_INPUT
 
 
+def check_camera_error(scn: Any) -> None:
+    """Refuse a ``controller.pose_noise[0]`` [m] below the camera's measured floor error.
+
+    The floor error is the largest held-out fiducial error of the scenario's homography file
+    (``camera.homography``, :meth:`tracker.vision.Calibration.holdout_errors`: each fiducial
+    predicted by a homography fitted without it).  No check without a ``[camera]`` table, a
+    homography file, 5 or more fiducials in it, or OpenCV.  Raises :class:`ConfigError`
+    (``controller.pose_noise``), one line with both figures and the file."""
+    cam = getattr(scn, "camera", None)
+    if cam is None or cam.homography is None or not Path(cam.homography).is_file():
+        return
+    try:
+        import cv2  # noqa: F401  (the held-out fits need it)
+    except ImportError:
+        return
+    from tracker.vision import Calibration
+
+    held = Calibration.load(cam.homography).holdout_errors()
+    if not held:
+        return
+    worst = max(held, key=lambda i: held[i])
+    bound = scn.controller.pose_noise[0]
+    if held[worst] > bound:
+        raise ConfigError(
+            "controller.pose_noise",
+            f"[0] = {bound * 1000:.2f} mm is below the camera's floor error {held[worst] * 1000:.2f} mm "
+            f"(fiducial {worst}, predicted without it) in {cam.homography}: calibrate the lens "
+            "(fleet calibrate --intrinsics) and the floor again, or raise pose_noise[0]",
+        )
+
+
 def cmd_design(args: argparse.Namespace) -> int:
     if args.scenario:
         scn = load_scenario(args.scenario, preset_override=args.preset)
+        check_camera_error(scn)
         params, arena, name = scn.controller, scn.arena, scn.name
     else:
         params, arena, name = preset(args.preset or "epuck"), DEFAULT_ARENA, "(no scenario)"
@@ -140,6 +172,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from agent.tube import validated_design
 
     scn = load_scenario(args.scenario)
+    check_camera_error(scn)
     design = validated_design(scn)  # every agent checks it too: fail here, once, before starting
     links = _run_links(scn)
     if args.faults:

@@ -549,3 +549,73 @@ def test_a_seed_out_of_range_is_one_line_and_exit_2(seed):
     proc = fleet("simulate", str(SCENARIOS / "paper_two_robots.toml"), "--seed", seed)
     no_traceback(proc)
     assert proc.returncode == 2 and "--seed" in proc.stderr.strip().splitlines()[-1], proc.stderr
+
+
+# --------------------------------------------------------------------------- the camera's error
+
+
+LAB_CONTROLLER = {"preset": "epuck", "pose_noise": [0.001, 0.015], "W": [0.004, 0.002], "epsilon": 0.0025}
+"""The lab scenario's controller (deploy/lab_three_robots.toml): pose_noise[0] = 1 mm."""
+
+
+def test_design_and_run_refuse_a_pose_noise_below_the_cameras_floor_error(tmp_path):
+    """A floor homography through the synthetic k₁ = −0.3 lens (tests/tracker/test_lens.py)
+    fitted without intrinsics predicts its fiducials tens of mm off: ``fleet design`` and
+    ``fleet run`` refuse the 1 mm pose_noise in one line naming both figures and the file.
+    Fitted on fiducials undistorted through the lens's intrinsics, the error is sub-mm and
+    the design passes."""
+    cv2 = pytest.importorskip("cv2")
+    import numpy as np
+
+    from fleet.scenes import scene_to_toml
+    from tracker.calibrate import main as calibrate_main
+    from tracker.intrinsics import Intrinsics
+    from tracker.synth import PinholeCamera, Renderer
+
+    fiducials = {40: (-1.1, -1.1), 41: (0.0, -1.1), 42: (1.1, -1.1), 43: (1.1, 1.1), 44: (0.0, 1.1),
+                 45: (-1.1, 1.1)}  # fmt: skip
+    lens = (-0.3, 0.1, 0.0, 0.0, 0.0)
+    cam = PinholeCamera.viewing(np.array([(-1.2, -1.2), (1.2, -1.2), (1.2, 1.2), (-1.2, 1.2)]),
+                                tilt=math.radians(30.0), height=2.5, width_px=1920, height_px=1440,
+                                distortion=lens)  # fmt: skip
+    floor = tmp_path / "floor.png"
+    image = Renderer(cam, fiducials, marker_size=0.05, fiducial_size=0.08).render({}, seed=3)
+    assert cv2.imwrite(str(floor), image)
+    Intrinsics(K=cam.intrinsics(), dist=lens, image_size=(1920, 1440)).save(tmp_path / "lens.json")
+
+    def scenario(stem: str, camera: dict[str, Any]) -> Path:
+        data = {"name": stem, "duration": 30.0, "arena": {"bounds": [-1.0, 1.0, -1.0, 1.0]},
+                "controller": LAB_CONTROLLER,
+                "robots": [{"id": "r1", "start": [-0.5, 0.0, 0.0], "goal": [0.5, 0.0], "marker": 1}],
+                "camera": {"marker_size": 0.05,
+                           "fiducials": [{"id": k, "position": list(v)} for k, v in fiducials.items()],
+                           **camera}}  # fmt: skip
+        path = tmp_path / f"{stem}.toml"
+        path.write_text(scene_to_toml(data))
+        return path
+
+    bare = scenario("bare", {"homography": "bare.json"})
+    lensed = scenario("lensed", {"homography": "lensed.json", "intrinsics": "lens.json"})
+    for scn in (bare, lensed):
+        assert calibrate_main([str(scn), "--image", str(floor)]) == 0
+    for cmd in (("design", bare), ("run", bare, "--out", tmp_path / "out")):
+        proc = fleet(*cmd)
+        no_traceback(proc)
+        assert proc.returncode == 2, proc.stdout + proc.stderr
+        lines = proc.stderr.strip("\n").split("\n")
+        assert len(lines) == 1, proc.stderr
+        m = re.fullmatch(
+            r"fleet: error: controller\.pose_noise: \[0\] = 1\.00 mm is below the camera's floor error "
+            r"([0-9.]+) mm \(fiducial \d+, predicted without it\) in (.+): calibrate the lens .*",
+            lines[0],
+        )
+        assert m is not None, lines[0]
+        assert float(m[1]) > 10.0 and m[2] == str(tmp_path / "bare.json"), lines[0]
+        assert proc.stdout == ""
+    assert not (tmp_path / "out" / "summary.json").exists()
+    proc = fleet("design", lensed)
+    no_traceback(proc)
+    assert proc.returncode == 0 and "admissible: yes" in proc.stdout, proc.stdout + proc.stderr
+    # Without a homography file there is nothing to check.
+    proc = fleet("design", scenario("nofile", {"homography": "missing.json"}))
+    assert proc.returncode == 0, proc.stderr
