@@ -25,6 +25,8 @@ HARNESS = Path(__file__).resolve().parent.parent / "benchmarks" / "bench_scale.p
 """The harness in the source checkout this package is installed from (editable install)."""
 LIVENESS = HARNESS.with_name("bench_liveness.py")
 """The liveness harness (``--liveness N``), beside it."""
+CPU = HARNESS.with_name("bench_cpu.py")
+"""The CPU harness (``--cpu N``): fleet run against fleet simulate, by process and thread."""
 
 
 class HarnessMissing(RuntimeError):
@@ -95,6 +97,15 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
         "simulate and print completion, time to goal and path efficiency (docs/performance.md)",
     )  # fmt: skip
     ap.add_argument("--jobs", type=int, default=2, help="--liveness: processes (default 2)")
+    ap.add_argument(
+        "--cpu", type=int, default=None, metavar="N",
+        help="instead: the marginal CPU per robot-step of fleet run (defaults, and relay + star) "
+        "against fleet simulate on the swap of N robots (3, 8, 16, 32), split by process and thread",
+    )  # fmt: skip
+    ap.add_argument(
+        "--cpu-s", default="6,46", metavar="S,S",
+        help="--cpu: the two run lengths [simulated s] whose difference is measured (default 6,46)",
+    )  # fmt: skip
 
 
 def run(args: argparse.Namespace) -> int:
@@ -104,8 +115,11 @@ def run(args: argparse.Namespace) -> int:
         if value is not None and value < 1:
             print(f"fleet: error: --{name}: must be at least 1, got {value}", file=sys.stderr)
             return 2
+    if args.cpu is not None and args.liveness is not None:
+        print("fleet: error: --cpu: not with --liveness (one harness a run)", file=sys.stderr)
+        return 2
     try:
-        mod = _harness(LIVENESS if args.liveness is not None else HARNESS)
+        mod = _harness(LIVENESS if args.liveness is not None else CPU if args.cpu is not None else HARNESS)
     except HarnessMissing as e:
         print(f"fleet: error: {e}", file=sys.stderr)
         return 2

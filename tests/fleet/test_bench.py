@@ -276,3 +276,42 @@ def test_cpu_figures_cover_a_window_shorter_than_the_sampling_period() -> None:
     assert sampler._between(samples, 0.0, 0.5) == pytest.approx(0.3)
     assert sampler._between(samples, 0.3, 0.4) == pytest.approx(0.1)
     assert sampler._between([], 0.0, 1.0) == 0.0
+
+
+def test_cpu_harness_splits_a_fleets_cpu_by_process_and_thread(tmp_path):
+    """``fleet bench --cpu 3``: the marginal CPU per robot-step of ``fleet run`` (defaults, and
+    relay + star) next to ``fleet simulate``'s, from two run lengths, with its split by process
+    role and by thread.  A fleet of processes costs more than the one-process simulator (it
+    does the same math and talks besides).  The split of three robots' short runs is mostly
+    start-up noise, so only its parts are checked here, not their sizes."""
+    out = tmp_path / "cpu.json"
+    res = subprocess.run(
+        [sys.executable, *_command(), "--cpu", "3", "--cpu-s", "2,20", "--out", str(tmp_path),
+         "--json", str(out)],
+        cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr[-2000:]
+    d = json.loads(out.read_text())
+    assert d["schema"] == "fleet-bench-cpu/1" and d["robots"] == 3
+    sim, *fleets = d["rows"]
+    assert sim["config"] == "fleet simulate" and len(fleets) == 2
+    for r in d["rows"]:
+        assert r["steps"][1] > r["steps"][0] > 0 and math.isfinite(r["ms_per_robot_step"]), r
+        assert r["ms_per_robot_step"] > 0, r
+    for r in fleets:
+        assert r["ms_per_robot_step"] > sim["ms_per_robot_step"], (r, sim)
+        assert {"agents", "tracker", "supervisor"} <= set(r["by_role_ms"]), r["by_role_ms"]
+        assert {"main thread", "zenoh runtime"} <= set(r["by_thread_ms"]), r["by_thread_ms"]
+        split = sum(r["by_role_ms"].values())
+        assert split == pytest.approx(sum(r["by_thread_ms"].values()), rel=1e-6)  # one sample set
+    assert "× simulate" in res.stdout
+
+
+def test_cpu_harness_refuses_bad_lengths_in_one_line(tmp_path):
+    res = subprocess.run(
+        [sys.executable, *_command(), "--cpu", "3", "--cpu-s", "6,2", "--out", str(tmp_path)],
+        cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert res.returncode == 2 and res.stderr.strip().splitlines() == [
+        "fleet: error: --cpu-s: two lengths 0 < S1 < S2 <= 3600 [s], got '6,2'"
+    ], res.stderr

@@ -1,0 +1,224 @@
+"""Marginal CPU per robot-step of ``fleet run`` against ``fleet simulate``: ``fleet bench --cpu N``.
+
+The same scene (the shipped antipodal swap of N robots: 3 ``paper_three_robots``, 8, 16 or 32
+``swap_N``), the same seed, the lockstep clock, run twice at two durations (``--cpu-s``, default
+6 and 46 simulated seconds).  The CPU of the longer run minus the shorter one's, over the
+robot-steps between them, is the marginal CPU per robot-step: start-up and shut-down cancel.
+
+* ``fleet simulate`` (the whole fleet in one process) is the math: controllers, plants, judge.
+* ``fleet run`` with its defaults, and with ``--exchange relay --topology star``: one process
+  per robot, a tracker and a supervisor, talking over Zenoh on loopback.
+
+Each run's total CPU is exact (``getrusage`` of the waited-for process tree).  The split by
+process role (agents, tracker, supervisor, launcher) and by thread (a process's main thread,
+the Python threads Zenoh runs subscriber callbacks on, Zenoh's own runtime threads, the Rerun
+recorder's threads) comes from ``/proc/PID/task/TID/stat`` sampled every ``POLL`` seconds; a
+thread's last fraction of a poll before its process exits is missed, and each process's
+start-up varies from run to run, so the split is worth reading only where the marginal work
+dominates: 8 robots or more at the default lengths.  Figures are ratios to ``fleet simulate``
+measured in the same run, since this machine's speed drifts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+SCENES = {3: "paper_three_robots", 8: "swap_8", 16: "swap_16", 32: "swap_32"}
+SCHEMA = "fleet-bench-cpu/1"
+POLL = 0.05
+"""Seconds between two samples of the fleet's threads."""
+CONFIGS: dict[str, list[str]] = {
+    "fleet run (defaults)": [],
+    "fleet run --exchange relay --topology star": ["--exchange", "relay", "--topology", "star"],
+}
+ZENOH_THREADS = ("rx-", "tx-", "net-", "acc-", "app-")
+"""Name prefixes of Zenoh's runtime threads (Rust)."""
+
+
+def _tasks(pid: int) -> dict[int, tuple[str, float]]:
+    """{tid: (thread name, CPU s so far)} of process ``pid`` ({} once it is gone)."""
+    hz = os.sysconf("SC_CLK_TCK")
+    out: dict[int, tuple[str, float]] = {}
+    try:
+        tids = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return out
+    for tid in tids:
+        try:
+            st = Path(f"/proc/{pid}/task/{tid}/stat").read_text()
+        except OSError:
+            continue
+        name = st[st.index("(") + 1 : st.rindex(")")]
+        f = st[st.rindex(")") + 2 :].split()
+        out[int(tid)] = (name, (int(f[11]) + int(f[12])) / hz)
+    return out
+
+
+def _descendants(root: int) -> dict[int, str]:
+    """{pid: command line} of every live process below ``root`` (and ``root`` itself)."""
+    parent: dict[int, int] = {}
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                st = Path(f"/proc/{d}/stat").read_text()
+                parent[int(d)] = int(st[st.rindex(")") + 2 :].split()[1])
+            except OSError:
+                continue
+    out, todo = {}, [root]
+    while todo:
+        p = todo.pop()
+        try:
+            out[p] = Path(f"/proc/{p}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        todo += [c for c, pp in parent.items() if pp == p]
+    return out
+
+
+def _role(cmdline: str) -> str:
+    for role in ("agent", "tracker", "supervisor"):
+        if f"-m {role} " in cmdline:
+            return role + "s" if role == "agent" else role
+    return "launcher"
+
+
+def _thread_kind(pid: int, tid: int, name: str) -> str:
+    if tid == pid:
+        return "main thread"
+    if name.startswith(ZENOH_THREADS):
+        return "zenoh runtime"
+    if name == "python":
+        return "callbacks (python)"
+    return "other (rerun, allocator)"
+
+
+def _measure(cmd: list[str], out: Path) -> tuple[float, dict[str, float], dict[str, float], float]:
+    """Run ``cmd`` to its end: (exact CPU s of its whole tree, sampled CPU s by role, by thread
+    kind, wall s).  Exit code 1 with a summary in ``out`` is the expected end of a run capped
+    before every robot arrived ("goal not reached")."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.monotonic()
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "RERUN_ANALYTICS": "0"}
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    last: dict[tuple[int, int], tuple[str, str, float]] = {}
+    while proc.poll() is None:
+        for pid, cmdline in _descendants(proc.pid).items():
+            role = _role(cmdline)
+            for tid, (name, cpu) in _tasks(pid).items():
+                last[(pid, tid)] = (role, _thread_kind(pid, tid, name), cpu)
+        time.sleep(POLL)
+    wall = time.monotonic() - t0
+    err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
+    if proc.returncode not in (0, 1) or not (out / "summary.json").is_file():
+        raise RuntimeError(f"{' '.join(cmd[2:5])} exited {proc.returncode}: {err.strip()[-400:]}")
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    total = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    roles: Counter[str] = Counter()
+    kinds: Counter[str] = Counter()
+    for role, kind, cpu in last.values():
+        roles[role] += cpu
+        kinds[kind] += cpu
+    return total, dict(roles), dict(kinds), wall
+
+
+def _scene(n: int, seconds: float, tmp: Path) -> Path:
+    """A copy of the shipped scene of ``n`` robots lasting ``seconds`` (simulated)."""
+    import tomllib
+
+    from fleet.scenes import scene_to_toml
+
+    src = ROOT / "scenarios" / f"{SCENES[n]}.toml"
+    data = tomllib.loads(src.read_text())
+    data["duration"] = float(seconds)
+    path = tmp / f"{SCENES[n]}_{seconds:g}.toml"
+    path.write_text(scene_to_toml(data))
+    return path
+
+
+def _steps(out: Path) -> int:
+    return int(json.loads((out / "summary.json").read_text())["steps"])
+
+
+def run(args: argparse.Namespace) -> int:
+    n = int(args.cpu)
+    if n not in SCENES:
+        print(f"fleet: error: --cpu: one of {sorted(SCENES)} robots, got {n}", file=sys.stderr)
+        return 2
+    try:
+        short, long = (float(s) for s in str(args.cpu_s).split(","))
+        if not 0 < short < long <= 3600:
+            raise ValueError
+    except ValueError:
+        print(
+            f"fleet: error: --cpu-s: two lengths 0 < S1 < S2 <= 3600 [s], got {args.cpu_s!r}", file=sys.stderr
+        )
+        return 2
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    json_path = Path(args.json) if args.json else out / "cpu.json"
+    print(f"fleet bench --cpu {n}: {SCENES[n]}, lockstep, seed {args.seed}, {short:g} s and {long:g} s")
+    print(f"machine: nproc {os.cpu_count()}, {platform.processor() or platform.machine()}; "
+          f"python {platform.python_version()}; load average {os.getloadavg()}", flush=True)  # fmt: skip
+    rows: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory() as tmpdir:
+        tmp = Path(tmpdir)
+        scenes = {s: _scene(n, s, tmp) for s in (short, long)}
+        runs = {"fleet simulate": ["simulate"], **{k: ["run", *v] for k, v in CONFIGS.items()}}
+        for label, extra in runs.items():
+            got = {}
+            for s, scn in scenes.items():
+                d = tmp / f"{len(rows)}_{s:g}"
+                cmd = [sys.executable, "-m", "fleet.cli", extra[0], str(scn), "--out", str(d),
+                       "--seed", str(args.seed), *extra[1:]]  # fmt: skip
+                got[s] = (*_measure(cmd, d), _steps(d))
+            (c0, r0, k0, w0, s0), (c1, r1, k1, w1, s1) = got[short], got[long]
+            robot_steps = (s1 - s0) * n
+            if robot_steps <= 0:
+                raise RuntimeError(f"{label}: the longer run took no more steps ({s0}, {s1})")
+            row = {
+                "config": label, "steps": [s0, s1], "cpu_s": [c0, c1], "wall_s": [w0, w1],
+                "ms_per_robot_step": 1e3 * (c1 - c0) / robot_steps,
+                "by_role_ms": {k: 1e3 * (r1.get(k, 0.0) - r0.get(k, 0.0)) / robot_steps for k in r1},
+                "by_thread_ms": {k: 1e3 * (k1.get(k, 0.0) - k0.get(k, 0.0)) / robot_steps for k in k1},
+            }  # fmt: skip
+            rows.append(row)
+            print(f"  {label}: {row['ms_per_robot_step']:.2f} ms per robot-step", flush=True)
+    base = rows[0]["ms_per_robot_step"]
+    lines = [f"{'how it ran':<46} {'ms/robot-step':>13} {'× simulate':>10}"]
+    for r in rows:
+        ms = r["ms_per_robot_step"]
+        lines.append(f"{r['config']:<46} {ms:>13.2f} {ms / base:>10.1f}")
+    for r in rows[1:]:
+        lines.append(f"\n{r['config']}, marginal CPU per robot-step [ms] by process and by thread:")
+        lines += [f"  {k:<28} {v:6.2f}" for k, v in sorted(r["by_role_ms"].items(), key=lambda kv: -kv[1])]
+        lines += [f"  {k:<28} {v:6.2f}" for k, v in sorted(r["by_thread_ms"].items(), key=lambda kv: -kv[1])]
+    print("\n".join(lines), flush=True)
+    json_path.write_text(json.dumps({"schema": SCHEMA, "robots": n, "rows": rows, "table": lines}, indent=1))
+    print(f"figures: {json_path}", flush=True)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cpu", type=int, default=16, metavar="N", help="robots: 3, 8, 16 or 32 (default 16)")
+    ap.add_argument("--cpu-s", default="6,46", metavar="S,S", help="the two durations [s] (default 6,46)")
+    ap.add_argument("--seed", type=int, default=0, help="seed of every run (default 0)")
+    ap.add_argument("--out", default="out/bench", help="directory of the JSON (default out/bench)")
+    ap.add_argument("--json", default=None, help="where the JSON goes (default OUT/cpu.json)")
+    return run(ap.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
