@@ -111,18 +111,22 @@ class Guard:
     def _loose(self, k: int, j: str, ls: LinkState, old: Plan | None, start: NeighbourInfo) -> Hazard:
         """A robot whose link is down (or back, with no plan yet from where it stands): a disc
         about its newest measured controlled point, grown by ``ls.speed`` for every step from
-        that pose to the step after the one ȳ is for (k + N, with a step to spare).  With no
-        pose, the disc is about its last committed point (its reference was within N steps of
-        it when the link was lost) and grows from the loss.  Not a static disc: it moves, at
-        its last wheel speeds."""
+        that pose to the step after the one ȳ is for (k + N, with a step to spare).  Not a
+        static disc: it moves, at its last wheel speeds.
+
+        With no pose, the disc is about its last committed point ĉ_j, of its plan of step s (or
+        its start, s = 0): its reference was within N·√2·ε of ĉ_j then, and from then on the
+        robot moved at most the faster of its plan's reach (√2·ε a step) and ``ls.speed``, on
+        its plan or adrift (the loss is noticed only after a reply timeout)."""
         r_j = start.footprint if old is None else old.footprint
         if ls.seq >= 0:
-            centre, since = np.array([ls.x, ls.y]), ls.seq
+            centre, since, step_reach = np.array([ls.x, ls.y]), ls.seq, ls.speed * self.Ts
         else:
             centre = np.array(start.last_point if old is None else old.committed[-1], dtype=float)
-            since = max(ls.lost, 0)
+            since = 0 if old is None else old.step
             r_j += self.N * self.eps
-        radius = r_j + ls.speed * self.Ts * max(k + self.N + 1 - since, 0)
+            step_reach = max(ls.speed * self.Ts, self.eps)
+        radius = r_j + step_reach * max(k + self.N + 1 - since, 0)
         return Hazard(j, centre, radius, None)
 
     def _note(self, j: str, state: str, k: int) -> None:

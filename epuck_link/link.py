@@ -19,11 +19,12 @@ Out:
   [m/s] (what the agent needs with each pose, as from the simulated tracker);
 * with every encoder read, :class:`~ground.wire.Wheels` on ``fleet/F/wheels/R``:
   the unwrapped counts and (v, ω) from their deltas;
-* when the radio link to the robot drops, at once and then at every tick until it
-  is back, :class:`~ground.wire.LinkState` on ``fleet/F/link/R``: the robot has no
-  deadman and drives on at the wheel speeds it last received; the message says how
-  fast, and where the camera saw it last.  Once the link is back, the first command
-  is zero speed and the next step is reported braked, so the agent starts again.
+* at every tick, and at once when the radio link to the robot drops,
+  :class:`~ground.wire.LinkState` on ``fleet/F/link/R``: while the link is down the
+  robot has no deadman and drives on at the wheel speeds it last received; the message
+  says how fast, and where the camera saw it last.  Once the link is back, zero speed
+  is sent until the robot took it, the next step is reported braked, so the agent
+  starts again, and the message names the step it starts again at.
 
 Deadline (docs/design.md, "Missed deadlines"): step k starts when the
 link receives tick k on ``fleet/F/clock``, and its command must come within
@@ -234,12 +235,18 @@ class Link:
         def on_lost(possible: tuple[tuple[int, int], ...]) -> None:
             with self.link_lock:
                 self.link_up, self.link_sent = False, possible
-                self.link_lost, self.link_back = self.tick_step, -1
+                self.link_lost, self.link_back = max(self.tick_step, 0), -1
                 self._announce_link()
 
         self.period = 1.0 / args.rate
         self.port = RobotPort(
-            transport, codec, lambda m: log(role, m), on_reading, period=self.period, on_lost=on_lost
+            transport,
+            codec,
+            lambda m: log(role, m),
+            on_reading,
+            period=self.period,
+            on_lost=on_lost,
+            resume_by_hand=True,
         )
         self.seen_cmd: Command | None = None
         self.seen_tick: Tick | None = None
@@ -295,6 +302,9 @@ class Link:
             back = judge.relinked()
             drive.halt()
             self.braked = True
+            # The port sent zero since the re-open; the speeds asked during the outage are stale.
+            self.port.command(0, 0)
+            self.port.resume()
             with self.link_lock:  # the robot took the zero speed: up, and trusted from step `back`
                 if self.port.lost == self.relinked_after:  # and not lost again since
                     self.link_up, self.link_back = True, back
@@ -316,6 +326,7 @@ class Link:
             if not tick.stop:  # the state at the tick: the camera pose of this step, and q
                 x_k = measured_state(drive.pose, drive.velocity(), self.p.lookahead)
                 decisions += judge.tick(tick.step, tick_at, x_k, cmd, live)
+                self._hold_extended()
         if cmd is not self.seen_cmd and cmd is not None:
             self.seen_cmd, self.last_cmd_at = cmd, cmd_at
             if judge.step is None:  # no clock yet: applied as it comes
@@ -328,6 +339,17 @@ class Link:
             self._decided(now, what, acc, report)
         if now >= self.due:
             self._drive(now, live)
+
+    def _hold_extended(self) -> None:
+        """Before the agent has started again after an outage, a missed tick can lengthen the
+        deadline rule's hold: the agent then starts again later, and its plans up to then are
+        still of a robot that was not following them.  Move ``back`` with it."""
+        judge = self.judge
+        with self.link_lock:
+            if 0 <= self.link_back and judge.step is not None and judge.step < self.link_back:
+                if judge.hold_until + 1 > self.link_back:
+                    self.link_back = judge.hold_until + 1
+                    self._announce_link()
 
     def _announce_link(self) -> None:
         """Publish the link's state (:class:`~ground.wire.LinkState`): while it is down the robot

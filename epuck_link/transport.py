@@ -561,8 +561,12 @@ class RobotPort:
         period: float = 0.02,
         backoff: tuple[float, float] = (0.1, 2.0),
         on_lost: Callable[[tuple[tuple[int, int], ...]], None] | None = None,
+        resume_by_hand: bool = False,
     ):
         self.transport = transport
+        self.resume_by_hand = resume_by_hand
+        """After a re-open, send zero speed until :meth:`resume` is called (else only once): the
+        caller first learns the robot stopped, then lets commands through again."""
         self.on_lost = on_lost
         """Called on the port's thread when a link that was up is lost, with the wheel speeds
         [steps/s] the robot may be driving on at: those of the last exchange that went through,
@@ -582,6 +586,8 @@ class RobotPort:
         self._cond = threading.Condition()
         self._speeds = (0, 0)
         self._new = False
+        self._held = False
+        """Zero speed is sent, whatever is asked, until :meth:`resume` (``resume_by_hand``)."""
         self._stop = False
         self._thread = threading.Thread(target=self._run, name="robot-port", daemon=True)
 
@@ -594,6 +600,12 @@ class RobotPort:
         with self._cond:
             self._speeds = (left, right)
             self._new = True
+            self._cond.notify_all()
+
+    def resume(self) -> None:
+        """Let the asked speeds through again after a re-open (``resume_by_hand``)."""
+        with self._cond:
+            self._held = False
             self._cond.notify_all()
 
     def _sleep(self, seconds: float) -> bool:
@@ -633,13 +645,15 @@ class RobotPort:
                 # The firmware has no deadman: the robot drove on at its last speeds while the
                 # link was down.  The first command stops it, whatever was asked meanwhile.
                 zero = down_since is not None
+                with self._cond:
+                    self._held = zero and self.resume_by_hand
                 down_since, attempts, fresh = None, 0, True
                 self.codec.reset()
             with self._cond:
                 self._cond.wait_for(lambda: self._new or self._stop, self.period)
                 if self._stop:
                     return
-                left, right = (0, 0) if zero else self._speeds
+                left, right = (0, 0) if zero or self._held else self._speeds
                 self._new = False
             zero = False
             try:

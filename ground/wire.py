@@ -638,8 +638,8 @@ class Applied(Message):
 class LinkState(Message):
     """``epuck_link`` → all, on ``fleet/F/link/R``: the radio link to the robot is down (or up
     again).  The firmware has no deadman: while the link is down the robot drives on at the
-    wheel speeds it last received, uncontrolled.  Sent at once when the link is lost, again at
-    every tick while it stays down (with the newest camera pose), and once when it is back.
+    wheel speeds it last received, uncontrolled.  Sent at once when the link is lost, and at
+    every tick, down or up, with the newest camera pose (one lost message never sticks).
 
     The neighbours keep clear of a robot whose link is down as of a moving obstacle: a disc
     about its newest measured controlled point, grown by ``speed`` for every second since that
@@ -659,7 +659,8 @@ class LinkState(Message):
     outage: its agent starts again then (−1: never lost, or still down)."""
     left: int
     right: int
-    """The wheel speeds the robot last received [steps/s]: what it drives on at."""
+    """Wheel speeds [steps/s] the robot may drive on at: of the last command confirmed or the
+    one whose reply was lost, whichever moves the controlled point faster."""
     speed: float
     """Speed [m/s] of the robot's controlled point at those wheel speeds (a bound on how fast it
     moves while uncontrolled)."""

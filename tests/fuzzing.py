@@ -115,6 +115,8 @@ OPEN_RANGES: dict[str, dict[str, tuple[float, float]]] = {
     "digest": {"Ts": (0.0, 10.0)},
 }
 """Number fields that must lie in (lo, hi]."""
+CLOSED_RANGES: dict[str, dict[str, tuple[float, float]]] = {"link": {"speed": (0.0, 10.0)}}
+"""Number fields that must lie in [lo, hi]."""
 
 POOL = 64
 """Realistic valid messages per robot that the malformations start from."""
@@ -199,7 +201,7 @@ def realistic(name: str, robot: str, rng: np.random.Generator) -> Message:
             robot=robot, step=k, last=max(last, -1), braked=last < 0 or (last < k and rng.random() < 0.3)
         )
     if name == "link":
-        lost = k - int(rng.integers(0, 20))
+        lost = max(k - int(rng.integers(0, 20)), 0)
         up = bool(rng.random() < 0.5)
         return LinkState(
             robot=robot, up=up, step=k, lost=lost, back=k + 2 if up else -1,
@@ -259,7 +261,7 @@ class Generator:
         }
         if self.arrays:
             kinds |= {"array_nonfinite": 1.5, "array_shape": 1.5, "array_huge": 1.0, "array_dtype": 1.0}
-        if name in OPEN_RANGES:
+        if name in OPEN_RANGES or name in CLOSED_RANGES:
             kinds["float_range"] = 1.0
         if self.maps:
             kinds["map_bad"] = 1.5
@@ -425,9 +427,14 @@ class Generator:
         return _pack(d, single=bool(self.rng.random() < 0.3)), True
 
     def _float_range(self, d: dict[str, Any], robot: str) -> tuple[dict[str, Any], bool]:
-        f, (lo, hi) = self.choice(list(OPEN_RANGES[self.name].items()))
+        ranges = {f: (lo, hi, True) for f, (lo, hi) in OPEN_RANGES.get(self.name, {}).items()}
+        ranges |= {f: (lo, hi, False) for f, (lo, hi) in CLOSED_RANGES.get(self.name, {}).items()}
+        f, (lo, hi, open_lo) = self.choice(list(ranges.items()))
+        bad = [lo - 1e-9, -1.0, hi + 1e-6, hi + 1, 1e300, -1e300, 2**64 - 1, -(2**63)]
+        if open_lo:
+            bad += [lo, -0.0]
         d = dict(d)
-        d[f] = self.choice([lo, -0.0, lo - 1e-9, -1.0, hi + 1e-6, hi + 1, 1e300, -1e300, 2**64 - 1, -(2**63)])
+        d[f] = self.choice([v for v in bad if not (lo < v <= hi if open_lo else lo <= v <= hi)])
         return d, True
 
     def _int_range(self, d: dict[str, Any], robot: str) -> tuple[dict[str, Any], bool]:

@@ -434,7 +434,47 @@ def test_a_lost_link_reports_every_speed_the_robot_may_drive_on_at():
     finally:
         port.close()
     assert lost == [((100, 100), (300, -300))], lost
-    assert port.sent == (0, 0)  # the first command after the re-open stops the robot
+    # Written: the speeds, the unanswered one, then zero first on the re-opened link.
+    sent = [P.parse_encoders(w[1:5]) for w in t.written]
+    i = sent.index((300, -300))
+    assert sent[i + 1] == (0, 0), sent
+
+
+def test_after_a_reopen_the_port_sends_zero_until_resumed():
+    """``resume_by_hand``: the link process first learns the robot took zero speed, then lets
+    commands through.  The speeds asked during the outage are not sent before that, however
+    many exchanges pass; after :meth:`RobotPort.resume` the newest asked speeds go out."""
+    t = _DropsOnce(drop_at=2)
+    got: list[Reading] = []
+    back, more = threading.Event(), threading.Event()
+
+    def on_reading(r: Reading) -> None:
+        got.append(r)
+        if r.fresh_link and len(got) > 1:
+            back.set()
+        if back.is_set() and sum(1 for g in got if not g.fresh_link) >= 8:
+            more.set()
+
+    port = RobotPort(t, AsercomCodec(), lambda m: None, on_reading, period=0.005, backoff=(0.01, 0.04),
+                     resume_by_hand=True)  # fmt: skip
+    port.command(400, 400)
+    port.start()
+    try:
+        assert back.wait(5.0)
+        assert more.wait(5.0)  # several exchanges after the re-open, all held at zero
+        held = [P.parse_encoders(w[1:5]) for w in t.written]
+        port.command(200, 200)
+        port.resume()
+        deadline = threading.Event()
+        for _ in range(200):  # bounded: until the resumed speeds went out
+            if P.parse_encoders(t.written[-1][1:5]) == (200, 200):
+                break
+            deadline.wait(0.01)
+    finally:
+        port.close()
+    after = held[held.index((0, 0)) :]
+    assert len(after) >= 5 and set(after) == {(0, 0)}, held
+    assert (200, 200) in [P.parse_encoders(w[1:5]) for w in t.written[len(held) :]]
 
 
 def test_robot_port_retries_with_backoff_and_reports_once():

@@ -251,12 +251,13 @@ def test_guard_grows_stale_discs_by_epsilon_and_caps_dead_ones():
         nbs, hz = g.classify(k, ["r2"], {"r2": old}, {"r2": old}, {"r2"}, starts, links={"r2": down})
         assert not nbs and np.array_equal(hz[0].centre, [-0.1, 0.4]) and hz[0].info is None
         assert hz[0].radius == pytest.approx(design.footprint + 0.05 * p.Ts * (k + p.horizon + 1 - 10))
-    # No camera pose yet: about its last committed point, within N steps of where its reference
-    # was, and growing from the loss (step 9), not from the newest tick.
+    # No camera pose yet: about its last committed point (plan of step 7), within N steps of
+    # where its reference was then, and growing from that plan's step (not from the loss,
+    # noticed late, nor from the newest tick) by the faster of its speed and its plan's reach.
     unseen = dataclasses.replace(down, seq=-1, x=0.0, y=0.0, step=30)
     nbs, hz = g.classify(31, ["r2"], {"r2": None}, {"r2": old}, {"r2"}, starts, links={"r2": unseen})
     assert np.array_equal(hz[0].centre, [0.3, 0.2])
-    grown = 0.05 * p.Ts * (31 + p.horizon + 1 - 9)
+    grown = max(0.05 * p.Ts, reach) * (31 + p.horizon + 1 - 7)
     assert hz[0].radius == pytest.approx(design.footprint + p.horizon * reach + grown)
     # Back up, but the plans in are older than the first step planned from where it stands
     # (step 16): still a moving obstacle, about its newest pose.
