@@ -113,9 +113,15 @@ def _measure(cmd: list[str], out: Path) -> tuple[float, dict[str, float], dict[s
     env = {**os.environ, "OMP_NUM_THREADS": "1", "RERUN_ANALYTICS": "0"}
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     last: dict[tuple[int, int], tuple[str, str, float]] = {}
+    roles_of: dict[int, str] = {}
     while proc.poll() is None:
         for pid, cmdline in _descendants(proc.pid).items():
-            role = _role(cmdline)
+            # A process's role is its command line once exec'd; a child between fork and exec
+            # shows the launcher's, and an exiting one (a zombie) shows none: keep the first
+            # role that is not the launcher's.
+            if cmdline.strip() and roles_of.get(pid, "launcher") == "launcher":
+                roles_of[pid] = _role(cmdline)
+            role = roles_of.get(pid, "launcher")
             for tid, (name, cpu) in _tasks(pid).items():
                 last[(pid, tid)] = (role, _thread_kind(pid, tid, name), cpu)
         time.sleep(POLL)

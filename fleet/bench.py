@@ -75,7 +75,7 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     ap.add_argument(
         "--lockstep-s", type=float, default=None, metavar="S",
-        help="simulated seconds per lockstep run (default 40; quick 3)",
+        help="simulated seconds per lockstep run (default 40; quick 10)",
     )  # fmt: skip
     ap.add_argument(
         "--realtime-s", type=float, default=None, metavar="S",
