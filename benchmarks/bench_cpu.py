@@ -30,7 +30,6 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -131,12 +130,12 @@ def _measure(cmd: list[str], out: Path) -> tuple[float, dict[str, float], dict[s
         raise RuntimeError(f"{' '.join(cmd[2:5])} exited {proc.returncode}: {err.strip()[-400:]}")
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     total = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-    roles: Counter[str] = Counter()
-    kinds: Counter[str] = Counter()
+    roles: dict[str, float] = {}
+    kinds: dict[str, float] = {}
     for role, kind, cpu in last.values():
-        roles[role] += cpu
-        kinds[kind] += cpu
-    return total, dict(roles), dict(kinds), wall
+        roles[role] = roles.get(role, 0.0) + cpu
+        kinds[kind] = kinds.get(kind, 0.0) + cpu
+    return total, roles, kinds, wall
 
 
 def _scene(n: int, seconds: float, tmp: Path) -> Path:

@@ -1,0 +1,175 @@
+"""The transport's floor: what a fleet's message pattern costs with no fleet code at all.
+
+    python benchmarks/bench_zenoh_floor.py [--robots 16] [--rate 25] [--seconds 20]
+
+N processes (spawned), configured as ``fleet run`` configures its processes
+(``ground.net.NetConfig``: peer mode, multicast scouting off, the first listening on a
+loopback port, the others connecting to it and finding each other by gossip, a full mesh;
+or ``--topology star``: the first a router, the others its clients).  Each publishes one
+978-byte payload (a plan's size at N = 20) on ``floor/plan/<i>`` ``--rate`` times a second and
+subscribes to ``floor/plan/*``, as an agent in the mesh does.  How a process takes the samples:
+
+* ``callback``: a Python callback that only counts (Zenoh runs it on a Python thread of its own);
+* ``decode``: the same callback decoding each payload as a :class:`ground.wire.Plan`;
+* ``drain``: no callback; the main thread takes the queued samples from a FIFO channel once
+  per period (``ground.bus.Inbox.drain``'s way).
+
+The figure is the CPU of all N processes per robot-step (one publication per process), from
+``/proc`` over a window after start-up, split into the main threads, the Python callback
+threads and Zenoh's runtime threads.  Compare it with ``fleet bench --cpu``: the part of a
+fleet's cost that no change to the fleet's own code can remove, short of sending fewer
+messages or changing the transport.
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+MODES = ("callback", "decode", "drain")
+
+
+def _payload(i: int) -> bytes:
+    import numpy as np
+
+    from ground.wire import Plan
+
+    path = np.cumsum(np.full((21, 2), 0.01), axis=0)
+    return Plan(
+        robot=f"r{i}", step=5, t0=0.6, Ts=0.1, committed=path[1:], nominal=path, footprint=0.134,
+        priority=0, rank=i, phase=0, target=path[-1].copy(), goal=np.zeros(2), status="PROXQP_SOLVED",
+        solve_time=1e-3, tube_ok=True,
+    ).encode()  # fmt: skip
+
+
+def _peer(
+    i: int, hub: str, topology: str, mode: str, rate: float, seconds: float, ready: Any, go: Any
+) -> None:
+    """One process: publish at ``rate`` for ``seconds`` after ``go``, take samples by ``mode``."""
+    os.environ["OMP_NUM_THREADS"] = "1"
+    import zenoh
+
+    from ground.net import NetConfig, loopback
+    from ground.wire import Plan, WireError, decode
+
+    if i == 0:
+        cfg = NetConfig(listen=[hub], mode="router" if topology == "star" else "peer")
+    else:
+        cfg = NetConfig(listen=[loopback(0)], connect=[hub], mode="client" if topology == "star" else "peer")
+    session = zenoh.open(cfg.zenoh())
+    got = [0]
+
+    def count(sample: Any) -> None:
+        sample.payload.to_bytes()
+        got[0] += 1
+
+    def decoded(sample: Any) -> None:
+        k = str(sample.key_expr)
+        try:
+            decode(sample.payload.to_bytes(), Plan, robot=k.rsplit("/", 1)[-1])
+        except WireError:
+            pass
+        got[0] += 1
+
+    sub: Any
+    if mode == "drain":
+        sub = session.declare_subscriber("floor/plan/*", zenoh.handlers.FifoChannel(4096))
+    else:
+        sub = session.declare_subscriber("floor/plan/*", count if mode == "callback" else decoded)
+    pub = session.declare_publisher(f"floor/plan/r{i}")
+    payload = _payload(i)
+    ready.put(i)
+    go.wait(60)
+    period, t_next = 1.0 / rate, time.monotonic()
+    end = t_next + seconds
+    while t_next < end:
+        pub.put(payload)
+        if mode == "drain":
+            for _ in range(4096):
+                s = sub.try_recv()
+                if s is None:
+                    break
+                s.payload.to_bytes()
+                got[0] += 1
+        t_next += period
+        time.sleep(max(0.0, t_next - time.monotonic()))
+    time.sleep(0.5)
+    sub.undeclare()
+    session.close()
+
+
+def _cpu(pids: list[int]) -> dict[str, float]:
+    """CPU s so far of ``pids``, by thread kind."""
+    from bench_cpu import _tasks, _thread_kind
+
+    out: dict[str, float] = {}
+    for pid in pids:
+        for tid, (name, cpu) in _tasks(pid).items():
+            kind = _thread_kind(pid, tid, name)
+            out[kind] = out.get(kind, 0.0) + cpu
+    return out
+
+
+def measure(robots: int, rate: float, seconds: float, mode: str, topology: str) -> dict[str, Any]:
+    from ground.net import free_port, loopback
+
+    ctx = multiprocessing.get_context("spawn")
+    ready, go = ctx.Queue(), ctx.Event()
+    hub = loopback(free_port())
+    procs = [
+        ctx.Process(target=_peer, args=(i, hub, topology, mode, rate, seconds, ready, go), daemon=True)
+        for i in range(robots)
+    ]
+    procs[0].start()
+    got = [ready.get(timeout=60)]
+    for p in procs[1:]:
+        p.start()
+    got += [ready.get(timeout=60) for _ in procs[1:]]
+    time.sleep(2.0)  # the mesh links up by gossip
+    go.set()
+    pids = [p.pid for p in procs if p.pid is not None]
+    time.sleep(1.0)  # the first publications
+    a, t0 = _cpu(pids), time.monotonic()
+    time.sleep(max(1.0, seconds - 2.0))
+    b, t1 = _cpu(pids), time.monotonic()
+    for p in procs:
+        p.join(timeout=30)
+        if p.is_alive():
+            p.kill()
+    robot_steps = robots * rate * (t1 - t0)
+    split = {k: 1e3 * (b[k] - a.get(k, 0.0)) / robot_steps for k in b}
+    total = sum(split.values())
+    return {"mode": mode, "topology": topology, "ms_per_robot_step": total, "by_thread_ms": split}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--robots", type=int, default=16)
+    ap.add_argument("--rate", type=float, default=25.0, help="publications per process per second")
+    ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--topology", choices=["mesh", "star"], default="mesh")
+    ap.add_argument("--modes", default=",".join(MODES))
+    args = ap.parse_args(argv)
+    print(f"transport floor: {args.robots} processes, {args.topology}, {args.rate:g} publications/s each, "
+          f"{args.seconds:g} s; nproc {os.cpu_count()}, {platform.processor() or platform.machine()}, "
+          f"python {platform.python_version()}, load {os.getloadavg()[0]:.1f}", flush=True)  # fmt: skip
+    print(f"{'mode':<10} {'ms/robot-step':>13}  split", flush=True)
+    for mode in args.modes.split(","):
+        r = measure(args.robots, args.rate, args.seconds, mode, args.topology)
+        parts = ", ".join(f"{k} {v:.2f}" for k, v in sorted(r["by_thread_ms"].items(), key=lambda kv: -kv[1]))
+        print(f"{mode:<10} {r['ms_per_robot_step']:>13.2f}  {parts}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
