@@ -142,6 +142,29 @@ class Intrinsics:
         """Observed image points (N, 2) [px] of ideal pinhole points (N, 2) [px]."""
         return distort_points(points, self.K, self.dist)
 
+    def fingerprint(self) -> str:
+        """A short digest of the camera matrix, the distortion and the image size: a floor
+        homography fitted through these intrinsics records it, and is refused with others."""
+        import hashlib
+
+        values = [*np.asarray(self.K, dtype=float).ravel()[[0, 2, 4, 5]], *self.dist, *self.image_size]
+        text = ",".join(f"{float(v):.9e}" for v in values)
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+    def inverts(self, tol_px: float = 0.05) -> bool:
+        """The lens model inverts over the whole image: edge points [px] undistorted and
+        distorted again come back within ``tol_px``.  The model is a polynomial, and a fit
+        that saw too little of the image can fold over at its edges."""
+        w, h = self.image_size
+        t = np.linspace(0.0, 1.0, 17)
+        edge = np.concatenate([np.column_stack([t * (w - 1), np.zeros_like(t)]),
+                               np.column_stack([t * (w - 1), np.full_like(t, h - 1)]),
+                               np.column_stack([np.zeros_like(t), t * (h - 1)]),
+                               np.column_stack([np.full_like(t, w - 1), t * (h - 1)])])  # fmt: skip
+        with np.errstate(all="ignore"):
+            back = self.distort(self.undistort(edge))
+        return bool(np.all(np.isfinite(back)) and np.max(np.linalg.norm(back - edge, axis=1)) <= tol_px)
+
     def to_json(self, **meta: Any) -> dict[str, Any]:
         """The intrinsics file's content (``meta``: extra top-level fields)."""
         return {
@@ -192,13 +215,16 @@ class Intrinsics:
             rms = float(d.get("rms_px", 0.0))
             views = tuple(float(v) for v in d.get("view_errors_px", []))
             idx = tuple(int(v) for v in d.get("view_frames", []))
-        except (KeyError, TypeError, ValueError, IndexError, AttributeError) as e:
-            reason = str(e) if isinstance(e, ValueError) else f"missing or malformed field {e}"
+        except (KeyError, TypeError, ValueError, IndexError, AttributeError, OverflowError) as e:
+            reason = str(e) if type(e) is ValueError else f"missing or malformed field ({type(e).__name__})"
             raise ConfigError(field_name, f"{p}: {reason}") from None
         k1, k2, p1, p2, k3 = dist
-        return Intrinsics(
+        cal = Intrinsics(
             K=K, dist=(k1, k2, p1, p2, k3), image_size=(w, h), rms=rms, view_errors=views, frames=idx
         )
+        if not cal.inverts():
+            raise ConfigError(field_name, f"{p}: the lens model does not invert at the image edges")
+        return cal
 
 
 # --------------------------------------------------------------------------- ChArUco
@@ -366,14 +392,7 @@ def calibrate_intrinsics(
         view_errors=tuple(float(e) for e in np.asarray(per_view).reshape(-1)),
     )  # fmt: skip
     # The lens model is a polynomial: it must invert over the whole image, not only where the board was.
-    w, h = size
-    t = np.linspace(0.0, 1.0, 17)
-    edge = np.concatenate([np.column_stack([t * (w - 1), np.zeros_like(t)]),
-                           np.column_stack([t * (w - 1), np.full_like(t, h - 1)]),
-                           np.column_stack([np.zeros_like(t), t * (h - 1)]),
-                           np.column_stack([np.full_like(t, w - 1), t * (h - 1)])])  # fmt: skip
-    back = cal.distort(cal.undistort(edge))
-    if not np.all(np.isfinite(back)) or np.max(np.linalg.norm(back - edge, axis=1)) > 0.05:
+    if not cal.inverts():
         raise IntrinsicsError(
             "fit", "the fitted lens model does not invert at the image edges (spread the views)"
         )

@@ -260,6 +260,8 @@ class Calibration:
     undistorted: bool = False
     """The image points are undistorted through the camera's intrinsics (ideal pinhole px),
     so H must be applied to undistorted points."""
+    lens: str = ""
+    """:meth:`Intrinsics.fingerprint` of those intrinsics ("" when not undistorted)."""
 
     def errors(self) -> dict[int, float]:
         """Fiducial id → reprojection error |H(q_j) − p_j| [m]."""
@@ -313,6 +315,7 @@ class Calibration:
             "max_error_m": self.max_error,
             "frames": self.frames,
             "undistorted": self.undistorted,
+            "intrinsics_fingerprint": self.lens,
             "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
             **meta,
         }
@@ -343,12 +346,15 @@ class Calibration:
             undistorted = d.get("undistorted", False)
             if not isinstance(undistorted, bool):
                 raise ValueError("undistorted must be true or false")
-        except (KeyError, TypeError, ValueError, IndexError, AttributeError) as e:
-            reason = str(e) if isinstance(e, ValueError) else f"missing or malformed field {e}"
+            lens = d.get("intrinsics_fingerprint", "")
+            if not isinstance(lens, str) or bool(lens) != undistorted:
+                raise ValueError("intrinsics_fingerprint must name the intrinsics of an undistorted fit")
+        except (KeyError, TypeError, ValueError, IndexError, AttributeError, OverflowError) as e:
+            reason = str(e) if type(e) is ValueError else f"missing or malformed field ({type(e).__name__})"
             raise ConfigError(field_name, f"{p}: {reason}") from None
         return Calibration(
             H=H / H[2, 2], image_points=img, world_points=wld, rms_error=rms, max_error=mx,
-            image_size=(w, h), frames=frames, undistorted=undistorted,
+            image_size=(w, h), frames=frames, undistorted=undistorted, lens=lens,
         )  # fmt: skip
 
 
@@ -416,7 +422,8 @@ def calibrate(
                 sums.setdefault(fid, []).append(image_centre(undistort_corners(corners, intrinsics)))
     centres = {fid: tuple(np.mean(v, axis=0)) for fid, v in sums.items()}
     cal = fit_homography(centres, world, image_size, frames=len(detections))
-    return dataclasses.replace(cal, undistorted=intrinsics is not None)
+    lens = "" if intrinsics is None else intrinsics.fingerprint()
+    return dataclasses.replace(cal, undistorted=intrinsics is not None, lens=lens)
 
 
 # --------------------------------------------------------------------------- poses
@@ -543,6 +550,12 @@ class Tracker:
                 "camera.intrinsics",
                 f"intrinsics for {intrinsics.image_size[0]}×{intrinsics.image_size[1]} px, the homography "
                 f"for {calibration.image_size[0]}×{calibration.image_size[1]} px",
+            )
+        if intrinsics is not None and intrinsics.fingerprint() != calibration.lens:
+            raise ConfigError(
+                "camera.intrinsics",
+                "the homography was fitted through other intrinsics (another lens calibration): "
+                "calibrate the floor again (fleet calibrate)",
             )
         if intrinsics is None:
             self._once(

@@ -10,6 +10,7 @@ is seeded.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import re
@@ -230,6 +231,9 @@ def test_floor_errors_without_intrinsics_are_large_and_with_them_within_2_mm_and
     assert len(e1) == 60
     assert e0[:, 0].max() > 10e-3  # the problem
     assert e1[:, 0].max() < POS_TOL and e1[:, 1].max() < HEAD_TOL  # solved
+    # The lens barely turns a small marker (0.7° at most here, within the bound anyway), but
+    # the heading from undistorted corners is still several times closer to the truth.
+    assert e1[:, 1].max() < 0.5 * e0[:, 1].max(), (e1[:, 1].max(), e0[:, 1].max())
     assert sum("lens distortion is not corrected" in m for m in told) == 1
 
 
@@ -350,6 +354,7 @@ def test_calibration_refuses_too_few_views_no_board_poor_spread_and_mixed_sizes(
         ("nan", "fit: the fit did not converge (non-finite parameters)"),
         ("singular", "fit: singular camera matrix"),
         ("rms", "fit: reprojection RMS 3.50 px exceeds 2 px (wrong board?)"),
+        ("folds", "fit: the fitted lens model does not invert at the image edges (spread the views)"),
     ],
 )
 def test_calibration_refuses_a_failed_or_singular_fit_in_one_line(
@@ -368,6 +373,8 @@ def test_calibration_refuses_a_failed_or_singular_fit_in_one_line(
             D = np.full_like(D, np.nan)
         elif fit == "singular":
             K = np.zeros_like(K)
+        elif fit == "folds":  # a strong k₁ that the views near the centre alone could not rule out
+            D = np.array([[-1.5, 0.0, 0.0, 0.0, 0.0]])
         else:
             rms = 3.5
         return (rms, K, D, *rest)
@@ -403,6 +410,8 @@ def test_intrinsics_file_round_trips_and_bad_files_name_the_field(tmp_path, fitt
         (lambda d: d.update(camera_matrix=[[0, 0, 1], [0, 1, 1], [0, 0, 1]]), "fx, fy > 0"),
         (lambda d: d.update(format="other"), "not a version 1"),
         (lambda d: d.pop("image_size"), "missing or malformed field"),
+        (lambda d: d.update(image_size=[1e400, 1440]), "missing or malformed field (OverflowError)"),
+        (lambda d: d.update(distortion=[-1.5, 0.0, 0.0, 0.0, 0.0]), "does not invert at the image edges"),
     ]:
         bad = json.loads(json.dumps(d))
         mutate(bad)
@@ -433,6 +442,11 @@ def test_tracker_refuses_a_homography_and_intrinsics_that_do_not_belong_together
         V.Tracker(camera_spec(), {1: "r1"}, plain, intrinsics=fitted)
     with pytest.raises(ConfigError, match=r"camera\.intrinsics: the homography was fitted with "):
         V.Tracker(camera_spec(), {1: "r1"}, undist)
+    # Intrinsics of the same size but another lens calibration: the floor fit does not hold.
+    other = dataclasses.replace(fitted, dist=(-0.15, *fitted.dist[1:]))
+    with pytest.raises(ConfigError, match=r"camera\.intrinsics: the homography was fitted through other"):
+        V.Tracker(camera_spec(), {1: "r1"}, undist, intrinsics=other)
+    V.Tracker(camera_spec(), {1: "r1"}, undist, intrinsics=fitted)  # its own: accepted
 
 
 def test_fleet_calibrate_intrinsics_from_images_and_video_then_the_floor(
