@@ -564,6 +564,17 @@ def write_video(
     return n
 
 
+def circling(cx: float, cy: float, r: float, w: float, phase: float) -> PoseFn:
+    """A robot driving a circle about (cx, cy) [m] of radius ``r`` [m] at ``w`` [rad/s]
+    (negative: clockwise) from angle ``phase`` [rad], heading along the circle."""
+
+    def pose(t: float) -> tuple[float, float, float]:
+        a = phase + w * t
+        return (cx + r * math.cos(a), cy + r * math.sin(a), a + math.copysign(math.pi / 2, w))
+
+    return pose
+
+
 def straight_lines(scn: Any, speed: float = 0.05) -> dict[int, PoseFn]:
     """Each marked robot of scenario ``scn`` drives from its start to its goal at ``speed``
     [m/s], facing the goal, then stops: marker id → pose function of t [s]."""

@@ -22,9 +22,12 @@ from typing import Any
 import numpy as np
 import pytest
 
+from ground.geometry import wrap_angle
 from ground.scenario import ARUCO_DICTIONARIES, ConfigError, Fiducial, load_scenario, parse_scenario
 
 cv2 = pytest.importorskip("cv2")
+
+from camera_layout import FIDUCIALS, OFFSET, SIZE  # noqa: E402
 
 from tracker import camera as C  # noqa: E402
 from tracker import vision as V  # noqa: E402
@@ -32,6 +35,7 @@ from tracker.calibrate import main as calibrate_main  # noqa: E402
 from tracker.synth import (  # noqa: E402
     PinholeCamera,
     Renderer,
+    circling,
     marker_centre,
     marker_corners,
     random_poses,
@@ -40,17 +44,6 @@ from tracker.synth import (  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONIOENCODING": "utf-8"}
-FIDUCIALS = {
-    40: (-1.1, -1.1),
-    41: (0.0, -1.1),
-    42: (1.1, -1.1),
-    43: (1.1, 1.1),
-    44: (0.0, 1.1),
-    45: (-1.1, 1.1),
-}
-OFFSET = (0.012, -0.004)
-"""Marker centre in the robot frame [m]."""
-SIZE = 0.05
 MARKERS = {1: "r1", 2: "r2", 3: "r3"}
 POS_TOL = 0.005
 """Required position accuracy [m]."""
@@ -107,22 +100,8 @@ def renderer(cam: PinholeCamera) -> Renderer:
     return Renderer(cam, FIDUCIALS, marker_size=SIZE, marker_offset=OFFSET, fiducial_size=0.08)
 
 
-def wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
-
-
-def circle(cx: float, cy: float, r: float, w: float, phase: float):
-    """A robot driving a circle: centre (cx, cy) [m], radius r [m], rate w [rad/s], heading tangent."""
-
-    def pose(t: float) -> tuple[float, float, float]:
-        a = phase + w * t
-        return (cx + r * math.cos(a), cy + r * math.sin(a), a + math.copysign(math.pi / 2, w))
-
-    return pose
-
-
-TRAJECTORIES = {1: circle(-0.4, 0.3, 0.25, 1.0, 0.0), 2: circle(0.4, 0.3, 0.2, -1.2, 1.0),
-                3: circle(0.0, -0.4, 0.3, 0.8, 2.0)}  # fmt: skip
+TRAJECTORIES = {1: circling(-0.4, 0.3, 0.25, 1.0, 0.0), 2: circling(0.4, 0.3, 0.2, -1.2, 1.0),
+                3: circling(0.0, -0.4, 0.3, 0.8, 2.0)}  # fmt: skip
 """Marker id → pose function of t: 0.24–0.25 m/s, 0.8–1.2 rad/s."""
 
 
@@ -228,7 +207,7 @@ def test_marker_geometry_is_exact_under_perspective(cam):
         x, y, th = rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-math.pi, math.pi)
         img = cam.project(marker_corners((x, y), th, SIZE))
         cx, cy, theta, side, area = V.marker_pose(img, H)
-        assert math.hypot(cx - x, cy - y) < 1e-9 and abs(wrap(theta - th)) < 1e-9
+        assert math.hypot(cx - x, cy - y) < 1e-9 and abs(wrap_angle(theta - th)) < 1e-9
         assert side == pytest.approx(SIZE, rel=1e-9) and area == pytest.approx(SIZE**2, rel=1e-9)
         assert np.allclose(V.image_centre(img), cam.project(np.array([[x, y]]))[0], atol=1e-9)
         # the image centroid is not the projected centre under perspective
@@ -261,7 +240,7 @@ def test_poses_of_60_random_robots_under_perspective_blur_and_noise(renderer):
         for mid, (x, y, th) in truth.items():
             fx, fy, fth = found[markers[mid]]
             pos_err.append(math.hypot(fx - x, fy - y))
-            head_err.append(abs(wrap(fth - th)))
+            head_err.append(abs(wrap_angle(fth - th)))
     pe, he = np.array(pos_err), np.degrees(head_err)
     print(accuracy("60 poses", pe, he))
     assert len(pe) == 60
@@ -281,7 +260,7 @@ def test_edge_refinement_beats_subpixel_corners_alone(renderer, cam):
         for refine in (True, False):
             found = V.detect(image, det, refine=refine)
             for mid, (_, _, th) in truth.items():
-                err[refine].append(abs(wrap(V.marker_pose(found[mid], H)[2] - th)))
+                err[refine].append(abs(wrap_angle(V.marker_pose(found[mid], H)[2] - th)))
     assert np.mean(err[True]) < 0.75 * np.mean(err[False]), (np.mean(err[True]), np.mean(err[False]))
 
 
@@ -472,7 +451,7 @@ def test_video_through_the_tracker_process_matches_the_trajectories(tmp_path, vi
             mid = int(p.robot[1:])
             x, y, th = TRAJECTORIES[mid](p.t)
             pos_err.append(math.hypot(p.x - x, p.y - y))
-            head_err.append(abs(wrap(p.theta - th)))
+            head_err.append(abs(wrap_angle(p.theta - th)))
             assert -math.pi < p.theta <= math.pi
         assert set(by_step) == set(range(steps)) - {skipped}, sorted(set(range(steps)) - set(by_step))
         assert all(v == {"r1", "r2", "r3"} for v in by_step.values())

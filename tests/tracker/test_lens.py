@@ -20,9 +20,12 @@ from typing import Any
 import numpy as np
 import pytest
 
+from ground.geometry import wrap_angle
 from ground.scenario import CameraSpec, ConfigError, Fiducial, load_scenario
 
 cv2 = pytest.importorskip("cv2")
+
+from camera_layout import FIDUCIALS, OFFSET, SIZE  # noqa: E402
 
 from tracker import intrinsics as I  # noqa: E402
 from tracker import vision as V  # noqa: E402
@@ -34,6 +37,7 @@ from tracker.synth import (  # noqa: E402
     Renderer,
     board_poses,
     board_view,
+    circling,
     lens_map,
     marker_centre,
     marker_corners,
@@ -44,18 +48,6 @@ from tracker.synth import (  # noqa: E402
 LENS = (-0.3, 0.1, 0.0, 0.0, 0.0)
 """(k₁, k₂, p₁, p₂, k₃) of the test lens."""
 IMAGE_SIZE = (1920, 1440)
-FIDUCIALS = {
-    40: (-1.1, -1.1),
-    41: (0.0, -1.1),
-    42: (1.1, -1.1),
-    43: (1.1, 1.1),
-    44: (0.0, 1.1),
-    45: (-1.1, 1.1),
-}
-SIZE = 0.05
-"""Robot marker side [m]."""
-OFFSET = (0.012, -0.004)
-"""Marker centre in the robot frame [m]."""
 VIEWS = 16
 """ChArUco views of the calibration."""
 POS_TOL = 2e-3
@@ -91,10 +83,6 @@ def board_frames(lens_cam: PinholeCamera) -> list[np.ndarray]:
 @pytest.fixture(scope="module")
 def fitted(board_frames: list[np.ndarray]) -> I.Intrinsics:
     return I.calibrate_intrinsics(board_frames)
-
-
-def wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
 
 
 def camera_spec() -> CameraSpec:
@@ -219,7 +207,7 @@ def test_floor_errors_without_intrinsics_are_large_and_with_them_within_2_mm_and
             assert set(found) == set(markers.values()), f"{name}, frame {k}: {sorted(found)}"
             for mid, (x, y, th) in truth.items():
                 fx, fy, fth = found[markers[mid]]
-                errs[name].append((math.hypot(fx - x, fy - y), math.degrees(abs(wrap(fth - th)))))
+                errs[name].append((math.hypot(fx - x, fy - y), math.degrees(abs(wrap_angle(fth - th)))))
     e0, e1 = np.array(errs["without"]), np.array(errs["with"])
     print(
         f"\nwithout intrinsics: position max {e0[:, 0].max() * 1e3:.1f} mm, "
@@ -237,18 +225,8 @@ def test_floor_errors_without_intrinsics_are_large_and_with_them_within_2_mm_and
     assert sum("lens distortion is not corrected" in m for m in told) == 1
 
 
-def circle(cx: float, cy: float, r: float, w: float, phase: float):
-    """A robot driving a circle: centre (cx, cy) [m], radius r [m], rate w [rad/s], heading tangent."""
-
-    def pose(t: float) -> tuple[float, float, float]:
-        a = phase + w * t
-        return (cx + r * math.cos(a), cy + r * math.sin(a), a + math.copysign(math.pi / 2, w))
-
-    return pose
-
-
-VIDEO_TRAJECTORIES = {1: circle(-0.5, 0.45, 0.4, 1.0, 0.0), 2: circle(0.5, 0.4, 0.4, -1.2, 1.0),
-                      3: circle(0.0, -0.5, 0.4, 0.8, 2.0)}  # fmt: skip
+VIDEO_TRAJECTORIES = {1: circling(-0.5, 0.45, 0.4, 1.0, 0.0), 2: circling(0.5, 0.4, 0.4, -1.2, 1.0),
+                      3: circling(0.0, -0.5, 0.4, 0.8, 2.0)}  # fmt: skip
 """Marker id → pose function of t [s]: three robots over most of the arena, out to 0.9 m
 from its centre, where the lens bends most."""
 VIDEO_FPS = 10.0
@@ -294,7 +272,7 @@ def _track_video(frames: list[np.ndarray], intrinsics: I.Intrinsics | None) -> n
         for mid, fn in VIDEO_TRAJECTORIES.items():
             x, y, th = fn(i / VIDEO_FPS)
             fx, fy, fth = found[markers[mid]]
-            errs.append((math.hypot(fx - x, fy - y), math.degrees(abs(wrap(fth - th)))))
+            errs.append((math.hypot(fx - x, fy - y), math.degrees(abs(wrap_angle(fth - th)))))
     return np.array(errs)
 
 
