@@ -280,20 +280,12 @@ def marker_path(bits: np.ndarray, centre: Sequence[float], size: float) -> Any:
 def page_figure(page: Page, scn: Scenario) -> Figure:
     """The matplotlib figure of ``page`` (Agg canvas): figure size = paper size,
     one data unit = 1 m on paper, page frame.  Save it without ``bbox_inches``."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
     from matplotlib.patches import FancyArrowPatch, PathPatch, Rectangle
 
     camera = scn.camera
     assert camera is not None
     width, height = page.size
-    fig = Figure(figsize=(width / INCH, height / INCH), facecolor="white")
-    FigureCanvasAgg(fig)
-    ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
-    ax.set_xlim(0.0, width)
-    ax.set_ylim(0.0, height)
-    ax.set_axis_off()
-    ax.set_autoscale_on(False)
+    fig, ax = _blank_page(width, height)
 
     s = camera.marker_size
     bits_cache: dict[int, np.ndarray] = {}
@@ -330,26 +322,40 @@ def page_figure(page: Page, scn: Scenario) -> Figure:
         ax.text(cx, label_y - 0.0045, pl.marker.detail, ha="center", va="top", fontsize=6.5)
 
     n_bits = _bits_per_side(camera.dictionary)
-    ax.text(
-        MARGIN, height - MARGIN,
+    _header(
+        ax, height,
         f"{scn.name}: ArUco {camera.dictionary}, black square {s * 1000:.1f} mm "
         f"({n_bits} × {s / n_bits * 1000:.2f} mm cells)    page {page.number}/{page.count}",
-        ha="left", va="top", fontsize=9, fontweight="bold",
-    )  # fmt: skip
-    ax.text(
-        MARGIN, height - MARGIN - 0.0055,
         "Print at 100 % (actual size, not 'fit to page') and check the ruler. Cut along the dashed "
         "lines: the white border belongs to the marker.",
-        ha="left", va="top", fontsize=6.5,
-    )  # fmt: skip
-    ax.text(
-        MARGIN, height - MARGIN - 0.0085,
         "Robots: the arrow points where the robot drives. Fiducials: centre at the world position "
         "shown, at the height of the robots' markers.",
-        ha="left", va="top", fontsize=6.5,
     )  # fmt: skip
     _draw_ruler(ax, page.ruler)
     return fig
+
+
+def _blank_page(width: float, height: float) -> tuple[Any, Any]:
+    """(figure, axes) of a white page ``width`` × ``height`` [m] (Agg canvas): one data unit
+    = 1 m on paper, origin at the bottom left, no axes drawn."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width / INCH, height / INCH), facecolor="white")
+    FigureCanvasAgg(fig)
+    ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
+    ax.set_xlim(0.0, width)
+    ax.set_ylim(0.0, height)
+    ax.set_axis_off()
+    ax.set_autoscale_on(False)
+    return fig, ax
+
+
+def _header(ax: Any, height: float, title: str, *notes: str) -> None:
+    """A page's bold title and its lines of notes, from the top-left margin down."""
+    ax.text(MARGIN, height - MARGIN, title, ha="left", va="top", fontsize=9, fontweight="bold")
+    for i, note in enumerate(notes):
+        ax.text(MARGIN, height - MARGIN - 0.0055 - 0.003 * i, note, ha="left", va="top", fontsize=6.5)
 
 
 def _draw_ruler(ax: Any, origin: tuple[float, float]) -> None:
@@ -407,21 +413,13 @@ def charuco_figure(board: CharucoBoardSpec = DEFAULT_BOARD, paper: str = "a4") -
     which squares are black and where each marker sits come from OpenCV's board, so the
     print is the board ``cv2.aruco.CharucoDetector`` looks for.  Raises
     :class:`ConfigError` (``--paper``) when the board does not fit."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
     from matplotlib.patches import PathPatch, Rectangle
 
     height, width = PAPERS[paper]  # landscape
     bw, bh = board.size
     if bw + 2 * MARGIN > width or bh + HEADER + RULER_BAND + 2 * MARGIN > height:
         raise ConfigError("--paper", f"a {bw * 1000:.0f} × {bh * 1000:.0f} mm board does not fit on {paper}")
-    fig = Figure(figsize=(width / INCH, height / INCH), facecolor="white")
-    FigureCanvasAgg(fig)
-    ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
-    ax.set_xlim(0.0, width)
-    ax.set_ylim(0.0, height)
-    ax.set_axis_off()
-    ax.set_autoscale_on(False)
+    fig, ax = _blank_page(width, height)
     x0 = (width - bw) / 2.0
     top = height - MARGIN - HEADER  # board frame y = 0 (board y runs down the page)
     cv_board = board.board()
@@ -443,17 +441,12 @@ def charuco_figure(board: CharucoBoardSpec = DEFAULT_BOARD, paper: str = "a4") -
         ax.add_patch(
             PathPatch(marker_path(bits, centre, board.marker), facecolor="black", edgecolor="none", lw=0)
         )
-    ax.text(
-        MARGIN, height - MARGIN,
+    _header(
+        ax, height,
         f"ChArUco board for fleet calibrate --intrinsics: {cols} × {rows} squares of "
         f"{board.square * 1000:.1f} mm, markers {board.marker * 1000:.1f} mm, {board.dictionary}",
-        ha="left", va="top", fontsize=9, fontweight="bold",
-    )  # fmt: skip
-    ax.text(
-        MARGIN, height - MARGIN - 0.0055,
         "Print at 100 % (actual size) and check the ruler; glue flat on a rigid board. Show it to the "
         "camera at 8 or more places and angles, near every edge and corner of the image.",
-        ha="left", va="top", fontsize=6.5,
     )  # fmt: skip
     _draw_ruler(ax, (MARGIN, MARGIN + 0.004))
     return fig
