@@ -444,7 +444,15 @@ def test_after_a_reopen_the_port_sends_zero_until_resumed():
     """``resume_by_hand``: the link process first learns the robot took zero speed, then lets
     commands through.  The speeds asked during the outage are not sent before that, however
     many exchanges pass; after :meth:`RobotPort.resume` the newest asked speeds go out."""
-    t = _DropsOnce(drop_at=2)
+    resumed = threading.Event()
+
+    class Watched(_DropsOnce):
+        def write(self, data: bytes) -> None:
+            super().write(data)
+            if P.parse_encoders(data[1:5]) == (200, 200):
+                resumed.set()
+
+    t = Watched(drop_at=2)
     got: list[Reading] = []
     back, more = threading.Event(), threading.Event()
 
@@ -465,16 +473,11 @@ def test_after_a_reopen_the_port_sends_zero_until_resumed():
         held = [P.parse_encoders(w[1:5]) for w in t.written]
         port.command(200, 200)
         port.resume()
-        deadline = threading.Event()
-        for _ in range(200):  # bounded: until the resumed speeds went out
-            if P.parse_encoders(t.written[-1][1:5]) == (200, 200):
-                break
-            deadline.wait(0.01)
+        assert resumed.wait(5.0), "the resumed speeds never went out"
     finally:
         port.close()
     after = held[held.index((0, 0)) :]
     assert len(after) >= 5 and set(after) == {(0, 0)}, held
-    assert (200, 200) in [P.parse_encoders(w[1:5]) for w in t.written[len(held) :]]
 
 
 def test_robot_port_retries_with_backoff_and_reports_once():
