@@ -53,9 +53,11 @@ def _payload(i: int) -> bytes:
 
 
 def _peer(
-    i: int, hub: str, topology: str, mode: str, rate: float, seconds: float, ready: Any, go: Any
+    i: int, robots: int, hub: str, topology: str, mode: str, rate: float, ready: Any, go: Any, stop: Any
 ) -> None:
-    """One process: publish at ``rate`` for ``seconds`` after ``go``, take samples by ``mode``."""
+    """One process: from ``go`` until ``stop``, publish at ``rate`` and take samples by
+    ``mode``; say on ``ready`` when its session is open, and again once it has heard every
+    one of the ``robots`` publishers (the mesh has linked up)."""
     os.environ["OMP_NUM_THREADS"] = "1"
     import zenoh
 
@@ -67,11 +69,17 @@ def _peer(
     else:
         cfg = NetConfig(listen=[loopback(0)], connect=[hub], mode="client" if topology == "star" else "peer")
     session = zenoh.open(cfg.zenoh())
-    got = [0]
+    heard: set[str] = set()
+
+    def took(key: str) -> None:
+        if len(heard) < robots:
+            heard.add(key)
+            if len(heard) == robots:
+                ready.put(("heard all", i))
 
     def count(sample: Any) -> None:
         sample.payload.to_bytes()
-        got[0] += 1
+        took(str(sample.key_expr))
 
     def decoded(sample: Any) -> None:
         k = str(sample.key_expr)
@@ -79,7 +87,7 @@ def _peer(
             decode(sample.payload.to_bytes(), Plan, robot=k.rsplit("/", 1)[-1])
         except WireError:
             pass
-        got[0] += 1
+        took(k)
 
     sub: Any
     if mode == "drain":
@@ -88,11 +96,12 @@ def _peer(
         sub = session.declare_subscriber("floor/plan/*", count if mode == "callback" else decoded)
     pub = session.declare_publisher(f"floor/plan/r{i}")
     payload = _payload(i)
-    ready.put(i)
+    ready.put(("open", i))
     go.wait(60)
     period, t_next = 1.0 / rate, time.monotonic()
-    end = t_next + seconds
-    while t_next < end:
+    for _ in range(int(600 * rate)):  # bounded: at most 10 min
+        if stop.is_set():
+            break
         pub.put(payload)
         if mode == "drain":
             for _ in range(4096):
@@ -100,10 +109,9 @@ def _peer(
                 if s is None:
                     break
                 s.payload.to_bytes()
-                got[0] += 1
+                took(str(s.key_expr))
         t_next += period
-        time.sleep(max(0.0, t_next - time.monotonic()))
-    time.sleep(0.5)
+        stop.wait(max(0.0, t_next - time.monotonic()))  # the publication rate
     sub.undeclare()
     session.close()
 
@@ -124,28 +132,32 @@ def measure(robots: int, rate: float, seconds: float, mode: str, topology: str) 
     from ground.net import free_port, loopback
 
     ctx = multiprocessing.get_context("spawn")
-    ready, go = ctx.Queue(), ctx.Event()
+    ready, go, stop = ctx.Queue(), ctx.Event(), ctx.Event()
     hub = loopback(free_port())
     procs = [
-        ctx.Process(target=_peer, args=(i, hub, topology, mode, rate, seconds, ready, go), daemon=True)
+        ctx.Process(target=_peer, args=(i, robots, hub, topology, mode, rate, ready, go, stop), daemon=True)
         for i in range(robots)
     ]
-    procs[0].start()
-    got = [ready.get(timeout=60)]
-    for p in procs[1:]:
-        p.start()
-    got += [ready.get(timeout=60) for _ in procs[1:]]
-    time.sleep(2.0)  # the mesh links up by gossip
-    go.set()
-    pids = [p.pid for p in procs if p.pid is not None]
-    time.sleep(1.0)  # the first publications
-    a, t0 = _cpu(pids), time.monotonic()
-    time.sleep(max(1.0, seconds - 2.0))
-    b, t1 = _cpu(pids), time.monotonic()
-    for p in procs:
-        p.join(timeout=30)
-        if p.is_alive():
-            p.kill()
+    try:
+        procs[0].start()
+        ready.get(timeout=60)  # the hub listens
+        for p in procs[1:]:
+            p.start()
+        for _ in procs[1:]:
+            ready.get(timeout=60)  # every session open
+        go.set()
+        for _ in procs:
+            ready.get(timeout=60)  # every process heard every publisher: linked up
+        pids = [p.pid for p in procs if p.pid is not None]
+        a, t0 = _cpu(pids), time.monotonic()
+        time.sleep(seconds)  # the measured window
+        b, t1 = _cpu(pids), time.monotonic()
+    finally:
+        stop.set()
+        for p in procs:
+            p.join(timeout=30)
+            if p.is_alive():
+                p.kill()
     robot_steps = robots * rate * (t1 - t0)
     split = {k: 1e3 * (b[k] - a.get(k, 0.0)) / robot_steps for k in b}
     total = sum(split.values())
