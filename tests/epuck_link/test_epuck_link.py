@@ -778,7 +778,9 @@ def test_wifi_stream_against_the_emulator():
         got = [h for h, _ in _wifi_packets(t, 0.3)]
         k = got.index(P.HEADER_IMAGE)
         assert got[k : k + 4] == [P.HEADER_IMAGE, P.HEADER_SENSORS] * 2, got
-        # Speeds through the codec: the wheels turn in opposite senses, by what the time allows.
+        # Speeds through the codec: the wheels turn in opposite senses, by what the time allows at
+        # the rate an e-puck1 really steps for 800 (a 12-tick period: 833.3 steps/s).
+        rate = P.step_rate(800, "e-puck1")
         codec = WifiCodec(reply_timeout=2.0)
         t0 = time.monotonic()
         c0 = codec.exchange(t, 800, -800)
@@ -787,7 +789,7 @@ def test_wifi_stream_against_the_emulator():
         while c1[0] - c0[0] < 100 and time.monotonic() < deadline:
             c1 = codec.exchange(t, 800, -800)
         elapsed = time.monotonic() - t0
-        assert 100 <= c1[0] - c0[0] <= 800 * elapsed + 1 and c1[1] - c0[1] == -(c1[0] - c0[0])
+        assert 100 <= c1[0] - c0[0] <= rate * elapsed + 1 and c1[1] - c0[1] == -(c1[0] - c0[0])
         codec.exchange(t, 0, 0)
     finally:
         if t is not None:
