@@ -20,13 +20,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import signal
 import sys
 from pathlib import Path
 from typing import Any
 
 from fleet.launch import TOPOLOGIES
+from fleet.report import strict_json
 from ground.params import PRESETS, preset
 from ground.process import lease_arg, seed_arg
 from ground.scenario import ConfigError, load_scenario
@@ -34,17 +34,6 @@ from ground.scenario import ConfigError, load_scenario
 DEFAULT_ARENA = (-1.0, 1.0, -1.0, 1.0)
 EXIT_FAIL = 1
 EXIT_BAD_INPUT = 2
-
-
-def _finite(obj: Any) -> Any:
-    """Replace non-finite floats by None so the output is strict JSON."""
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_finite(v) for v in obj]
-    return obj
 
 
 def _bad(msg: str) -> int:
@@ -101,7 +90,7 @@ def cmd_design(args: argparse.Namespace) -> int:
     s["scenario"] = name
     s["arena"] = list(arena)
     if args.json:
-        print(json.dumps(_finite(s), indent=2, ensure_ascii=False))
+        print(json.dumps(strict_json(s), indent=2, ensure_ascii=False))
     else:
         zh, ph = s["Z_half_widths"], s["Psi_half_widths"]
         tight = s["tightened"]
@@ -131,7 +120,7 @@ def cmd_design(args: argparse.Namespace) -> int:
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     from agent.tube import validated_design
-    from fleet.simulate import run
+    from fleet.simulate import run, save_run
 
     scn = load_scenario(args.scenario)
     design = validated_design(scn)
@@ -142,12 +131,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         return _bad(f"--out: cannot create {out}: {e.strerror}")
     result = run(scn, seed=args.seed, design=design)
     from supervisor.judge import verdict
-    from supervisor.trace import from_simulation
 
-    from_simulation(result, scn).save(out / "trace.npz")
-    summary = result.summary()
-    summary["seed"] = scn.simulation.seed if args.seed is None else args.seed
-    (out / "summary.json").write_text(json.dumps(_finite(summary), indent=2) + "\n")
+    summary = save_run(result, scn, scn.simulation.seed if args.seed is None else args.seed, out)
     why = verdict(summary)
     st = summary.get("step_time_ms", {"p50": 0.0, "p99": 0.0})
     print(

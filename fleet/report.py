@@ -9,12 +9,25 @@
 
 from __future__ import annotations
 
+import math
 from itertools import combinations
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from supervisor.trace import Trace
+
+
+def strict_json(obj: Any) -> Any:
+    """``obj`` with every non-finite float replaced by None, so that it is strict JSON."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: strict_json(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [strict_json(v) for v in obj]
+    return obj
 
 
 def write_report(out: Path) -> list[Path]:

@@ -21,9 +21,11 @@ The plants, the disturbances and the camera noise are the simulated tracker's
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -151,6 +153,190 @@ def _unapplied(
     return a, ctrl.xi[0:4].copy(), "candidate"
 
 
+class Simulation:
+    """The whole fleet in one process, one step at a time (see the module docstring).
+
+    ``step()`` runs step k: the judge takes sample k, every agent plans against the references
+    its neighbours committed at step k − 1, the plants move to sample k + 1.  Between two steps
+    a caller may read the state (:attr:`traces`, :attr:`cams`) and give new goals
+    (:meth:`set_goal`), which the agents take at the next step, after the neighbours' view of
+    step k − 1 is fixed: as an agent process takes a goal that arrived before its tick.
+    :func:`run` is this loop with the early end."""
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        seed: int | None = None,
+        design: TubeDesign | None = None,
+        solver_fault: Callable[[str, int], bool] | None = None,
+        extra_disturbance: Callable[[str, int], Array | None] | None = None,
+        late: Callable[[str, int], bool] | None = None,
+        late_policy: str = "candidate",
+    ):
+        if late_policy not in LATE_POLICIES:
+            raise ValueError(f"late_policy: {late_policy!r} is not one of {', '.join(LATE_POLICIES)}")
+        self.t_wall = time.perf_counter()
+        self.scenario = scenario
+        sim = scenario.simulation
+        self.seed = seed = sim.seed if seed is None else seed
+        rng = np.random.default_rng(seed)
+        if design is None:
+            design = require_admissible(synthesize(scenario.controller, scenario.arena))
+        self.design = design
+        p = design.params
+        self.Ts = p.Ts
+        """Sampling period [s]."""
+        self.extra_disturbance, self.late, self.late_policy = extra_disturbance, late, late_policy
+        self.dist = Disturbance(sim.disturbance, p.W, sim.disturbance_fraction, rng, p.point_noise)
+        self.noise = PoseNoise(p.pose_noise, seed)
+        self.W4 = np.array([p.W[0], p.W[1], p.W[0], p.W[1]])
+        self.judge = Judge(scenario)
+        self.ids = [rb.id for rb in scenario.robots]
+        self.plants: dict[str, Any] = {}
+        self.ctrls: dict[str, TubeMPC] = {}
+        self.traces: dict[str, RobotTrace] = {}
+        self.meas: dict[str, Array] = {}
+        """Each robot's measured state x (4,) [m, m/s] of the current sample."""
+        self.cams: dict[str, Array] = {}
+        """Each robot's camera pose (x, y, θ) (3,) [m, m, rad] of the current sample."""
+        self.applied: dict[str, tuple[int, StepOutput | None]] = {}
+        """Per robot: the step and output of the last command its robot side applied."""
+        self.last_a: dict[str, Array] = {}
+        self.pending: dict[str, Array] = {}
+        """Goals (2,) [m] given since the last step, taken at the next."""
+        self.outputs: dict[str, StepOutput] = {}
+        """Each robot's controller output of the last step."""
+        for rank, rb in enumerate(scenario.robots):
+            plant = make_plant(sim.plant, np.array(rb.start, dtype=float), p)
+            start_pt = plant.state()[[0, 2]]
+            fault = None
+            if solver_fault is not None:
+                fault = (lambda rid: lambda k: solver_fault(rid, k))(rb.id)
+            self.ctrls[rb.id] = TubeMPC(
+                design,
+                start_pt,
+                np.array(rb.goal, dtype=float),
+                scenario.arena,
+                obstacles=scenario.obstacles,
+                priority=rb.priority,
+                rank=rank,
+                seed=seed * 1000 + rank,
+                solver_fault=fault,
+            )
+            self.plants[rb.id] = plant
+            self.applied[rb.id] = (-1, None)
+            self.last_a[rb.id] = np.zeros(2)
+            self.meas[rb.id], self.cams[rb.id] = measure(plant, self.noise, p.lookahead)
+            tr = RobotTrace(rb.id)
+            tr.pose.append(plant.pose.copy())
+            tr.point.append(start_pt)
+            self.traces[rb.id] = tr
+        self.times = [0.0]
+        self.k = 0
+        """The next step; also the number of steps done."""
+        self.home_run = 0
+        """Consecutive steps after which every robot was home (:func:`ground.scenario.home`)."""
+
+    def set_goal(self, robot: str, goal: Array) -> None:
+        """Give ``robot`` the goal (2,) [m], world frame, from the next step on (unchecked: the
+        caller checks it, :func:`ground.scenario.goal_problem`)."""
+        self.pending[robot] = np.array(goal, dtype=float).reshape(2)
+
+    def step(self) -> None:
+        """Step k (:attr:`k`): judge sample k, plan, publish, move to sample k + 1."""
+        k, ids, judge, design = self.k, self.ids, self.judge, self.design
+        ctrls, traces = self.ctrls, self.traces
+        Ts = self.Ts
+        # The sample the agents measure now, as the supervisor judges it: the true poses
+        # with the camera's.
+        judge.truth({rid: traces[rid].pose[-1] for rid in ids}, self.cams)
+        infos = {}
+        for rid in ids:
+            inf = ctrls[rid].info()
+            inf.id = rid
+            infos[rid] = inf
+        for rid, goal in self.pending.items():  # after the neighbours' view of step k − 1
+            if not np.array_equal(goal, ctrls[rid].goal):
+                ctrls[rid].set_goal(goal)
+        self.pending = {}
+        outs = {}
+        for rid in ids:
+            x = self.meas[rid]
+            nbs = [infos[j] for j in ids if j != rid]
+            out = ctrls[rid].step(x, nbs)
+            outs[rid] = (x, out)
+            self.outputs[rid] = out
+        plans: dict[str, Plan] = {}
+        unexecuted: list[str] = []
+        for rid in ids:
+            x, out = outs[rid]
+            plans[rid] = plan_message(rid, k, ctrls[rid], out)
+            plant = self.plants[rid]
+            a, x_hat = out.a, out.x_hat
+            if self.late is not None and self.late(rid, k):
+                a, x_hat, what = _unapplied(
+                    ctrls[rid], design, self.applied[rid], k, x, self.last_a[rid], self.late_policy
+                )
+                if what != "held":  # the robot side says so in the next tick
+                    unexecuted.append(rid)
+                    judge.off_plan(rid, what)
+            else:
+                self.applied[rid] = (k, out)
+            self.last_a[rid] = a
+            plant.step(a, Ts)
+            w = self.dist.sample(x - x_hat)
+            if self.extra_disturbance is not None:
+                extra = self.extra_disturbance(rid, k)
+                if extra is not None:
+                    w = w + extra
+            plant.perturb(w)
+            xn = plant.state()
+            self.meas[rid], self.cams[rid] = measure(plant, self.noise, design.params.lookahead)
+            w_real = self.meas[rid] - (design.A @ x + design.B @ a)
+            tr = traces[rid]
+            tr.w_ratio.append(float(np.max(np.abs(w_real) / self.W4)))
+            tr.pose.append(plant.pose.copy())
+            pt = xn[[0, 2]]
+            tr.point.append(pt)
+            tr.committed_last.append(ctrls[rid].y_ref[-1].copy())
+            tr.goal_error.append(float(np.linalg.norm(pt - ctrls[rid].goal)))
+            tr.modes.append(out.mode)
+            tr.ref_deviation.append(float(np.linalg.norm(pt - ctrls[rid].y_ref[0])))
+            tr.candidate_violation.append(out.candidate_violation)
+            tr.tube_ok.append(
+                out.tube_ok if x_hat is out.x_hat else design.contains_error(x - x_hat, TUBE_TOL)
+            )
+            tr.fallback.append(out.fallback)
+            judge.simulated(rid, out.step_time * 1e3, tr.w_ratio[-1], out.candidate_violation)
+        judge.plans(plans, unexecuted)
+        self.times.append((k + 1) * Ts)
+        all_home = all(home(ctrls[r].y_ref[-1], traces[r].point[-1], ctrls[r].goal) for r in ids)
+        self.home_run = self.home_run + 1 if all_home else 0
+        self.k = k + 1
+
+    @property
+    def done(self) -> bool:
+        """Every robot has been home for :func:`ground.scenario.settle_samples` steps in a row
+        (the early end)."""
+        return self.home_run >= settle_samples(self.Ts)
+
+    def finish(self) -> RunResult:
+        """Judge the final sample (no camera pose used) and return the run."""
+        ids, traces = self.ids, self.traces
+        self.judge.truth({rid: traces[rid].pose[-1] for rid in ids})
+        return RunResult(
+            scenario=self.scenario.name,
+            design=self.design,
+            judge=self.judge,
+            traces=traces,
+            controllers=self.ctrls,
+            steps=self.k,
+            sim_time=self.k * self.Ts,
+            wall_time=time.perf_counter() - self.t_wall,
+            times=self.times,
+        )
+
+
 def run(
     scenario: Scenario,
     seed: int | None = None,
@@ -175,126 +361,24 @@ def run(
     and the controller rewinds to it (:meth:`TubeMPC.rewind`), as the process runtime
     does; ``"hold"`` holds the previous acceleration and tells nobody (the
     runtime before the candidate fallback, for comparison)."""
-    if late_policy not in LATE_POLICIES:
-        raise ValueError(f"late_policy: {late_policy!r} is not one of {', '.join(LATE_POLICIES)}")
-    t_wall = time.perf_counter()
-    sim = scenario.simulation
-    seed = sim.seed if seed is None else seed
-    rng = np.random.default_rng(seed)
-    if design is None:
-        design = require_admissible(synthesize(scenario.controller, scenario.arena))
-    p = design.params
-    Ts = p.Ts
-    n_steps = steps if steps is not None else round(scenario.duration / Ts)
-    dist = Disturbance(sim.disturbance, p.W, sim.disturbance_fraction, rng, p.point_noise)
-    noise = PoseNoise(p.pose_noise, seed)
-    W4 = np.array([p.W[0], p.W[1], p.W[0], p.W[1]])
-    judge = Judge(scenario)
-    robots = list(scenario.robots)
-    plants, ctrls, traces, meas, cams = {}, {}, {}, {}, {}
-    applied: dict[str, tuple[int, StepOutput | None]] = {}
-    """Per robot: the step and output of the last command its robot side applied."""
-    last_a: dict[str, Array] = {}
-    for rank, rb in enumerate(robots):
-        plant = make_plant(sim.plant, np.array(rb.start, dtype=float), p)
-        start_pt = plant.state()[[0, 2]]
-        fault = None
-        if solver_fault is not None:
-            fault = (lambda rid: lambda k: solver_fault(rid, k))(rb.id)
-        ctrls[rb.id] = TubeMPC(
-            design,
-            start_pt,
-            np.array(rb.goal, dtype=float),
-            scenario.arena,
-            obstacles=scenario.obstacles,
-            priority=rb.priority,
-            rank=rank,
-            seed=seed * 1000 + rank,
-            solver_fault=fault,
-        )
-        plants[rb.id] = plant
-        applied[rb.id] = (-1, None)
-        last_a[rb.id] = np.zeros(2)
-        meas[rb.id], cams[rb.id] = measure(plant, noise, p.lookahead)
-        tr = RobotTrace(rb.id)
-        tr.pose.append(plant.pose.copy())
-        tr.point.append(start_pt)
-        traces[rb.id] = tr
-    ids = [rb.id for rb in robots]
-    times = [0.0]
-    k = 0
-    home_run = 0
-    for k in range(n_steps):
-        # The sample the agents measure now, as the supervisor judges it: the true poses
-        # with the camera's.
-        judge.truth({rid: traces[rid].pose[-1] for rid in ids}, cams)
-        infos = {}
-        for rid in ids:
-            inf = ctrls[rid].info()
-            inf.id = rid
-            infos[rid] = inf
-        outs = {}
-        for rid in ids:
-            x = meas[rid]
-            nbs = [infos[j] for j in ids if j != rid]
-            out = ctrls[rid].step(x, nbs)
-            outs[rid] = (x, out)
-        plans: dict[str, Plan] = {}
-        unexecuted: list[str] = []
-        for rid in ids:
-            x, out = outs[rid]
-            plans[rid] = plan_message(rid, k, ctrls[rid], out)
-            plant = plants[rid]
-            a, x_hat = out.a, out.x_hat
-            if late is not None and late(rid, k):
-                a, x_hat, what = _unapplied(ctrls[rid], design, applied[rid], k, x, last_a[rid], late_policy)
-                if what != "held":  # the robot side says so in the next tick
-                    unexecuted.append(rid)
-                    judge.off_plan(rid, what)
-            else:
-                applied[rid] = (k, out)
-            last_a[rid] = a
-            plant.step(a, Ts)
-            w = dist.sample(x - x_hat)
-            if extra_disturbance is not None:
-                extra = extra_disturbance(rid, k)
-                if extra is not None:
-                    w = w + extra
-            plant.perturb(w)
-            xn = plant.state()
-            meas[rid], cams[rid] = measure(plant, noise, p.lookahead)
-            w_real = meas[rid] - (design.A @ x + design.B @ a)
-            tr = traces[rid]
-            tr.w_ratio.append(float(np.max(np.abs(w_real) / W4)))
-            tr.pose.append(plant.pose.copy())
-            pt = xn[[0, 2]]
-            tr.point.append(pt)
-            tr.committed_last.append(ctrls[rid].y_ref[-1].copy())
-            tr.goal_error.append(float(np.linalg.norm(pt - ctrls[rid].goal)))
-            tr.modes.append(out.mode)
-            tr.ref_deviation.append(float(np.linalg.norm(pt - ctrls[rid].y_ref[0])))
-            tr.candidate_violation.append(out.candidate_violation)
-            tr.tube_ok.append(
-                out.tube_ok if x_hat is out.x_hat else design.contains_error(x - x_hat, TUBE_TOL)
-            )
-            tr.fallback.append(out.fallback)
-            judge.simulated(rid, out.step_time * 1e3, tr.w_ratio[-1], out.candidate_violation)
-        judge.plans(plans, unexecuted)
-        times.append((k + 1) * Ts)
-        all_home = all(home(ctrls[r].y_ref[-1], traces[r].point[-1], ctrls[r].goal) for r in ids)
-        home_run = home_run + 1 if all_home else 0
-        if stop_when_done and home_run >= settle_samples(Ts):
+    sim = Simulation(scenario, seed, design, solver_fault, extra_disturbance, late, late_policy)
+    n_steps = steps if steps is not None else round(scenario.duration / sim.Ts)
+    for _ in range(n_steps):
+        sim.step()
+        if stop_when_done and sim.done:
             break
-    n_done = k + 1 if n_steps > 0 else 0
-    judge.truth({rid: traces[rid].pose[-1] for rid in ids})  # the final sample: no camera pose used
-    return RunResult(
-        scenario=scenario.name,
-        design=design,
-        judge=judge,
-        traces=traces,
-        controllers=ctrls,
-        steps=n_done,
-        sim_time=n_done * Ts,
-        wall_time=time.perf_counter() - t_wall,
-        times=times,
-    )
+    return sim.finish()
+
+
+def save_run(result: RunResult, scenario: Scenario, seed: int, out: Path) -> dict[str, Any]:
+    """Write the run's ``trace.npz`` (for ``fleet report``) and ``summary.json`` (with the
+    ``seed``) into the directory ``out``; returns the summary."""
+    from fleet.report import strict_json
+    from supervisor.trace import from_simulation
+
+    out.mkdir(parents=True, exist_ok=True)
+    from_simulation(result, scenario).save(out / "trace.npz")
+    summary = result.summary()
+    summary["seed"] = seed
+    (out / "summary.json").write_text(json.dumps(strict_json(summary), indent=2) + "\n")
+    return summary
