@@ -1,4 +1,6 @@
-"""The ``fleet`` command and what it runs.
+"""The ``fleet`` command, the experiment API and what they run.
+
+* :class:`fleet.api.Fleet` — experiments as Python scripts (``from fleet import Fleet``);
 
 * :mod:`fleet.cli` — the command line (``fleet design | simulate | run | goal | report | bench |
   markers | calibrate``);
@@ -9,3 +11,16 @@
 * :mod:`fleet.secure` — the secure deployment's router, configurations and access control;
 * :mod:`fleet.bench` — ``fleet bench``.
 """
+
+from typing import Any
+
+__all__ = ["Event", "Fleet", "FleetError", "GoalRefused"]
+
+
+def __getattr__(name: str) -> Any:
+    """``from fleet import Fleet`` without loading the API for the command line."""
+    if name in __all__:
+        from fleet import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'fleet' has no attribute {name!r}")
