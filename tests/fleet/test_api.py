@@ -1,0 +1,220 @@
+"""The experiment API (:mod:`fleet.api`) on the in-process simulator: each method's contract, seen
+from a script, and the examples run as a user runs them."""
+
+from __future__ import annotations
+
+import importlib.util
+import itertools
+import json
+import math
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+import pytest
+
+from fleet import Event, Fleet, FleetError, GoalRefused
+from ground.geometry import controlled_point
+from ground.scenario import GOAL_TOLERANCE, ConfigError, settle_samples
+
+ROOT = Path(__file__).resolve().parents[2]
+SWAP4 = ROOT / "scenarios" / "swap_4.toml"
+OBSTACLE4 = ROOT / "scenarios" / "obstacle_four.toml"
+
+
+def _truth_error(fleet: Fleet, rid: str) -> float:
+    """The true controlled point's distance to the robot's goal [m]."""
+    b = fleet._b.sample()  # the true pose, which a script does not see (the judge does)
+    pt = controlled_point(b.truth[rid], fleet.scenario.controller.lookahead)
+    return float(np.linalg.norm(pt - np.array(fleet.goals()[rid])))
+
+
+def test_wait_arrived_returns_at_the_first_settled_sample(tmp_path):
+    """wait_arrived runs the clock until every robot has stayed within the goal tolerance for the
+    settle time, no longer: one sample earlier, not every robot had."""
+    with Fleet.launch(SWAP4, seed=3, processes=False, out=tmp_path) as fleet:
+        assert fleet.step == 0 and fleet.time == 0.0
+        assert fleet.wait_arrived(timeout=240)
+        assert fleet.arrived() and all(_truth_error(fleet, r) <= GOAL_TOLERANCE for r in fleet.ids)
+        k = fleet.step
+        arrivals = [e for e in fleet.events() if e.kind == "arrived"]
+        assert sorted(e.robot for e in arrivals) == sorted(fleet.ids)
+        assert max(e.step for e in arrivals) == k  # the last arrival ended the wait
+        n = settle_samples(fleet.Ts)
+        for rid in fleet.ids:  # each settled exactly n samples before its arrival event
+            errs = fleet._progress[rid].errors
+            at = next(e.step for e in arrivals if e.robot == rid)
+            assert all(v <= GOAL_TOLERANCE for v in errs[at - n + 1 : at + 1])
+            assert errs[at - n] > GOAL_TOLERANCE
+        assert fleet.wait_arrived(timeout=0) and fleet.step == k  # already there: no step taken
+    s = fleet.summary
+    assert s is not None and s["all_goals_reached"] and s["collisions"] == 0
+    assert json.loads((tmp_path / "summary.json").read_text())["steps"] == s["steps"] == k
+    assert (tmp_path / "trace.npz").exists()
+
+
+def test_timeout_returns_false_and_the_fleet_runs_on(tmp_path):
+    with Fleet.launch(SWAP4, seed=3, processes=False, out=tmp_path) as fleet:
+        assert fleet.wait_arrived(timeout=1.0) is False
+        assert fleet.step == 10 and fleet.time == pytest.approx(1.0)  # seconds of the fleet's clock
+        assert fleet.wait_arrived(["r1"], timeout=120) is True
+        assert fleet.arrived(["r1"])
+        k = fleet.step
+        fleet.wait(2.0)
+        assert fleet.step == k + 20
+    assert fleet.summary is not None and fleet.summary["steps"] >= 10
+
+
+def test_goto_moves_one_robot_and_it_settles_there(tmp_path):
+    with Fleet.launch(SWAP4, seed=3, processes=False, out=tmp_path) as fleet:
+        assert fleet.wait_arrived(timeout=240)
+        fleet.goto({"r1": (0.3, 0.2)})
+        assert fleet.goals()["r1"] == (0.3, 0.2) and not fleet.arrived(["r1"])
+        assert fleet.wait_arrived(["r1"], timeout=60)
+        assert _truth_error(fleet, "r1") <= GOAL_TOLERANCE
+        x, y = fleet.points()["r1"]
+        assert math.hypot(x - 0.3, y - 0.2) < 3 * GOAL_TOLERANCE  # measured: the camera's noise on top
+    s = fleet.summary
+    assert s is not None and s["robots"]["r1"]["goal"] == [0.3, 0.2] and s["robots"]["r1"]["reached_goal"]
+
+
+@pytest.mark.parametrize(
+    ("scenario", "goals", "robot", "reason"),
+    [
+        (SWAP4, {"r1": (5.0, 5.0)}, "r1", "outside the arena"),
+        (SWAP4, {"r1": (0.97, 0.0)}, "r1", "x = 1"),  # within the footprint of a wall
+        (OBSTACLE4, {"r2": (0.05, 0.1)}, "r2", "obstacle"),
+        (SWAP4, {"r1": (0.05, 0.75)}, "r1", "r4's goal"),  # next to r4's goal (0, 0.8)
+        (SWAP4, {"r9": (0.0, 0.0)}, "r9", "unknown robot id"),
+        # A batch whose two goals are too close to each other: neither is taken.
+        (SWAP4, {"r2": (0.3, -0.3), "r3": (0.3, -0.35)}, "r2", "r3's goal"),
+    ],
+)
+def test_a_refused_goto_names_the_robot_and_changes_nothing(tmp_path, scenario, goals, robot, reason):
+    with Fleet.launch(scenario, seed=1, processes=False, out=tmp_path) as fleet:
+        fleet.wait(0.5)
+        before = fleet.goals()
+        with pytest.raises(GoalRefused) as info:
+            fleet.goto(goals)
+        assert info.value.robot == robot and reason in info.value.reason and str(info.value).startswith(robot)
+        assert fleet.goals() == before
+        fleet.wait(0.2)
+        assert fleet.goals() == before  # nothing was queued for a later step either
+        assert [e.kind for e in fleet.events() if e.robot == robot] == ["refused"]
+
+
+def test_a_swap_given_as_one_batch_is_accepted(tmp_path):
+    """Two robots may take each other's goals in one call: each new goal is checked against the
+    other's new goal, not its old one."""
+    with Fleet.launch(SWAP4, seed=3, processes=False, out=tmp_path) as fleet:
+        g = fleet.goals()
+        with pytest.raises(GoalRefused):
+            fleet.goto({"r1": g["r3"]})  # alone, it lands on r3's goal
+        fleet.goto({"r1": g["r3"], "r3": g["r1"]})
+        assert fleet.goals()["r1"] == g["r3"] and fleet.goals()["r3"] == g["r1"]
+        assert fleet.wait_arrived(["r1", "r3"], timeout=120)
+
+
+def test_formation_assigns_least_total_distance(tmp_path):
+    pts = [(0.35, 0.35), (-0.35, 0.35), (-0.35, -0.35), (0.35, -0.35)]
+    with Fleet.launch(SWAP4, seed=3, processes=False, out=tmp_path) as fleet:
+        fleet.wait(3.0)
+        here = fleet.points()
+        centre, heading = (0.1, -0.05), 0.3
+        got = fleet.formation(pts, centre=centre, heading=heading)
+        c, s = math.cos(heading), math.sin(heading)
+        world = [(centre[0] + c * x - s * y, centre[1] + s * x + c * y) for x, y in pts]
+        assert np.allclose(sorted(got.values()), sorted(world), atol=1e-12)  # rotated, then moved
+        cost = lambda a: sum(math.dist(here[r], a[r]) for r in a)  # noqa: E731
+        best = min(cost(dict(zip(fleet.ids, p, strict=True))) for p in itertools.permutations(world))
+        assert cost(got) == pytest.approx(best, abs=1e-12)
+        assert fleet.goals() == got
+        assert fleet.wait_arrived(timeout=120)
+        with pytest.raises(FleetError, match="3 points for 4 robots"):
+            fleet.formation(pts[:3])
+        assert fleet.formation([(0.0, 0.8), (0.0, -0.8)], robots=["r1", "r2"]).keys() == {"r1", "r2"}
+
+
+def test_mission_visits_waypoints_in_order(tmp_path):
+    loop = [(0.4, 0.4), (-0.4, 0.4), (-0.4, -0.4)]
+    with Fleet.launch(
+        ROOT / "scenarios" / "paper_two_robots.toml", seed=1, processes=False, out=tmp_path
+    ) as fleet:
+        fleet.mission({"r1": loop})
+        assert fleet.goals()["r1"] == loop[0]
+        assert fleet.wait_arrived(["r1"], timeout=120)
+        hits = [e for e in fleet.events() if e.robot == "r1" and e.kind in ("waypoint", "arrived")]
+        assert [e.kind for e in hits] == ["waypoint", "waypoint", "arrived"]
+        assert [e.detail for e in hits] == [f"({x:.3f}, {y:.3f})" for x, y in loop]
+        assert [e.step for e in hits] == sorted(e.step for e in hits)
+        assert fleet.waypoints_reached()["r1"] == 3 and fleet.waypoints_reached()["r2"] == 0
+        with pytest.raises(GoalRefused, match="outside the arena"):
+            fleet.mission({"r2": [(0.0, 0.0), (3.0, 0.0)]})  # every waypoint checked first
+    assert fleet.summary is not None and fleet.summary["waypoints_reached"] == {"r1": 3, "r2": 0}
+
+
+def test_events_carry_step_and_robot(tmp_path):
+    with Fleet.launch(SWAP4, seed=3, processes=False, out=tmp_path) as fleet:
+        fleet.wait_arrived(timeout=240)
+        evs = list(fleet.events())
+        assert evs and all(
+            isinstance(e, Event) and e.robot in fleet.ids and 0 <= e.step <= fleet.step for e in evs
+        )
+        assert list(fleet.events()) == []  # each event once
+
+
+def test_the_same_script_gives_the_same_run(tmp_path):
+    def script(out: Path) -> list[tuple[float, ...]]:
+        with Fleet.launch(SWAP4, seed=5, processes=False, out=out) as fleet:
+            fleet.wait(2.0)
+            fleet.goto({"r2": (0.2, 0.2)})
+            fleet.wait_arrived(["r2"], timeout=60)
+            return [fleet.poses()[r] for r in fleet.ids]
+
+    assert script(tmp_path / "a") == script(tmp_path / "b")
+
+
+def test_after_close_the_fleet_refuses_work_and_an_exception_still_closes(tmp_path):
+    with pytest.raises(RuntimeError, match="the script failed"):
+        with Fleet.launch(SWAP4, seed=3, processes=False, out=tmp_path) as fleet:
+            fleet.wait(1.0)
+            raise RuntimeError("the script failed")
+    assert fleet.summary is not None and fleet.summary["steps"] == 10
+    assert (tmp_path / "summary.json").exists()
+    with pytest.raises(FleetError, match="closed"):
+        fleet.goto({"r1": (0.0, 0.0)})
+    with pytest.raises(FleetError, match="closed"):
+        fleet.wait_arrived()
+    assert fleet.close() is fleet.summary
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "field"),
+    [({"clock": "wallclock"}, "clock"), ({"clock": "realtime", "processes": False}, "clock"),
+     ({"processes": False, "topology": "star"}, "topology")],
+)  # fmt: skip
+def test_bad_launch_arguments_name_the_field(kwargs, field):
+    with pytest.raises(ConfigError) as info:
+        Fleet.launch(SWAP4, **kwargs)
+    assert info.value.field == field
+
+
+def _example(name: str) -> ModuleType:
+    spec = importlib.util.spec_from_file_location(name, ROOT / "examples" / f"{name}.py")
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.mark.parametrize("name", ["formations", "patrol", "follow"])
+def test_examples_run_in_process(tmp_path, name, capsys):
+    summary = _example(name).main(processes=False, out=str(tmp_path))
+    assert summary["collisions"] == 0 and summary["all_goals_reached"]
+    out = capsys.readouterr().out
+    if name == "formations":
+        assert [ln.split()[4] for ln in out.splitlines()] == ["line", "circle", "square"]
+    elif name == "patrol":
+        assert summary["waypoints_reached"] == {"r1": 9, "r2": 9}
+    else:
+        assert out.count("done") == 3
