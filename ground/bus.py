@@ -148,17 +148,19 @@ class Inbox:
         self.first: dict[str, float] = {}
         """Arrival time [s, time.monotonic] of the first message of each type."""
         self.rejects = RejectCounter(report=lambda m: log(role, m))
-        self._drained: list[tuple[Any, type[Message], bool]] = []
-        """Subscriptions read by :meth:`drain`: (subscriber, type, keep)."""
+        self._drained: list[tuple[Any, type[Message], bool, Any]] = []
+        """Subscriptions read by :meth:`drain`: (subscriber, type, keep, then)."""
         self._awaited: Callable[[], bool] | None = None
         """The predicate the main loop waits on; callbacks wake it only when it holds."""
 
     def subscribe(
         self, session: Any, key: str, typ: type[M], keep: bool = False, remote: bool = False,
-        drained: bool = False,
+        drained: bool = False, then: Callable[[M], None] | None = None,
     ) -> Any:  # fmt: skip
         """Declare a subscriber on ``key`` that decodes ``typ`` and checks the robot id against the key.
 
+        ``then``: called with each message stored, under the lock and before the main loop is
+        woken (a fact that must not be lost to a newer message, e.g. a script's stop).
         ``remote``: ignore this process's own publications on ``key`` (an agent
         does not need its own plan back).  ``drained``: no callback per sample;
         Zenoh queues the samples and :meth:`drain` takes them in the caller's
@@ -171,7 +173,7 @@ class Inbox:
         import zenoh
 
         def on_sample(sample: Any) -> None:
-            self._accept(str(sample.key_expr), sample.payload.to_bytes(), typ, keep, time.monotonic())
+            self._accept(str(sample.key_expr), sample.payload.to_bytes(), typ, keep, time.monotonic(), then)
 
         handler: Any = on_sample
         if drained:
@@ -181,18 +183,20 @@ class Inbox:
         else:
             sub = session.declare_subscriber(key, handler)
         if drained:
-            self._drained.append((sub, typ, keep))
+            self._drained.append((sub, typ, keep, then))
         return sub
 
     def drain(self) -> int:
         """Take every queued sample of the drained subscriptions; returns how many."""
         got = 0
-        for sub, typ, keep in self._drained:
+        for sub, typ, keep, then in self._drained:
             for _ in range(DRAIN_CAPACITY):  # bounded: at most what the queue holds
                 sample = sub.try_recv()
                 if sample is None:
                     break
-                self._accept(str(sample.key_expr), sample.payload.to_bytes(), typ, keep, time.monotonic())
+                self._accept(
+                    str(sample.key_expr), sample.payload.to_bytes(), typ, keep, time.monotonic(), then
+                )
                 got += 1
         return got
 
@@ -212,8 +216,11 @@ class Inbox:
             threading.Event().wait(min(left, DRAIN_POLL))
         return False
 
-    def _accept(self, k: str, payload: bytes, typ: type[Message], keep: bool, now: float) -> None:
-        """Decode, check and store one received payload on key ``k`` (any thread)."""
+    def _accept(
+        self, k: str, payload: bytes, typ: type[Message], keep: bool, now: float, then: Any = None
+    ) -> None:
+        """Decode, check and store one received payload on key ``k`` (any thread); ``then``, if
+        given, is called with the message once stored, before the waiter is woken."""
         try:
             rid = None if k.endswith(_SENDER_KEYS) else self.keys.robot_of(k)
             msg = decode(payload, typ, robot=rid)
@@ -230,12 +237,13 @@ class Inbox:
                 self._store(Digest.TYPE, msg, False)
                 self._wake()
                 return
-            self._admit(k.split("/", 2)[-1], typ, msg, keep, now)
+            if self._admit(k.split("/", 2)[-1], typ, msg, keep, now) and then is not None:
+                then(msg)
             self._wake()
 
-    def _admit(self, tail: str, typ: type[Message], msg: Any, keep: bool, now: float) -> None:
+    def _admit(self, tail: str, typ: type[Message], msg: Any, keep: bool, now: float) -> bool:
         """Store a decoded message received on key ``fleet/F/<tail>``, unless the
-        fault plan drops or delays it (lock held)."""
+        fault plan drops or delays it (lock held); whether it was stored now."""
         step = _step_of(msg)
         if self.faults is not None and step is not None:
             fate, delay = self.faults.decide(self.role, tail, step)
@@ -244,10 +252,11 @@ class Inbox:
                 self.missing.setdefault((typ.TYPE, msg.robot), set()).add(step)
                 if fate == DELIVER:
                     self.held.append((step + delay, typ.TYPE, msg, keep))
-                return
+                return False
         self._store(typ.TYPE, msg, keep)
         self.arrived[(typ.TYPE, msg.robot)] = now
         self.first.setdefault(typ.TYPE, now)
+        return True
 
     def _store(self, type_name: str, msg: Any, keep: bool) -> None:
         """Record ``msg`` (lock held): ``latest`` never goes back to an older step."""

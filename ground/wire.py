@@ -16,10 +16,12 @@ Keys, for a fleet named ``F`` and a robot id ``R``:
 ``fleet/F/odom/R``         robot side → agent: inner-loop velocity (:class:`Odom`)
 ``fleet/F/plan/R``         agent → all: committed reference (:class:`Plan`)
 ``fleet/F/cmd/R``          agent → robot side: acceleration (:class:`Command`)
-``fleet/F/goal/R``         operator → agent: new goal (:class:`Goal`)
+``fleet/F/goal/R``         operator → agent: new goal (:class:`Goal`); put, or a query the agent answers
+``fleet/F/script``         script → tracker: permits steps, ends the run (:class:`Script`)
 ``fleet/F/clock``          tracker → all: the clock's tick (:class:`Tick`)
 ``fleet/F/digest``         tracker → agents: one step's plans, relayed (:class:`Digest`)
-``fleet/F/alive/R``        liveliness token of agent R
+``fleet/F/alive/R``        liveliness token of agent R (also ``supervisor``, :data:`SCRIPT`, and
+                           ``tracker`` in a scripted run)
 ``fleet/F/wheels/R``       ``epuck_link`` → all: wheel odometry (:class:`Wheels`)
 ``fleet/F/applied/R``      ``epuck_link`` → tracker: what the robot did over a step (:class:`Applied`)
 ``fleet/F/emu/R``          e-puck emulator → tracker (``--source emulator``): its true pose
@@ -39,11 +41,13 @@ import msgpack
 import numpy as np
 from numpy.typing import NDArray
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 """The version of every message's layout; a message of another version is rejected.
 
 2: :class:`Command` carries the shifted candidate and :class:`Tick` what the robot side applied;
-3: :class:`Command` carries the ancillary gain K, so the robot side needs no tube design."""
+3: :class:`Command` carries the ancillary gain K, so the robot side needs no tube design;
+4: :class:`Goal` carries the goals given together with it (``batch``), checked in their place,
+and :class:`Script` lets a script hold the lockstep clock and end the run."""
 MAX_PAYLOAD = 64 * 1024
 """Largest accepted message [bytes]."""
 MAX_HORIZON = 200
@@ -51,6 +55,11 @@ MAX_HORIZON = 200
 MAX_RELAYED = 64
 """Most plans one :class:`Digest` carries [robots] (msgpack's array limit in :func:`decode`)."""
 ROBOT_ID = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
+SCRIPT = "script"
+"""The id of a script driving a fleet (``fleet.Fleet``): the sender of :class:`Script`, and its
+liveliness token ``fleet/F/alive/script``."""
+MAX_BATCH = 64
+"""Most goals one :class:`Goal` may carry in its ``batch`` [robots]."""
 _DTYPES = {"<f8": np.float64, "<f4": np.float32}
 _ITEMSIZE = {"<f8": 8, "<f4": 4}
 _ARRAY_KEYS = frozenset({"dtype", "shape", "data"})
@@ -113,6 +122,10 @@ class Keys:
     @property
     def digest(self) -> str:
         return f"{self.root}/digest"
+
+    @property
+    def script(self) -> str:
+        return f"{self.root}/script"
 
     def robot_of(self, key: str) -> str:
         """The robot id at the end of a per-robot key; raises WireError otherwise."""
@@ -402,15 +415,61 @@ class Odom(Message):
 
 @dataclass(frozen=True)
 class Goal(Message):
-    """Operator → agent: a new goal at run time."""
+    """Operator or script → agent: a new goal at run time, for robot ``robot``.
+
+    Published (``fleet goal``), the agent takes it at its next step if it passes its checks; sent
+    as a query on the same key (a script), the agent answers whether it accepted it
+    (:mod:`agent.node`)."""
 
     TYPE: ClassVar[str] = "goal"
     goal: NDArray[np.float64] = field(compare=False)
-    """Goal (2,) [m]."""
+    """Goal (2,) [m], world frame, of the controlled point."""
+    batch: dict[str, NDArray[np.float64]] = field(compare=False, default_factory=dict)
+    """The goals given to other robots together with this one: robot id → goal (2,) [m], world
+    frame; at most :data:`MAX_BATCH`, never ``robot`` itself.  The agent checks its goal against
+    these in place of those robots' current goals, so robots may trade goals in one batch."""
+
+    def _fields(self) -> dict[str, Any]:
+        return {
+            "robot": self.robot,
+            "goal": encode_array(self.goal),
+            "batch": {r: encode_array(g) for r, g in self.batch.items()},
+        }
 
     @classmethod
     def _check(cls, d: dict[str, Any]) -> dict[str, Any]:
-        return {"goal": decode_array(d["goal"], "goal", (2,))}
+        batch = d["batch"]
+        if type(batch) is not dict:
+            raise WireError("batch: expected a map of robot ids to goals")
+        if len(batch) > MAX_BATCH:
+            raise WireError(f"batch: more than {MAX_BATCH} goals")
+        goals = {_str(r, "batch", ROBOT_ID): decode_array(g, "batch", (2,)) for r, g in batch.items()}
+        if d["robot"] in goals:
+            raise WireError("batch: names the robot the goal is for")
+        return {"goal": decode_array(d["goal"], "goal", (2,)), "batch": goals}
+
+
+@dataclass(frozen=True)
+class Script(Message):
+    """Script → tracker (``fleet/F/script``): how far the clock may run, and the end of the run.
+
+    In a scripted run (``python -m tracker --scripted``) on lockstep, the tracker publishes the
+    ground truth of sample k, then holds step k until a Script with ``step`` ≥ k has come: the
+    script sees sample k, gives its goals (each acknowledged by its agent), then permits step k.
+    On realtime ``step`` is not used.  ``robot`` is the sender, :data:`SCRIPT`."""
+
+    TYPE: ClassVar[str] = "script"
+    step: int
+    """The last step the tracker may start (≥ −1; −1: none yet).  Permits only grow: a smaller
+    one than the tracker already has changes nothing."""
+    stop: bool
+    """End the run now: the tracker finishes as at the end of its duration (the stop tick)."""
+
+    @classmethod
+    def _check(cls, d: dict[str, Any]) -> dict[str, Any]:
+        if not isinstance(d["stop"], bool):
+            raise WireError("stop: expected a boolean")
+        return {"step": _int(d["step"], "step", -1), "stop": d["stop"]}
 
 
 @dataclass(frozen=True)
@@ -692,7 +751,8 @@ class LinkState(Message):
 
 
 MESSAGES: dict[str, type[Message]] = {
-    m.TYPE: m for m in (Pose, Truth, Odom, Plan, Command, Goal, Tick, Digest, Wheels, Applied, LinkState)
+    m.TYPE: m
+    for m in (Pose, Truth, Odom, Plan, Command, Goal, Script, Tick, Digest, Wheels, Applied, LinkState)
 }
 
 

@@ -1,19 +1,19 @@
 """Hostile-payload generators for the fuzz tests (``tests/system/test_fuzz_live.py``).
 
-``Generator(name, rng).make(robot)`` returns one :class:`Payload` aimed at the decoder of
-the message type ``name`` (``pose``, ``truth``, ``odom``, ``plan``, ``cmd``, ``goal``,
-``tick``, ``wheels``, ``digest``, ``applied``, ``link``) on the key of robot ``robot``. Every *kind*
-but two builds a payload that the wire contract (``ground/wire.py``) rejects by construction
-(``strict``): garbage that is not msgpack, msgpack that is not a map, a wrong schema version
-or message type, missing or extra fields, NaN/±inf in a number or inside an array, a wrong
-array dtype, shape or byte length, a huge declared shape, a bad list (the digest's columns:
-wrong length, element type or range, a repeated or malformed id), a bool where an int is
-expected, an int out of range, a too-long or malformed string, a payload over
-``MAX_PAYLOAD``, a message of another type, and a message (realistic, otherwise valid)
-claiming another robot's id. The two random kinds (``garbage``: random bytes, ``mutate``:
-byte flips of a valid message) may produce a valid message by chance; the caller drops those
-(a valid message is not a malformed one: hostile *valid* messages are a matter for access
-control, not for the decoders)."""
+``Generator(name, rng).make(robot)`` returns one :class:`Payload` aimed at the decoder of the
+message type ``name`` (``pose``, ``truth``, ``odom``, ``plan``, ``cmd``, ``goal``, ``script``,
+``tick``, ``wheels``, ``digest``, ``applied``, ``link``) on the key of robot ``robot``. Every
+*kind* but two builds a payload that the wire contract (``ground/wire.py``) rejects by
+construction (``strict``): garbage that is not msgpack, msgpack that is not a map, a wrong
+schema version or message type, missing or extra fields, NaN/±inf in a number or inside an
+array, a wrong array dtype, shape or byte length, a huge declared shape, a bad list (the
+digest's columns: wrong length, element type or range, a repeated or malformed id), a bad map of
+goals (a goal's batch: a bad or own id, a bad point, too many), a bool where an int is expected,
+an int out of range, a too-long or malformed string, a payload over ``MAX_PAYLOAD``, a message
+of another type, and a message (realistic, otherwise valid) claiming another robot's id. The two
+random kinds (``garbage``: random bytes, ``mutate``: byte flips of a valid message) may produce
+a valid message by chance; the caller drops those (a valid message is not a malformed one:
+hostile *valid* messages are a matter for access control, not for the decoders)."""
 
 from __future__ import annotations
 
@@ -26,6 +26,7 @@ import msgpack
 import numpy as np
 
 from ground.wire import (
+    MAX_BATCH,
     MAX_HORIZON,
     MAX_PAYLOAD,
     MAX_RELAYED,
@@ -39,13 +40,15 @@ from ground.wire import (
     Odom,
     Plan,
     Pose,
+    Script,
     Tick,
     Truth,
     Wheels,
 )
 
 TYPES: dict[str, type[Message]] = {
-    m.TYPE: m for m in (Pose, Truth, Odom, Plan, Command, Goal, Tick, Wheels, Digest, Applied, LinkState)
+    m.TYPE: m
+    for m in (Pose, Truth, Odom, Plan, Command, Goal, Script, Tick, Wheels, Digest, Applied, LinkState)
 }
 NAMES = tuple(TYPES)
 
@@ -57,6 +60,7 @@ FLOATS: dict[str, tuple[str, ...]] = {
     "plan": ("t0", "Ts", "footprint", "solve_time"),
     "cmd": ("ax", "ay"),
     "goal": (),
+    "script": (),
     "tick": ("t",),
     "wheels": ("t", "v", "omega"),
     "digest": ("Ts",),
@@ -71,6 +75,7 @@ INTS: dict[str, dict[str, tuple[int, int]]] = {
     "plan": {"step": _SEQ, "priority": (-(2**31), 2**31), "rank": (0, 2**31), "phase": (0, 2)},
     "cmd": {"step": _SEQ},
     "goal": {},
+    "script": {"step": (-1, 2**62)},
     "tick": {"step": _SEQ, "misses": _SEQ},
     "wheels": {"seq": _SEQ, "left_steps": (-(2**62), 2**62), "right_steps": (-(2**62), 2**62)},
     "digest": {"step": _SEQ},
@@ -87,6 +92,7 @@ INTS: dict[str, dict[str, tuple[int, int]]] = {
 """Integer fields and their accepted closed ranges."""
 BOOLS: dict[str, tuple[str, ...]] = {
     "plan": ("tube_ok",), "tick": ("stop",), "cmd": ("fallback",), "applied": ("braked",), "link": ("up",),
+    "script": ("stop",),
 }  # fmt: skip
 ARRAYS: dict[str, dict[str, tuple[int | None, ...]]] = {
     "plan": {"committed": (None, 2), "nominal": (None, 2), "target": (2,), "goal": (2,)},
@@ -110,6 +116,8 @@ STRINGS: dict[str, dict[str, int]] = {"plan": {"status": 64}}
 """Free-text fields and their longest accepted length."""
 MAPS: dict[str, dict[str, int]] = {"tick": {"fallback": 0, "braked": -1}}
 """Maps robot id → step, and the smallest step each accepts (the largest is the tick's step)."""
+POINT_MAPS: dict[str, tuple[str, ...]] = {"goal": ("batch",)}
+"""Maps robot id → point (2,) [m], never the message's own robot, at most MAX_BATCH entries."""
 OPEN_RANGES: dict[str, dict[str, tuple[float, float]]] = {
     "plan": {"Ts": (0.0, 10.0), "footprint": (0.0, 10.0)},
     "digest": {"Ts": (0.0, 10.0)},
@@ -149,6 +157,7 @@ def table_names(name: str) -> set[str]:
         | set(ARRAYS.get(name, {}))
         | set(STRINGS.get(name, {}))
         | set(MAPS.get(name, {}))
+        | set(POINT_MAPS.get(name, ()))
         | set(LISTS.get(name, {}))
     )
 
@@ -188,7 +197,11 @@ def realistic(name: str, robot: str, rng: np.random.Generator) -> Message:
             K=rng.uniform(-50.0, 0.0, (2, 4)),
         )  # fmt: skip
     if name == "goal":
-        return Goal(robot=robot, goal=rng.uniform(-0.7, 0.7, 2))
+        others = [r for r in OTHER_IDS[:4] if r != robot][: int(rng.integers(0, 4))]
+        batch = {r: rng.uniform(-0.7, 0.7, 2) for r in others}
+        return Goal(robot=robot, goal=rng.uniform(-0.7, 0.7, 2), batch=batch)
+    if name == "script":
+        return Script(robot=robot, step=k - 1, stop=bool(rng.random() < 0.2))
     if name == "tick":
         late = {r: max(0, k - int(rng.integers(1, 4))) for r in OTHER_IDS[: int(rng.integers(0, 3))]}
         return Tick(
@@ -241,6 +254,7 @@ class Generator:
         self.arrays = ARRAYS.get(name, {})
         self.strings = STRINGS.get(name, {})
         self.maps = MAPS.get(name, {})
+        self.points = POINT_MAPS.get(name, ())
         self.lists = LISTS.get(name, {})
         kinds: dict[str, float] = {
             "garbage": 2.0,
@@ -265,6 +279,8 @@ class Generator:
             kinds["float_range"] = 1.0
         if self.maps:
             kinds["map_bad"] = 1.5
+        if self.points:
+            kinds["point_map_bad"] = 1.5
         if self.lists:
             kinds["list_bad"] = 3.0
         if not self.floats:
@@ -478,6 +494,9 @@ class Generator:
             v = self.choice([*generic, "true", "True"])
         elif f in self.maps:
             v = self.choice([None, "r1", 0, 1.5, True, b"\x00", [["r1", 0]], ["r1"]])
+        elif f in self.points:
+            pt = _arr(np.zeros(2))
+            v = self.choice([None, "r2", 0, 1.5, True, b"\x00", [["r2", pt]], [pt]])
         elif f in self.lists:
             v = self.choice([None, "r1", 0, 1.5, True, b"\x00", {"0": d[f][0]}, _arr(np.zeros(len(d[f])))])
         else:  # robot, status: text fields
@@ -521,10 +540,30 @@ class Generator:
         if how == 0:
             d[f] = self.choice([None, [], ["r1", 0], "r1", 0, [["r1", 0]], b"\x80"])
         else:
-            m = dict(d[f])
-            key, val = self.choice(bad_entries)
-            m[key] = val
-            d[f] = m
+            d[f] = {**d[f], **dict([self.choice(bad_entries)])}
+        return d, True
+
+    def _point_map_bad(self, d: dict[str, Any], robot: str) -> tuple[dict[Any, Any], bool]:
+        """A robot → point map (a goal's batch) with a bad entry, too many entries, or not a map."""
+        f = self.choice(list(self.points))
+        other = self.choice([r for r in OTHER_IDS if r != robot])
+        good = _arr(self.rng.uniform(-0.7, 0.7, 2))
+        bad_entries: list[tuple[Any, Any]] = [
+            (robot, good), ("", good), ("r/2", good), ("x" * 33, good), ("r2\n", good), (b"r2", good),
+            (other, None), (other, [0.1, 0.2]), (other, 0.5), (other, _arr(np.zeros(3))),
+            (other, _arr(np.zeros((1, 2)))), (other, _arr(np.array([np.nan, 0.0]))),
+            (other, _arr(np.array([0.0, np.inf]))), (other, _arr(np.zeros(2), "<i8")),
+            (other, {**good, "shape": [3]}), (other, {**good, "data": good["data"][:-1]}),
+        ]  # fmt: skip
+        how = int(self.rng.integers(4))
+        d = dict(d)
+        if how == 0:
+            d[f] = self.choice([None, [], [[other, good]], other, 0, 1.5, b"\x80", good])
+        elif how == 1:  # more robots than a batch may name
+            n = MAX_BATCH + 1 + int(self.rng.integers(0, 8))
+            d[f] = {f"q{i}": good for i in range(n)}
+        else:
+            d[f] = {**d[f], **dict([self.choice(bad_entries)])}
         return d, True
 
     def _list_bad(self, d: dict[str, Any], robot: str) -> tuple[dict[str, Any], bool]:

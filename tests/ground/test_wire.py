@@ -12,9 +12,11 @@ import pytest
 from ground.bus import Inbox
 from ground.faults import FaultPlan
 from ground.wire import (
+    MAX_BATCH,
     MAX_PAYLOAD,
     MAX_RELAYED,
     SCHEMA_VERSION,
+    SCRIPT,
     Applied,
     Command,
     Digest,
@@ -25,6 +27,7 @@ from ground.wire import (
     Plan,
     Pose,
     RejectCounter,
+    Script,
     Tick,
     Truth,
     WireError,
@@ -65,7 +68,10 @@ SAMPLES = {
         v_next=np.linspace(-0.1, 0.1, 40).reshape(20, 2),
     ),
     "odom": Odom(robot="r1", seq=4, t=0.4, vx=0.05, vy=-0.01),
-    "goal": Goal(robot="r1", goal=np.array([0.3, 0.4])),
+    "goal": Goal(
+        robot="r1", goal=np.array([0.3, 0.4]), batch={"r2": np.array([-0.3, 0.4]), "r3": np.zeros(2)}
+    ),
+    "script": Script(robot=SCRIPT, step=41, stop=False),
     "tick": Tick(
         robot="tracker", step=12, t=1.2, stop=False, misses=3, fallback={"r2": 9}, braked={"r3": -1}
     ),
@@ -95,6 +101,18 @@ def test_round_trip(name):
     for f in ("committed", "target", "goal", "x_next", "v_next"):
         if hasattr(msg, f):
             assert np.array_equal(getattr(back, f), getattr(msg, f))
+    if isinstance(msg, Goal):
+        assert back.batch.keys() == msg.batch.keys() and len(msg.batch) == 2
+        assert all(np.array_equal(back.batch[r], g) for r, g in msg.batch.items())
+
+
+def test_a_goal_alone_has_an_empty_batch_and_a_script_may_permit_no_step_yet():
+    alone = decode(Goal(robot="r1", goal=np.array([0.3, 0.4])).encode(), Goal, robot="r1")
+    assert alone.batch == {} and np.array_equal(alone.goal, [0.3, 0.4])
+    none_yet = decode(Script(robot=SCRIPT, step=-1, stop=True).encode(), Script, robot=SCRIPT)
+    assert (none_yet.step, none_yet.stop) == (-1, True)
+    full = {f"q{i}": np.full(2, 0.01 * i) for i in range(MAX_BATCH)}
+    assert len(decode(Goal(robot="r1", goal=np.zeros(2), batch=full).encode(), Goal).batch) == MAX_BATCH
 
 
 def test_arrays_travel_as_raw_bytes():
@@ -178,6 +196,24 @@ BAD = [
      Applied, "braked"),
     ("applied: followed with nothing applied", lambda: _mutate(SAMPLES["applied"], last=-1), Applied, "last"),
     ("applied: non-bool braked", lambda: _mutate(SAMPLES["applied"], braked=0), Applied, "braked"),
+    ("goal: schema 3, no batch", lambda: _mutate(SAMPLES["goal"], batch=KeyError), Goal, "fields"),
+    ("goal: batch not a map", lambda: _mutate(SAMPLES["goal"], batch=[["r2", encode_array(np.zeros(2))]]),
+     Goal, "batch"),
+    ("goal: batch names the robot itself", lambda: _mutate(
+        SAMPLES["goal"], batch={"r1": encode_array(np.zeros(2))}), Goal, "batch"),
+    ("goal: batch with a bad id", lambda: _mutate(
+        SAMPLES["goal"], batch={"r 2": encode_array(np.zeros(2))}), Goal, "batch"),
+    ("goal: NaN in the batch", lambda: _mutate(
+        SAMPLES["goal"], batch={"r2": encode_array(np.array([0.0, np.nan]))}), Goal, "batch"),
+    ("goal: batch point of 3", lambda: _mutate(
+        SAMPLES["goal"], batch={"r2": encode_array(np.zeros(3))}), Goal, "batch"),
+    ("goal: batch of a number", lambda: _mutate(SAMPLES["goal"], batch={"r2": 0.5}), Goal, "batch"),
+    ("goal: batch over the limit", lambda: _mutate(
+        SAMPLES["goal"], batch={f"q{i}": encode_array(np.zeros(2)) for i in range(MAX_BATCH + 1)}),
+     Goal, "payload"),
+    ("script: step below -1", lambda: _mutate(SAMPLES["script"], step=-2), Script, "step"),
+    ("script: non-bool stop", lambda: _mutate(SAMPLES["script"], stop=1), Script, "stop"),
+    ("script: float step", lambda: _mutate(SAMPLES["script"], step=3.0), Script, "step"),
     ("link: non-bool up", lambda: _mutate(SAMPLES["link"], up=0), LinkState, "up"),
     ("link: negative speed", lambda: _mutate(SAMPLES["link"], speed=-0.1), LinkState, "speed"),
     ("link: wheel speed past int16", lambda: _mutate(SAMPLES["link"], left=40000), LinkState, "left"),
@@ -244,11 +280,30 @@ def test_keys():
     k = Keys("lab")
     assert k.plan("r1") == "fleet/lab/plan/r1" and k.pose() == "fleet/lab/pose/*"
     assert k.clock == "fleet/lab/clock" and k.digest == "fleet/lab/digest"
+    assert k.script == "fleet/lab/script" and k.robot_of(k.script) == SCRIPT
+    assert k.alive(SCRIPT) == "fleet/lab/alive/script"
     assert k.robot_of("fleet/lab/cmd/r7") == "r7"
     with pytest.raises(WireError):
         k.robot_of("fleet/lab/cmd/r 7")
     with pytest.raises(ValueError):
         Keys("a/b")
+
+
+def test_a_script_claiming_another_id_is_rejected_and_its_stop_is_not_lost():
+    """On ``fleet/F/script`` the sender is the script.  The inbox keeps the highest permit as the
+    latest Script, so a stop sent with a smaller step would not replace it: ``then`` sees every
+    message stored, which is how the tracker keeps a stop whatever its step."""
+    keys = Keys("lab")
+    inbox = Inbox(keys, "tracker")
+    seen: list[Script] = []
+    forged = Script(robot="r1", step=3, stop=True).encode()
+    inbox._accept(keys.script, forged, Script, False, 0.0, seen.append)
+    assert inbox.rejects.total == 1 and not seen and inbox.get(Script, SCRIPT) is None
+    for step, stop in ((7, False), (-1, True)):
+        inbox._accept(keys.script, Script(robot=SCRIPT, step=step, stop=stop).encode(), Script, False, 0.0,
+                      seen.append)  # fmt: skip
+    assert [(m.step, m.stop) for m in seen] == [(7, False), (-1, True)]
+    assert inbox.get(Script, SCRIPT).step == 7 and not inbox.get(Script, SCRIPT).stop
 
 
 def test_reject_counter_reports_once_per_source():

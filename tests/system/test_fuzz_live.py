@@ -93,6 +93,7 @@ TARGETS: dict[str, list[tuple[str, int | None]]] = {
     ],
     "cmd": [("cmd/r1", None), ("cmd/r2", None), ("cmd/r3", None), ("cmd/r9", 50), ("cmd/r1.x", 50)],
     "goal": [("goal/r1", None), ("goal/r2", None), ("goal/r3", None)],
+    "script": [("script", None)],
     "tick": [("clock", None)],
     "digest": [("digest", None)],
     "applied": [("applied/r1", None), ("applied/r2", None), ("applied/r3", None), ("applied/r9", 50)],
@@ -117,8 +118,9 @@ supervisor/monitor.py, agent/node.py; the tracker takes epuck_link's reports in 
 and ignores them for simulated robots).  In the mesh an agent takes the plans of every key but
 its own publications, and this test is remote to it, so plan/<its id> reaches it too; with
 relayed plans it takes the tracker's digest instead, and no plan."""
-NOT_IN = {"mesh": ("digest",), "relay": ()}
-"""Types nobody decodes in a fleet of that exchange (nobody subscribes to the digest in the mesh)."""
+NOT_IN = {"mesh": ("digest", "script"), "relay": ("script",)}
+"""Types nobody decodes in a fleet of that exchange (nobody subscribes to the digest in the mesh;
+only the tracker of a scripted run takes a script's messages)."""
 
 
 def _matches(pattern: str, key: str) -> bool:
