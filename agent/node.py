@@ -11,6 +11,15 @@ does not arrive in time is kept clear of as a growing disc (:class:`agent.hazard
 the tick says the robot side did not apply the agent's last commands, the agent takes the plan
 the robot executed (:meth:`TubeMPC.rewind`) or, if the robot braked, starts again where it is
 (docs/design.md, "Missed deadlines").
+
+Goals at run time come on ``fleet/F/goal/ID``: published (``fleet goal``), or as a query (a
+script), which the agent answers with a msgpack map, ``{"ok": true}`` or ``{"ok": false,
+"reason": "<one line>"}`` (a payload that is not a valid Goal for this robot is counted with the
+rejected payloads and answered as an error, ``reply_err``, with the same map).  Either way the
+goal is checked against the walls, the obstacles and the other robots' goals (those of the goal's
+``batch`` in place of theirs), and an accepted one is taken at the agent's next step.
+``--scripted``: a script may hold the clock for as long as it likes; no tick for ``--timeout``
+then ends the agent only once the tracker is gone too (its liveliness token).
 """
 
 from __future__ import annotations
@@ -22,6 +31,7 @@ import time
 from functools import partial
 from typing import Any
 
+import msgpack
 import numpy as np
 
 from agent.controller import TubeMPC
@@ -33,10 +43,12 @@ from ground.bus import Inbox, open_session, publisher, remember_steps
 from ground.geometry import controlled_point, measured_state
 from ground.process import add_common_args, announce, fault_plan, log
 from ground.scenario import ConfigError, Scenario, goal_problem, load_scenario
-from ground.wire import Command, Digest, Goal, Keys, LinkState, Odom, Plan, Pose, Tick
+from ground.wire import Command, Digest, Goal, Keys, LinkState, Odom, Plan, Pose, Tick, WireError, decode
 
 REJOIN_GAP = 5
 """Steps missed (0.5 s at Ts = 0.1 s, the link watchdog's time) after which an agent re-initialises."""
+TRACKER = "tracker"
+"""The tracker's id: the sender of the ticks, and its liveliness token in a scripted run."""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -46,6 +58,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--blind-steps", type=int, default=3,
         help="steps to run on the nominal model's prediction when poses stop (then brake and hold)",
+    )  # fmt: skip
+    ap.add_argument(
+        "--scripted", action="store_true",
+        help="a script drives the run and may hold the clock: without a tick for --timeout, wait on "
+        "while the tracker is alive (its liveliness token)",
     )  # fmt: skip
     args = ap.parse_args(argv)
     try:
@@ -83,7 +100,8 @@ class Agent:
             obstacles=scn.obstacles, priority=spec.priority, rank=rank,
             seed=scn.simulation.seed * 1000 + rank,
         )  # fmt: skip
-        self.link = _Link(args, Keys(args.fleet), me, self.role)
+        self.keys = Keys(args.fleet)
+        self.link = _Link(args, self.keys, me, self.role)
         self.inbox = self.link.inbox
         self.others = [r for r in ids if r != me]
         self.starts = {
@@ -100,6 +118,10 @@ class Agent:
         self.a_prev = np.zeros(2)
         self.blind = 0
         self.goal_seen: Goal | None = None
+        self.pending: Goal | None = None
+        """A goal a query gave and the agent accepted, to take at the next step (under inbox.cond)."""
+        self.held = False
+        """The clock has been held past --timeout (scripted; logged once a hold)."""
         self.links: dict[str, LinkState | None] = {}
         """The newest link state of each other robot (real and emulated robots only)."""
         self.last: dict[str, Plan | None] = {}
@@ -117,6 +139,7 @@ class Agent:
         self.behind = ""
         """What the robot side did instead of this agent's last commands: "" (applied them),
         "candidate" or "braked"; each episode is logged once."""
+        self.link.go_live(self._answer_goal)
 
     def step(self) -> int | None:
         """One step: wait for the tick, measure, plan, publish.  None to go on; the exit code
@@ -128,6 +151,11 @@ class Agent:
                 seen = {f"{t}/{r}": round(now - at, 1) for (t, r), at in inbox.arrived.items()}
                 alive = sorted(inbox.live)
             if now - self.silent_since >= args.timeout:
+                if args.scripted and TRACKER in alive:  # the script holds the clock
+                    if not self.held:
+                        log(self.role, f"no tick {k} for {args.timeout} s: held by the script, waiting")
+                    self.held = True
+                    return None
                 log(
                     self.role,
                     f"no tick {k} within {args.timeout} s; stopping (live {alive}; s since: {seen})",
@@ -135,6 +163,7 @@ class Agent:
                 return 1
             return None
         self.silent_since = time.monotonic()
+        self.held = False
         tick = inbox.get(Tick, "tracker")
         assert tick is not None
         self._follow_clock(tick)
@@ -155,6 +184,10 @@ class Agent:
             return None
         if goal is not None and goal is not self.goal_seen:
             self._take_goal(goal, k)
+        with inbox.cond:
+            asked, self.pending = self.pending, None
+        if asked is not None:  # accepted when it came (_answer_goal)
+            self._set_goal(asked.goal, k)
         ctrl, blind = self.ctrl, self.blind > args.blind_steps
         nbs, hazards = self.guard.classify(
             k, self.others, fresh, self.last, live, self.starts, set(tick.braked), self.links
@@ -282,15 +315,53 @@ class Agent:
         return np.asarray(design.A @ self.x_est + design.B @ self.a_prev)  # the nominal model's prediction
 
     def _take_goal(self, goal: Goal, k: int) -> None:
-        """A goal given at run time: checked again here (``fleet goal`` checks it too)."""
+        """A goal published at run time: checked again here (``fleet goal`` checks it too)."""
         self.goal_seen = goal
-        plans = [pl for pl in self.last.values() if pl]
-        problem = goal_problem(self.scn, self.design.footprint, goal.goal, plans)
+        with self.inbox.cond:
+            problem = self._goal_problem(goal)
         if problem is not None:
             log(self.role, f"goal {goal.goal.round(3).tolist()} rejected: {problem}")
-        elif not np.array_equal(goal.goal, self.ctrl.goal):
-            self.ctrl.set_goal(goal.goal)
-            log(self.role, f"new goal {goal.goal.round(3).tolist()} at step {k}")
+        else:
+            self._set_goal(goal.goal, k)
+
+    def _set_goal(self, goal: np.ndarray, k: int) -> None:
+        """Steer to ``goal`` (2,) [m] from step k on (an accepted goal)."""
+        if not np.array_equal(goal, self.ctrl.goal):
+            self.ctrl.set_goal(goal)
+            log(self.role, f"new goal {goal.round(3).tolist()} at step {k}")
+
+    def _goal_problem(self, goal: Goal) -> str | None:
+        """Why ``goal`` cannot be taken, or None (inbox.cond held): the walls, the obstacles and
+        the other robots' goals, each the one in ``goal.batch`` if it names the robot, else the
+        one its latest plan carries."""
+        plans = [pl for j in self.others if (pl := self.inbox.get(Plan, j)) is not None]
+        return goal_problem(self.scn, self.design.footprint, goal.goal, plans, goal.batch)
+
+    def _answer_goal(self, query: Any) -> None:
+        """A goal sent as a query on this robot's goal key (a Zenoh thread): decoded strictly
+        (a malformed one is counted with the rejected payloads), checked, and, if accepted, kept
+        for the next step; the reply says which (:func:`_goal_reply`)."""
+        inbox = self.inbox
+        try:
+            try:
+                payload = query.payload
+                if payload is None:
+                    raise WireError("payload: none")
+                goal = decode(payload.to_bytes(), Goal, robot=self.me)
+            except WireError as e:
+                with inbox.cond:
+                    inbox.rejects.reject(str(query.key_expr), e)
+                query.reply_err(_goal_reply(e.reason))
+                return
+            with inbox.cond:
+                problem = self._goal_problem(goal)
+                if problem is None:
+                    self.pending = goal
+            if problem is not None:
+                log(self.role, f"goal {goal.goal.round(3).tolist()} rejected: {problem}")
+            query.reply(self.keys.goal(self.me), _goal_reply(problem))
+        finally:
+            query.drop()
 
     def close(self) -> None:
         c, guard = self.ctrl.counters, self.guard
@@ -334,18 +405,33 @@ class _Link:
         ]
         self.pub_plan = publisher(self.session, keys.plan(me))
         self.pub_cmd = publisher(self.session, keys.cmd(me))
+        self.args, self.keys, self.me, self.role = args, keys, me, role
+        self.token: Any = None
+
+    def go_live(self, on_goal: Any) -> None:
+        """Answer goal queries with ``on_goal``, then declare the liveliness token."""
+        args, keys, me = self.args, self.keys, self.me
+        self.subs.append(self.session.declare_queryable(keys.goal(me), on_goal))
         # A peer that joins a running fleet drops what it publishes until it has heard the
         # others' subscriptions; the tracker waits for the commands of every live agent, so
         # become live only once the commands have a taker.
         if not _wait_matching(self.pub_cmd, args.timeout):
-            log(role, f"nobody subscribes to {keys.cmd(me)} within {args.timeout} s; going live anyway")
+            log(self.role, f"nobody subscribes to {keys.cmd(me)} within {args.timeout} s; going live anyway")
         self.token = self.session.liveliness().declare_token(keys.alive(me))
 
     def close(self) -> None:
-        self.token.undeclare()
+        if self.token is not None:
+            self.token.undeclare()
         for sub in self.subs:
             sub.undeclare()
         self.session.close()
+
+
+def _goal_reply(problem: str | None) -> bytes:
+    """The answer to a goal query, a msgpack map: ``{"ok": True}`` when ``problem`` is None, else
+    ``{"ok": False, "reason": problem}`` (one line)."""
+    body: dict[str, Any] = {"ok": True} if problem is None else {"ok": False, "reason": problem}
+    return bytes(msgpack.packb(body, use_bin_type=True))
 
 
 def _wait_matching(pub: Any, timeout: float) -> bool:

@@ -1106,20 +1106,29 @@ def home(end: np.ndarray, point: np.ndarray, goal: np.ndarray) -> bool:
     return bool(np.linalg.norm(end - goal) < AT_GOAL and np.linalg.norm(point - goal) <= 0.5 * GOAL_TOLERANCE)
 
 
-def goal_problem(scn: Scenario, footprint: float, goal: np.ndarray, plans: Sequence[Any]) -> str | None:
+def goal_problem(
+    scn: Scenario, footprint: float, goal: np.ndarray, plans: Sequence[Any],
+    batch: Mapping[str, np.ndarray] | None = None,
+) -> str | None:  # fmt: skip
     """Why a goal (2,) [m] given at run time cannot be accepted, or None.
 
     It must clear the walls and obstacles by the footprint radius [m] and park at least the two
     footprints and :data:`GOAL_MARGIN` away from every other robot's current goal: ``plans`` are their latest
-    :class:`~ground.wire.Plan` (``robot``, ``goal`` (2,) [m], ``footprint`` [m])."""
+    :class:`~ground.wire.Plan` (``robot``, ``goal`` (2,) [m], ``footprint`` [m]).  ``batch`` are
+    the goals given to other robots together with this one (robot id → (2,) [m], not the robot
+    itself): each replaces that robot's current goal, so that robots may trade goals in one batch;
+    a robot of the batch without a plan counts with ``footprint`` (one design for the fleet)."""
     try:
         check_point(scn, goal, footprint, "goal")
     except ConfigError as e:
         return e.reason
-    for pl in plans:
-        d = float(np.linalg.norm(goal - pl.goal))
-        need = footprint + pl.footprint + GOAL_MARGIN
+    given = dict(batch or {})
+    others = [(pl.robot, given.pop(pl.robot, pl.goal), pl.footprint) for pl in plans]
+    others += [(rid, g, footprint) for rid, g in given.items()]
+    for rid, theirs, fp in others:
+        d = float(np.linalg.norm(goal - np.asarray(theirs, dtype=float)))
+        need = footprint + fp + GOAL_MARGIN
         if d < need:
             why = f"closer than the footprints and the margin allow ({need:.3f} m)"
-            return f"{d:.3f} m from {pl.robot}'s goal, {why}"
+            return f"{d:.3f} m from {rid}'s goal, {why}"
     return None

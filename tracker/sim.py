@@ -19,6 +19,15 @@ With ``--clock realtime`` steps start every Ts of wall time after the first
 before tick k, the digest of the plans of step k − 1 that it has (the agents then subscribe to
 it instead of to each other's plans).
 
+``--scripted``: a script drives the run (``fleet.Fleet``): it ends when the script sends a
+:class:`ground.wire.Script` with ``stop``, when its liveliness token goes (the script died), on
+SIGTERM, or when no agent is alive; not early when every robot is home, nor at the scenario's
+duration (``--steps`` still caps it).  On lockstep the tracker publishes the ground truth of sample
+k first, then holds step k, for as long as it takes, until the script permits it (a Script of
+``step`` ≥ k), and only then publishes the poses, odometry, digest and tick of step k: the script
+sees sample k and gives its goals before step k is planned.  Meanwhile the tracker's liveliness
+token tells the agents (``--scripted``) that the clock is held, not dead.
+
 ``--source emulator`` (realtime only) is the camera of a lab whose robots are e-puck firmware
 emulators (:mod:`epuck_link.emulator`) driven by ``epuck_link`` processes: it observes each
 emulator's true pose on ``fleet/F/emu/R`` and publishes it, with the same bounded camera noise,
@@ -29,6 +38,8 @@ and report what they did (:mod:`tracker.reports`), and the odometry comes from t
 from __future__ import annotations
 
 import argparse
+import itertools
+import signal
 import sys
 import threading
 import time
@@ -42,7 +53,7 @@ from ground.bus import Inbox, open_session, publisher, remember_steps
 from ground.geometry import measured_state
 from ground.process import add_common_args, announce, fault_plan, log, seed_arg
 from ground.scenario import ConfigError, Scenario, home, load_scenario, settle_samples
-from ground.wire import Applied, Command, Digest, Keys, Odom, Plan, Pose, Tick, Truth
+from ground.wire import SCRIPT, Applied, Command, Digest, Keys, Odom, Plan, Pose, Script, Tick, Truth
 from tracker.reports import REPORT_WAIT, Reports
 from tracker.world import Disturbance, EmulatedWorld, PoseNoise, SimulatedWorld
 
@@ -56,6 +67,9 @@ LAG_LIMIT = 0.25
 """Realtime: a tick later than this fraction of Ts after its time starts the clock over."""
 PROGRESS_EVERY = 50
 """Steps between progress lines on stderr."""
+HOLD_POLL = 1.0
+"""Scripted lockstep: how often [s] a held step looks again at what may end the hold, besides
+being woken by it."""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -78,6 +92,11 @@ def main(argv: list[str] | None = None) -> int:
         default=0.5,
         help="realtime: command deadline after the tick, as a fraction of Ts",
     )
+    ap.add_argument(
+        "--scripted", action="store_true",
+        help="a script drives the run: on lockstep each step waits for its permit; the run ends on "
+        "the script's stop or when it leaves, not early nor at the scenario's duration",
+    )  # fmt: skip
     args = ap.parse_args(argv)
     try:
         scn = load_scenario(args.scenario)
@@ -94,19 +113,24 @@ def main(argv: list[str] | None = None) -> int:
         print(f"tracker: error: {e}", file=sys.stderr)
         return 2
     steps = args.steps if args.steps is not None else round(scn.duration / scn.controller.Ts)
+    if args.scripted and args.steps is None:
+        steps = None  # until the script ends the run
     session = open_session(args)
     tracker = SimTracker(args, scn, session)
+    if args.scripted:
+        signal.signal(signal.SIGTERM, tracker.on_term)
     announce(ROLE, robots=tracker.ids, steps=steps)
     try:
         if not tracker.wait_start(args.start_timeout):
             return 1
         k = 0
-        for k in range(steps):
-            if tracker.step(k):
-                k += 1
+        for k in itertools.count() if steps is None else range(steps):
+            end = tracker.step(k)
+            if end is not None:
+                k = end
                 break
         else:
-            k = steps
+            k = steps or 0
         tracker.finish(k)
     finally:
         tracker.close()
@@ -177,12 +201,62 @@ class SimTracker:
         [s] it lost so, and whether it is behind now (logged once an episode)."""
         self.digest: bytes | None = None
         self.relayed: list[Plan] = []
+        self.scripted = args.scripted
+        self.stopping = threading.Event()
+        """SIGTERM came (scripted): end the run at the next step."""
+        self.stop_asked = False
+        """The script asked to end the run (a Script with ``stop``; under inbox.cond)."""
+        self.truths_out = -1
+        """The newest sample whose ground truth is out (scripted lockstep publishes it first)."""
+        self.token: Any = None
+        if self.scripted:
+            self.subs.append(inbox.subscribe(session, keys.script, Script, then=self._on_script))
+            # The agents (--scripted) wait on a held clock for as long as this token is there.
+            self.token = session.liveliness().declare_token(keys.alive(ROLE))
+
+    def on_term(self, signum: int, frame: Any) -> None:
+        """SIGTERM in a scripted run: end it at the next step, or now if a step is held."""
+        self.stopping.set()
+        with self.inbox.cond:
+            self.inbox.cond.notify_all()
+
+    def _on_script(self, msg: Script) -> None:
+        """A Script came (inbox.cond held): a stop is kept whatever its step."""
+        self.stop_asked = self.stop_asked or msg.stop
+
+    def _script_ended(self) -> str | None:
+        """Scripted: why the run ends now (the script's stop, the script gone, SIGTERM), or None
+        (inbox.cond held or not: reads only)."""
+        if self.stopping.is_set():
+            return "SIGTERM"
+        if self.stop_asked:
+            return "the script asked to stop"
+        if SCRIPT not in self.inbox.live:
+            return "the script left the fleet (its liveliness token went)"
+        return None
+
+    def _hold(self, k: int) -> bool:
+        """Scripted lockstep: wait, as long as it takes, until the script permits step k; False
+        when the run ends instead (logged)."""
+        inbox = self.inbox
+
+        def free() -> bool:
+            permit = inbox.get(Script, SCRIPT)
+            return self._script_ended() is not None or (permit is not None and permit.step >= k)
+
+        while not inbox.wait(free, HOLD_POLL):
+            pass
+        why = self._script_ended()
+        if why is not None:
+            log(ROLE, f"step {k}: {why}; ending the run")
+        return why is None
 
     def wait_start(self, timeout: float) -> bool:
-        """Wait until every agent and the supervisor are alive (and, with emulated robots, every
-        emulator has reported its pose); False, logged, if they are not within ``timeout`` [s]."""
+        """Wait until every agent and the supervisor are alive, and the script in a scripted run
+        (and, with emulated robots, every emulator has reported its pose); False, logged, if they
+        are not within ``timeout`` [s]."""
         inbox, ids = self.inbox, self.ids
-        everyone = {*ids, SUPERVISOR}
+        everyone = {*ids, SUPERVISOR, *([SCRIPT] if self.scripted else [])}
         if not inbox.wait(lambda: everyone <= inbox.live, timeout):
             log(ROLE, f"not up within {timeout} s: {', '.join(sorted(everyone - inbox.live))}")
             return False
@@ -194,11 +268,15 @@ class SimTracker:
             return False
         return True
 
-    def step(self, k: int) -> bool:
-        """Step k: measure and publish, tick, collect the commands, move the robots.  True when
-        the run should stop after it (every robot home, or no agent alive)."""
+    def step(self, k: int) -> int | None:
+        """Step k: measure and publish, tick, collect the commands, move the robots.  None to go
+        on; else the sample the run ends at: k + 1 after this step (every robot home, or no agent
+        alive), or k, the step not taken (scripted: the script's stop, the script gone, SIGTERM)."""
         p, inbox, ids = self.p, self.inbox, self.ids
         t = k * p.Ts
+        if self.scripted and (why := self._script_ended()) is not None:
+            log(ROLE, f"step {k}: {why}; ending the run")
+            return k
         # Each robot's pose and odometry, the digest of the plans (relay), then the tick, then
         # the truth, which only the supervisor reads.  The tick comes after what the agents
         # need: the agents it wakes would otherwise take the cores from this process before the
@@ -218,6 +296,14 @@ class SimTracker:
                     # cores idle: the agents decode it before the tick, not in the race to the
                     # next deadline (docs/design.md, "Relayed plans").
                     self.relay.put(self.digest)
+        if self.scripted and not self.realtime:
+            # The script sees sample k first, gives its goals, then permits step k.
+            assert early, "lockstep moves simulated robots only"
+            for pub, payload in truths:
+                pub.put(payload)
+            self.truths_out = k
+            if not self._hold(k):
+                return k
         if self.realtime:
             _until(self.t_start + t)
         inbox.drain()
@@ -238,8 +324,9 @@ class SimTracker:
             ).encode()
         )  # fmt: skip
         sent = time.monotonic()
-        for pub, payload in truths:
-            pub.put(payload)
+        if self.truths_out < k:
+            for pub, payload in truths:
+                pub.put(payload)
         if k % PROGRESS_EVERY == 0 and k:
             log(ROLE, f"step {k}")
         self._collect(k, t, sent, answering)
@@ -248,13 +335,15 @@ class SimTracker:
         self._apply(k, live, states)
         if not live & set(ids):
             log(ROLE, f"step {k}: no agent alive; stopping the run")
-            return True
+            return k + 1
         # Agents send the command before the plan of a step; the early stop below judges the
         # plans of this very step, as `fleet simulate` does.
         inbox.wait(partial(_planned, inbox, answering, k), 0.0 if self.realtime else self.args.timeout)
         inbox.prune(k if self.world.drives else k - Reports.LOOKBACK)
+        if self.scripted:  # the script decides when the run ends
+            return None
         self.home_run = self.home_run + 1 if _all_home(inbox, ids, self.world, k) else 0
-        return self.home_run >= settle_samples(p.Ts)
+        return k + 1 if self.home_run >= settle_samples(p.Ts) else None
 
     def _answering(self, k: int) -> list[str]:
         """Who answers step k: the live agents that have been heard since they came up (at step
@@ -382,11 +471,11 @@ class SimTracker:
         return measured, truths, states
 
     def finish(self, k: int) -> None:
-        """The final poses (sample k), then the stop tick."""
+        """The final poses (sample k; out already if a scripted step k was held), then the stop tick."""
         p = self.p
         if self.realtime:
             _until(self.t_start + k * p.Ts)
-        for rid in self.ids:
+        for rid in self.ids if self.truths_out < k else ():
             with self.inbox.cond:
                 x, y, th = (float(v) for v in self.world.pose(rid))
             self.pubs[rid][2].put(Truth(robot=rid, seq=k, t=k * p.Ts, x=x, y=y, theta=th).encode())
@@ -404,6 +493,8 @@ class SimTracker:
         )
 
     def close(self) -> None:
+        if self.token is not None:
+            self.token.undeclare()
         for s in self.subs:
             s.undeclare()
 

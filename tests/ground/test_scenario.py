@@ -20,6 +20,7 @@ from agent.tube import synthesize
 from fleet.scenes import COMPACT_CONTROLLER, antipodal_swap, random_scene, scene_to_toml
 from ground.params import ControllerParams, preset
 from ground.scenario import (
+    GOAL_MARGIN,
     MAX_SCENARIO_BYTES,
     Circle,
     ConfigError,
@@ -27,6 +28,7 @@ from ground.scenario import (
     Scenario,
     check_geometry,
     controlled_point,
+    goal_problem,
     load_scenario,
     parse_scenario,
 )
@@ -476,6 +478,27 @@ def test_a_goal_behind_a_wall_is_refused_unless_a_passage_fits(gap: float, refus
         "robots[0].goal: goal (0.60, 0.00) of 'r1' cannot be reached from its start: the walls and "
         "obstacles leave no passage for its footprint of radius 0.134 m"
     )
+
+
+def test_goals_given_together_are_checked_in_place_of_the_ones_they_replace() -> None:
+    """``goal_problem`` with a batch: two robots trade goals (each refused alone, as it would park
+    on the other's current goal), a robot of the batch counts with its new goal even when it has
+    no plan, and the walls and obstacles still come first."""
+    from types import SimpleNamespace
+
+    scn = parse_scenario(base())
+    fp = 0.134
+    g1, g2, g3 = np.array([0.6, 0.0]), np.array([-0.6, 0.0]), np.array([0.0, -0.3])
+    plans = {"r1": SimpleNamespace(robot="r1", goal=g1, footprint=fp)}
+    assert "r1's goal" in str(goal_problem(scn, fp, g1, [plans["r1"]]))  # r2 alone onto r1's goal
+    assert goal_problem(scn, fp, g1, [plans["r1"]], {"r1": g2}) is None  # r1 leaves it, together
+    # A robot of the batch without a plan counts with the footprint, at its new goal.
+    near = g3 + np.array([2 * fp + GOAL_MARGIN - 1e-3, 0.0])
+    why = goal_problem(scn, fp, near, [plans["r1"]], {"r1": g2, "r3": g3})
+    assert why is not None and why.startswith("0.277 m from r3's goal"), why
+    assert goal_problem(scn, fp, near + np.array([2e-3, 0.0]), [plans["r1"]], {"r3": g3, "r1": g2}) is None
+    # The batch moves no wall: a goal in an obstacle is refused whatever the others do.
+    assert "obstacles[0]" in str(goal_problem(scn, fp, np.array([0.0, 0.6]), [], {"r1": g2}))
 
 
 def test_a_goal_in_a_pocket_of_obstacles_is_refused() -> None:
