@@ -9,6 +9,10 @@ process a client with one link, to it (docs/design.md, "Topology").
 Readiness is each process's ``{"event": "ready"}`` line, waited on with a
 timeout.  The run ends when the tracker exits; everything still running is
 then stopped by pid (SIGTERM, then SIGKILL).
+
+:func:`run_fleet` is ``fleet run``: :func:`start_fleet`, then :meth:`Launched.wait` and
+:meth:`Launched.stop`.  A script that drives a fleet (``fleet.Fleet``) starts it with
+``start_fleet(..., scripted=True)`` and is one more participant of it until it stops it.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import IO, Any
 
@@ -54,11 +59,14 @@ def _pump(stream: IO[str], q: queue.Queue[str]) -> None:
         q.put(line)
 
 
-def _start(role: str, module: str, args: list[str], env: dict[str, str]) -> Proc:
+def _start(
+    role: str, module: str, args: list[str], env: dict[str, str], stderr: int | IO[str] | None = None
+) -> Proc:
     popen = subprocess.Popen(
         [sys.executable, "-m", module, *args],
         stdout=subprocess.PIPE,
         stdin=subprocess.DEVNULL,
+        stderr=stderr,
         text=True,
         env=env,
     )
@@ -108,13 +116,92 @@ def _stop(procs: list[Proc], grace: float = 5.0, robots: tuple[Proc, ...] = ()) 
                 p.popen.wait(timeout=5)
 
 
-def run_fleet(
+class LaunchError(RuntimeError):
+    """A fleet did not start (the message says which process); what had started is stopped."""
+
+
+@dataclass
+class Launched:
+    """A fleet of processes started by :func:`start_fleet`, running.
+
+    :meth:`wait` waits for the run's end and judges it, :meth:`stop` ends every process by pid.
+    Both are safe to call more than once; :meth:`wait` stops what is left when it returns."""
+
+    procs: list[Proc]
+    """Every process started, the tracker first."""
+    emulators: list[Proc]
+    """The e-puck emulators among them, stopped last."""
+    hub: str
+    """The tracker's listening endpoint, e.g. ``tcp/127.0.0.1:7447``: a script connects to it."""
+    out: Path
+    """The run's directory: ``summary.json``, ``trace.npz``, ``recording.rrd``."""
+    network: dict[str, Any]
+    """``topology``, ``exchange`` and ``lease_s`` [s], for the summary."""
+
+    @property
+    def tracker(self) -> Proc:
+        return self.procs[0]
+
+    @property
+    def pids(self) -> dict[str, int]:
+        """Process id of every process, by role (``tracker``, ``supervisor``, ``agent r1`` …)."""
+        return {p.role: p.pid for p in self.procs}
+
+    def wait(self, timeout: float = 600.0) -> tuple[int, str, dict[str, Any] | None]:
+        """Wait for the tracker's end (``timeout`` [s]), then for the supervisor's summary and
+        the agents' exits, stop what is left, and judge the run: (exit code, one-line verdict,
+        summary or None), as ``fleet run`` reports it."""
+        try:
+            try:
+                self.tracker.popen.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                return 1, f"run did not finish within {timeout:.0f} s", None
+            sup = next(p for p in self.procs if p.role == "supervisor")
+            try:
+                sup.popen.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                sup.popen.send_signal(signal.SIGTERM)
+                sup.popen.wait(timeout=30)
+            for a in self.procs:
+                if a.role.startswith("agent "):
+                    try:
+                        a.popen.wait(timeout=30)
+                    except subprocess.TimeoutExpired:
+                        pass
+        finally:
+            self.stop()
+        return self._judged()
+
+    def stop(self) -> None:
+        """End every process still running, by pid: SIGTERM, then SIGKILL (:func:`_stop`)."""
+        _stop(self.procs, robots=tuple(self.emulators))
+
+    def _judged(self) -> tuple[int, str, dict[str, Any] | None]:
+        """The run's verdict once every process has ended; the summary gets the processes,
+        their exit codes and the network."""
+        codes = {p.role: p.popen.returncode for p in self.procs}
+        summary_path = self.out / "summary.json"
+        summary = json.loads(summary_path.read_text()) if summary_path.exists() else None
+        if summary is not None:
+            summary["processes"] = self.pids
+            summary["exit_codes"] = codes
+            summary["network"] = self.network
+            summary_path.write_text(json.dumps(summary, indent=2) + "\n")
+        crashed = [r for r, c in codes.items() if c not in (0, None)]
+        if crashed:
+            return 1, "process failed: " + ", ".join(f"{r} (exit {codes[r]})" for r in crashed), summary
+        if summary is None:
+            return 1, "supervisor wrote no summary", None
+        why = verdict(summary)
+        return (1, why, summary) if why else (0, "ok", summary)
+
+
+def start_fleet(
     scenario: str,
     robots: list[str],
     out: Path,
     seed: int | None,
     fleet: str = "lab",
-    timeout: float = 600.0,
     viewer: bool = False,
     clock: str = "lockstep",
     hub: str | None = None,
@@ -123,9 +210,15 @@ def run_fleet(
     exchange: str = "mesh",
     lease: float | None = None,
     topology: str = "mesh",
-) -> tuple[int, str, dict[str, Any] | None]:
-    """Run the fleet; returns (exit code, one-line verdict, summary or None).
+    scripted: bool = False,
+    agent_timeout: float | None = None,
+    stderr: int | IO[str] | None = None,
+) -> Launched:
+    """Start the fleet of ``scenario`` (its robots ``robots``), writing to ``out``, and return
+    once every process is ready.  Raises :class:`LaunchError` if one does not start, once the
+    others are stopped.
 
+    ``seed`` overrides the scenario's.  ``fleet`` is the fleet's name in the keys.
     ``hub`` is the tracker's listening endpoint (default: a free loopback port).
     ``faults`` is a fault plan (:mod:`ground.faults`) handed to every process.
     ``exchange`` is how plans travel: ``mesh`` (agent to agent) or ``relay``
@@ -138,7 +231,15 @@ def run_fleet(
     firmware emulator process (advanced sercom on a pseudo-terminal) and an
     ``epuck_link`` process driving it, and the tracker observes the emulators
     (``--source emulator``, realtime clock).  Every robot is simulated or every
-    robot is emulated."""
+    robot is emulated.
+
+    ``scripted``: a script drives the run (docs/design.md, "Scripted runs"): it connects to
+    :attr:`Launched.hub`, declares the liveliness token ``fleet/F/alive/script`` within the
+    tracker's start-up time (60 s), and on lockstep permits every step (:class:`ground.wire.Script`);
+    the run ends when it says so or leaves.  ``agent_timeout``: each agent's ``--timeout`` [s]
+    (default 30): how long it waits for a tick, a measurement or the neighbours' plans.
+    ``stderr``: where the processes' log lines go (a file descriptor or file; default this
+    process's stderr)."""
     if topology not in TOPOLOGIES:
         raise ValueError(f"topology {topology!r} is not one of {', '.join(TOPOLOGIES)}")
     emulated = [r for r in robots if (links or {}).get(r, "sim") == "emulator"]
@@ -162,71 +263,67 @@ def run_fleet(
     seed_args = [] if seed is None else ["--seed", str(seed)]
     hub_mode = ["--mode", "router"] if topology == "star" else []
     spoke = [*common, "--mode", "client"] if topology == "star" else common  # all but the tracker
+    script = ["--scripted"] if scripted else []
+    agent_args = [*script, *([] if agent_timeout is None else ["--timeout", repr(agent_timeout)])]
+    start = partial(_start, env=env, stderr=stderr)
     procs: list[Proc] = []
     emulators: list[Proc] = []
+    started = False
     try:
         source = ["--source", "emulator"] if emulated else []
         procs.append(
-            _start("tracker", "tracker", [*common, *hub_mode, "--listen", hub, *seed_args, *source], env)
+            start("tracker", "tracker", [*common, *hub_mode, "--listen", hub, *seed_args, *source, *script])
         )
         if _wait_ready(procs, 60.0):
-            return 1, "tracker did not start", None
+            raise LaunchError("tracker did not start")
         # The robot side: one emulator and one epuck_link per emulated robot.
         for rid in emulated:
             emu_args = [*spoke, "--connect", hub, "--robot", rid, "--pty"]
-            emulators.append(_start(f"emulator {rid}", "epuck_link.emulator", emu_args, env))
+            emulators.append(start(f"emulator {rid}", "epuck_link.emulator", emu_args))
         procs += emulators
         late = _wait_ready(emulators, 60.0)
         if late:
-            return 1, f"not ready: {', '.join(late)}", None
+            raise LaunchError(f"not ready: {', '.join(late)}")
         bridges = []
         for e in emulators:
             rid, pty = e.ready["robot"], e.ready["pty"]
             link_args = [*spoke, "--connect", hub, "--robot", rid, "--link", f"serial:{pty}"]
-            bridges.append(_start(f"epuck_link {rid}", "epuck_link", link_args, env))
+            bridges.append(start(f"epuck_link {rid}", "epuck_link", link_args))
         procs += bridges
         late = _wait_ready(bridges, 60.0)
         if late:
-            return 1, f"not ready: {', '.join(late)}", None
+            raise LaunchError(f"not ready: {', '.join(late)}")
         sup_args = [*spoke, "--connect", hub, "--out", str(out), *(["--viewer"] if viewer else [])]
-        sup = _start("supervisor", "supervisor", sup_args, env)
+        sup = start("supervisor", "supervisor", sup_args)
         agents = [
-            _start(f"agent {rid}", "agent", [*spoke, "--connect", hub, "--robot", rid], env) for rid in robots
+            start(f"agent {rid}", "agent", [*spoke, "--connect", hub, "--robot", rid, *agent_args])
+            for rid in robots
         ]
         procs += [sup, *agents]
         late = _wait_ready([sup, *agents], 120.0)
         if late:
-            return 1, f"not ready: {', '.join(late)}", None
-        tracker = procs[0]
-        try:
-            tracker.popen.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            return 1, f"run did not finish within {timeout:.0f} s", None
-        try:
-            sup.popen.wait(timeout=60)
-        except subprocess.TimeoutExpired:
-            sup.popen.send_signal(signal.SIGTERM)
-            sup.popen.wait(timeout=30)
-        for a in agents:
-            try:
-                a.popen.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                pass
+            raise LaunchError(f"not ready: {', '.join(late)}")
+        started = True
     finally:
-        _stop(procs, robots=tuple(emulators))
-    codes = {p.role: p.popen.returncode for p in procs}
-    summary_path = out / "summary.json"
-    summary = json.loads(summary_path.read_text()) if summary_path.exists() else None
-    if summary is not None:
-        summary["processes"] = {p.role: p.pid for p in procs}
-        summary["exit_codes"] = codes
-        lease_s = NetConfig.lease if lease is None else lease
-        summary["network"] = {"topology": topology, "exchange": exchange, "lease_s": lease_s}
-        summary_path.write_text(json.dumps(summary, indent=2) + "\n")
-    crashed = [r for r, c in codes.items() if c not in (0, None)]
-    if crashed:
-        return 1, "process failed: " + ", ".join(f"{r} (exit {codes[r]})" for r in crashed), summary
-    if summary is None:
-        return 1, "supervisor wrote no summary", None
-    why = verdict(summary)
-    return (1, why, summary) if why else (0, "ok", summary)
+        if not started:
+            _stop(procs, robots=tuple(emulators))
+    lease_s = NetConfig.lease if lease is None else lease
+    network = {"topology": topology, "exchange": exchange, "lease_s": lease_s}
+    return Launched(procs, emulators, hub, out, network)
+
+
+def run_fleet(
+    scenario: str, robots: list[str], out: Path, seed: int | None, timeout: float = 600.0, **options: Any
+) -> tuple[int, str, dict[str, Any] | None]:
+    """Run the fleet (``fleet run``); returns (exit code, one-line verdict, summary or None).
+
+    ``options`` are those of :func:`start_fleet`; ``timeout`` [s] bounds the run, from the moment
+    every process is ready."""
+    try:
+        launched = start_fleet(scenario, robots, out, seed, **options)
+    except LaunchError as e:
+        return 1, str(e), None
+    try:
+        return launched.wait(timeout)
+    finally:
+        launched.stop()
