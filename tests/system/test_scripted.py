@@ -13,11 +13,12 @@ a process, never on a clock.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import subprocess
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -68,20 +69,6 @@ class Log:
     def text(self) -> str:
         with self.cond:
             return "\n".join(self.lines)
-
-
-def _launch(tmp_path: Path, **options: Any) -> tuple[Launched, Log]:
-    read, write = os.pipe()
-    try:
-        launched = start_fleet(
-            str(_scene(tmp_path)), ROBOTS, tmp_path / "out", None, scripted=True, stderr=write, **options
-        )
-    except BaseException:
-        os.close(read)
-        raise
-    finally:
-        os.close(write)  # the processes hold their copies: the pipe ends when the last one exits
-    return launched, Log(read)
 
 
 class Player:
@@ -198,6 +185,9 @@ class Player:
             return early
 
     def close(self) -> None:
+        """Leave the fleet (idempotent): the script's token goes."""
+        if self.session.is_closed():
+            return
         if self.token is not None:
             self.token.undeclare()
         for s in self.subs:
@@ -205,22 +195,49 @@ class Player:
         self.session.close()
 
 
-def _exits(launched: Launched) -> dict[str, int | None]:
-    """Wait (bounded) for every process to exit by itself; their exit codes."""
+EXITED = {"tracker": 0, "supervisor": 0, "agent r1": 0, "agent r2": 0}
+"""Every process of the fleet exited 0 by itself."""
+
+
+@contextlib.contextmanager
+def _scripted_fleet(tmp_path: Path, **options: Any) -> Iterator[tuple[Launched, Log, Player]]:
+    """A scripted fleet of the scene (its log lines on a pipe) and this test in it as the script;
+    on the way out the script leaves and every process still running is stopped by pid."""
+    read, write = os.pipe()
+    try:
+        launched = start_fleet(
+            str(_scene(tmp_path)), ROBOTS, tmp_path / "out", None, scripted=True, stderr=write, **options
+        )
+    except BaseException:
+        os.close(read)
+        raise
+    finally:
+        os.close(write)  # the processes hold their copies: the pipe ends when the last one exits
+    log = Log(read)
+    player = None
+    try:
+        player = Player(launched.hub)
+        player.join()
+        yield launched, log, player
+    finally:
+        if player is not None:
+            player.close()
+        launched.stop()
+
+
+def _ended(launched: Launched) -> tuple[dict[str, int | None], tuple[int, str, dict[str, Any] | None]]:
+    """Wait (bounded) for every process to exit by itself: their exit codes, then the run's
+    verdict (:meth:`Launched.wait`)."""
     for p in launched.procs:
         try:
             p.popen.wait(timeout=WAIT)
         except subprocess.TimeoutExpired:
             pass
-    return {p.role: p.popen.poll() for p in launched.procs}
+    return {p.role: p.popen.poll() for p in launched.procs}, launched.wait(WAIT)
 
 
 def test_a_script_steps_a_lockstep_fleet_and_gives_acknowledged_goals(tmp_path):
-    launched, log = _launch(tmp_path)
-    player = None
-    try:
-        player = Player(launched.hub)
-        player.join()
+    with _scripted_fleet(tmp_path) as (launched, log, player):
         for k in range(3):
             player.step(k)
 
@@ -266,14 +283,9 @@ def test_a_script_steps_a_lockstep_fleet_and_gives_acknowledged_goals(tmp_path):
         # Sample 9: the script stops the run.
         player.sample(9)
         player.stop()
-        codes = _exits(launched)
-        code, why, summary = launched.wait(WAIT)
-    finally:
-        if player is not None:
-            player.close()
-        launched.stop()
+        codes, (code, why, summary) = _ended(launched)
     text = log.text()
-    assert codes == {"tracker": 0, "supervisor": 0, "agent r1": 0, "agent r2": 0}, text[-3000:]
+    assert codes == EXITED, text[-3000:]
     assert "[tracker] step 9: the script asked to stop; ending the run" in text, text[-3000:]
     assert summary is not None and (tmp_path / "out" / "summary.json").exists()
     assert summary["exit_codes"] == codes and summary["completed"] and summary["steps"] == 9, summary
@@ -287,11 +299,7 @@ def test_a_script_steps_a_lockstep_fleet_and_gives_acknowledged_goals(tmp_path):
 
 def test_a_held_fleet_outlives_the_agents_timeout_and_ends_when_the_script_leaves(tmp_path):
     timeout = 2.0
-    launched, log = _launch(tmp_path, agent_timeout=timeout)
-    player = None
-    try:
-        player = Player(launched.hub)
-        player.join()
+    with _scripted_fleet(tmp_path, agent_timeout=timeout) as (launched, log, player):
         for k in range(2):
             player.step(k)
         # Step 2 held past the agents' --timeout: each agent says so, and lives on.
@@ -299,7 +307,9 @@ def test_a_held_fleet_outlives_the_agents_timeout_and_ends_when_the_script_leave
         held = [f"[agent {r}] no tick 2 for {timeout} s: held by the script, waiting" for r in ROBOTS]
         assert log.wait_for(lambda text: all(h in text for h in held)), log.text()[-3000:]
         assert not player.ticked(2), "the tracker did not hold step 2"
-        assert all(p.popen.poll() is None for p in launched.procs), _exits(launched)
+        assert all(p.popen.poll() is None for p in launched.procs), {
+            p.role: p.popen.poll() for p in launched.procs
+        }
         player.permit(2)
         for r in ROBOTS:
             player.plan(r, 2)
@@ -308,15 +318,9 @@ def test_a_held_fleet_outlives_the_agents_timeout_and_ends_when_the_script_leave
         # The script leaves without a stop: its token goes, and the tracker ends the run.
         player.sample(4)
         player.close()
-        player = None
-        codes = _exits(launched)
-        _, _, summary = launched.wait(WAIT)
-    finally:
-        if player is not None:
-            player.close()
-        launched.stop()
+        codes, (_, _, summary) = _ended(launched)
     text = log.text()
-    assert codes == {"tracker": 0, "supervisor": 0, "agent r1": 0, "agent r2": 0}, text[-3000:]
+    assert codes == EXITED, text[-3000:]
     assert "[tracker] step 4: the script left the fleet (its liveliness token went); ending the run" in text
     assert summary is not None and summary["completed"] and summary["steps"] == 4, summary
     assert not any("stopping (live" in ln for ln in text.splitlines()), "an agent gave up on the clock"
