@@ -23,9 +23,10 @@ it instead of to each other's plans).
 :class:`ground.wire.Script` with ``stop``, when its liveliness token goes (the script died), on
 SIGTERM, or when no agent is alive; not early when every robot is home, nor at the scenario's
 duration (``--steps`` still caps it).  On lockstep the tracker publishes the ground truth of sample
-k first, then holds step k, for as long as it takes, until the script permits it (a Script of
-``step`` ≥ k), and only then publishes the poses, odometry, digest and tick of step k: the script
-sees sample k and gives its goals before step k is planned.  Meanwhile the tracker's liveliness
+k and the measured poses and odometry first, then holds step k, for as long as it takes, until
+the script permits it (a Script of ``step`` ≥ k), and only then publishes the digest and the tick
+of step k: the script sees sample k and gives its goals before step k is planned (an agent reads
+its pose only once the tick has come).  Meanwhile the tracker's liveliness
 token tells the agents (``--scripted``) that the clock is held, not dead.
 
 ``--source emulator`` (realtime only) is the camera of a lab whose robots are e-puck firmware
@@ -297,9 +298,10 @@ class SimTracker:
                     # next deadline (docs/design.md, "Relayed plans").
                     self.relay.put(self.digest)
         if self.scripted and not self.realtime:
-            # The script sees sample k first, gives its goals, then permits step k.
+            # The script sees sample k first (the truth, and the poses its agents will measure:
+            # an agent reads them only after the tick), gives its goals, then permits step k.
             assert early, "lockstep moves simulated robots only"
-            for pub, payload in truths:
+            for pub, payload in (*truths, *measured):
                 pub.put(payload)
             self.truths_out = k
             if not self._hold(k):
@@ -313,7 +315,7 @@ class SimTracker:
                 measured, truths, states = self._measure(k, t)
         if not self.world.drives and k > 0:
             self._links_reported(k)
-        for pub, payload in measured:
+        for pub, payload in measured if self.truths_out < k else ():
             pub.put(payload)
         if self.relay is not None and k > 0:
             self._relay(k, early)
