@@ -1,0 +1,290 @@
+"""A script on the fleet's bus: the :class:`fleet.api.Backend` of a process fleet.
+
+``Fleet.launch(..., processes=True)`` starts the processes of ``fleet run`` with the tracker in
+scripted mode (:func:`fleet.launch.start_fleet`); ``Fleet.connect`` joins a fleet that runs.
+Either way the script opens one Zenoh session, subscribes to the ground truth, the measured
+poses, the plans and the clock, and declares its liveliness token ``fleet/F/alive/script``.
+
+On a lockstep fleet it launched, the script holds the clock: the tracker publishes sample k (the
+ground truth and the measured poses), then waits for the script's permit of step k
+(:class:`ground.wire.Script`).  Goals go to the agents as Zenoh queries on their goal keys; each
+agent answers whether it accepted its goal, and only then does the script permit the step, so
+every goal is taken at exactly the step that follows the sample the script saw.  That is how the
+same script gives the same trajectories here and on the in-process simulator.
+
+When the script leaves, it tells the tracker to end the run; if it dies instead, its liveliness
+token goes and the tracker ends the run by itself (no orphans).
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from ground.bus import Inbox
+from ground.geometry import Array
+from ground.net import NetConfig, SecureConfigError, load_config
+from ground.scenario import ConfigError, Scenario
+from ground.wire import SCRIPT, Goal, Keys, Plan, Pose, Script, Tick, Truth
+
+RUN_OPTIONS = ("exchange", "topology", "lease", "viewer", "faults")
+"""``Fleet.launch`` options a process fleet takes (``fleet run``'s)."""
+REPLY_TIMEOUT = 10.0
+"""How long an agent has to answer a goal query [s]."""
+SAMPLE_TIMEOUT = 60.0
+"""How long the next sample may take before the fleet counts as gone [s, wall time]."""
+SOLVED = "PROXQP_SOLVED"
+
+
+class ProcessFleet:
+    """A fleet of processes, seen from a script (see the module docstring)."""
+
+    def __init__(self, scn: Scenario, session: Any, keys: Keys, launched: Any = None, hold: bool = False):
+        self.scenario = scn
+        self.session = session
+        self.keys = keys
+        self.launched = launched
+        """The processes this script started (:class:`fleet.launch.Launched`), or None."""
+        self.hold = hold
+        """This script permits the steps (a lockstep fleet it launched)."""
+        self.realtime = not hold
+        self.ids = [r.id for r in scn.robots]
+        self.Ts = scn.controller.Ts
+        self.inbox = inbox = Inbox(keys, SCRIPT)
+        self.subs = [
+            inbox.subscribe(session, keys.truth(), Truth, keep=True),
+            inbox.subscribe(session, keys.pose(), Pose, keep=True),
+            inbox.subscribe(session, keys.plan(), Plan, keep=True),
+            inbox.subscribe(session, keys.clock, Tick),
+            inbox.watch_liveliness(session),
+        ]
+        self.permit = session.declare_publisher(keys.script)
+        self.token = session.liveliness().declare_token(keys.alive(SCRIPT))
+        self.k = -1
+        """The newest complete sample."""
+        self._goals = {r.id: np.array(r.goal, dtype=float) for r in scn.robots}
+        self.footprint = 0.0
+        self._events: list[Any] = []
+        self._dead: set[str] = set()
+        self._lock = threading.Lock()
+
+    # ------------------------------------------------------------------ making one
+    @classmethod
+    def launch(
+        cls, path: str | Path, scn: Scenario, clock: str, seed: int | None, out: str | Path | None,
+        **options: Any,
+    ) -> ProcessFleet:  # fmt: skip
+        """Start the processes of ``fleet run`` for a script, and join them."""
+        from agent.tube import validated_design
+        from fleet.launch import LaunchError, start_fleet
+
+        for name in options:
+            if name not in RUN_OPTIONS:
+                raise ConfigError(name, f"is not an option of a process fleet ({', '.join(RUN_OPTIONS)})")
+        design = validated_design(scn)  # bad designs fail here, once, not in every agent
+        run_dir = (Path(out) if out is not None else Path("out") / scn.name).resolve()
+        run_dir.mkdir(parents=True, exist_ok=True)
+        try:
+            launched = start_fleet(
+                str(Path(path).resolve()), [r.id for r in scn.robots], run_dir, seed, clock=clock,
+                scripted=True, **options,
+            )  # fmt: skip
+        except LaunchError as e:
+            raise ConfigError("processes", f"the fleet did not start: {e}") from None
+        import zenoh
+
+        try:
+            session = zenoh.open(NetConfig(connect=[launched.hub]).zenoh())
+        except BaseException:
+            launched.stop()
+            raise
+        me = cls(scn, session, Keys("lab"), launched, hold=clock == "lockstep")
+        me.footprint = float(design.footprint)
+        try:
+            me._first_sample()
+        except BaseException:
+            me.close()
+            raise
+        return me
+
+    @classmethod
+    def attach(cls, scn: Scenario, connect: list[str], zenoh_config: str | None, fleet: str) -> ProcessFleet:
+        """Join a fleet that is running, by its hub's endpoints or a Zenoh configuration file."""
+        import zenoh
+
+        from agent.tube import validated_design
+
+        if zenoh_config is not None:
+            try:
+                conf = load_config(zenoh_config)
+            except SecureConfigError as e:
+                raise ConfigError("zenoh_config", str(e)) from None
+        elif connect:
+            conf = NetConfig(connect=connect).zenoh()
+        else:
+            raise ConfigError("connect", "give the hub's endpoint (e.g. tcp/127.0.0.1:7447) or zenoh_config")
+        try:
+            session = zenoh.open(conf)
+        except zenoh.ZError as e:
+            raise ConfigError("connect", f"cannot open a session: {e}") from None
+        me = cls(scn, session, Keys(fleet))
+        me.footprint = float(validated_design(scn).footprint)
+        try:
+            me._first_sample()
+            with me.inbox.cond:  # the goals in force: the newest plans carry them
+                for rid in me.ids:
+                    pl = me.inbox.get(Plan, rid)
+                    if pl is not None:
+                        me._goals[rid] = pl.goal.copy()
+        except BaseException:
+            me.close()
+            raise
+        return me
+
+    # ------------------------------------------------------------------ Backend
+    def sample(self) -> Any:
+        from fleet.api import Sample
+
+        k, inbox = self.k, self.inbox
+        with inbox.cond:
+            truth = {r: _pose(t) for r in self.ids if (t := inbox.get(Truth, r, k)) is not None}
+            measured = {r: _pose(p) for r in self.ids if (p := inbox.newest(Pose, r, k)) is not None}
+        return Sample(k, truth, measured)
+
+    def advance(self) -> bool:
+        """Lockstep, holding the clock: permit step k, then wait for sample k + 1.  Otherwise
+        wait for a newer sample than k; a script slower than the clock skips samples."""
+        k = self.k
+        if self.hold:
+            self.permit.put(Script(robot=SCRIPT, step=k, stop=False).encode())
+        if not self._wait_sample(k + 1):
+            return False
+        self.k = k + 1 if self.hold else self._newest()
+        for step in range(k, self.k):
+            self._collect_events(step)
+        return True
+
+    def _newest(self) -> int:
+        """The newest sample whose ground truth has come for every robot that has any."""
+        with self.inbox.cond:
+            seqs = [t.seq for r in self.ids if (t := self.inbox.get(Truth, r)) is not None]
+        return min(seqs, default=self.k)
+
+    def goals(self) -> dict[str, Array]:
+        return {r: g.copy() for r, g in self._goals.items()}
+
+    def send(self, goals: Mapping[str, Array]) -> dict[str, str]:
+        """Each goal as a query to its agent, with the rest of the batch; robot → reason for
+        each refusal.  If one is refused, the accepted ones are given back their goals."""
+        refused, accepted = {}, []
+        for rid, g in goals.items():
+            batch = {r: np.asarray(q, dtype=float) for r, q in goals.items() if r != rid}
+            ok, why = self._ask(rid, np.asarray(g, dtype=float), batch)
+            if ok:
+                accepted.append(rid)
+            else:
+                refused[rid] = why
+        if refused and accepted:
+            old = {r: self._goals[r] for r in accepted}
+            for rid in accepted:
+                self._ask(rid, old[rid], {r: q for r, q in old.items() if r != rid})
+        if not refused:
+            for rid, g in goals.items():
+                self._goals[rid] = np.asarray(g, dtype=float).copy()
+        return refused
+
+    def events(self) -> list[Any]:
+        with self._lock:
+            out, self._events = self._events, []
+        return out
+
+    def close(self) -> dict[str, Any] | None:
+        summary = None
+        try:
+            if self.launched is not None:
+                self.permit.put(Script(robot=SCRIPT, step=max(self.k, -1), stop=True).encode())
+                _, _, summary = self.launched.wait(timeout=120.0)
+        finally:
+            if self.launched is not None:
+                self.launched.stop()
+            for s in self.subs:
+                s.undeclare()
+            self.token.undeclare()
+            self.session.close()
+        return summary
+
+    # ------------------------------------------------------------------ inside
+    def _first_sample(self) -> None:
+        if not self._wait_sample(0, whole=False):
+            raise ConfigError("processes", f"no sample from the fleet within {SAMPLE_TIMEOUT:g} s")
+        self.k = 0 if self.hold else self._newest()
+
+    def _wait_sample(self, k: int, whole: bool = True) -> bool:
+        """Wait until sample k (or a later one) has come: the ground truth and the measured pose
+        of every robot (of one robot, unless ``whole``); False if the run ended first."""
+        inbox, ids = self.inbox, self.ids
+
+        def come(r: str) -> bool:
+            t = inbox.get(Truth, r)
+            return t is not None and t.seq >= k and inbox.newest(Pose, r, t.seq) is not None
+
+        def complete() -> bool:
+            if self._stopped():
+                return True
+            n = sum(come(r) for r in ids)
+            return n == len(ids) if whole else n > 0
+
+        return inbox.wait(complete, SAMPLE_TIMEOUT) and not self._stopped()
+
+    def _stopped(self) -> bool:
+        tick = self.inbox.get(Tick, "tracker")
+        return tick is not None and tick.stop
+
+    def _ask(self, rid: str, goal: Array, batch: dict[str, Array]) -> tuple[bool, str]:
+        payload = Goal(robot=rid, goal=goal, batch=batch).encode()
+        replies = self.session.get(self.keys.goal(rid), payload=payload, timeout=REPLY_TIMEOUT)
+        for reply in replies:
+            if reply.ok is None:
+                continue
+            try:
+                got = msgpack.unpackb(reply.ok.payload.to_bytes())
+            except (ValueError, msgpack.ExtraData) as e:
+                return False, f"unreadable answer ({e})"
+            if isinstance(got, dict) and got.get("ok") is True:
+                return True, ""
+            return False, str(got.get("reason", "refused")) if isinstance(got, dict) else "refused"
+        return False, f"no answer from its agent within {REPLY_TIMEOUT:g} s"
+
+    def _collect_events(self, k: int) -> None:
+        """The events of step k: fallbacks in the plans, deadline misses in the tick, agents gone."""
+        from fleet.api import Event
+
+        inbox, out = self.inbox, []
+        with inbox.cond:
+            tick = inbox.get(Tick, "tracker")
+            live = set(inbox.live)
+            for rid in self.ids:
+                pl = inbox.get(Plan, rid, k)
+                if pl is None and rid in live:
+                    out.append(Event(k, rid, "stale_neighbour", f"no plan of step {k}"))
+                elif pl is not None and pl.status != SOLVED:
+                    out.append(Event(k, rid, "fallback", pl.status))
+                if rid not in live and rid not in self._dead:
+                    self._dead.add(rid)
+                    out.append(Event(k, rid, "dead_neighbour", "its agent left the fleet"))
+            if tick is not None and tick.step == k + 1:
+                for rid, done in {**tick.fallback, **tick.braked}.items():
+                    what = "braked" if rid in tick.braked else "followed its candidate"
+                    out.append(Event(k, rid, "deadline_miss", f"{what} after step {done}"))
+            inbox.prune(k - 2)
+        with self._lock:
+            self._events += out
+
+
+def _pose(m: Pose) -> Array:
+    return np.array([m.x, m.y, m.theta])
