@@ -40,20 +40,16 @@ from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import SimpleNamespace, TracebackType
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
+from fleet.backend import Backend, Event, Sample
 from ground.geometry import Array, controlled_point
 from ground.scenario import GOAL_TOLERANCE, Scenario, goal_problem, load_scenario, settled_since
 
 CLOCKS = ("lockstep", "realtime")
 """The fleet's clocks: lockstep steps when every agent has answered; realtime steps at Ts."""
-EVENT_KINDS = (
-    "arrived", "waypoint", "fallback", "deadline_miss", "stale_neighbour", "dead_neighbour", "refused",
-)  # fmt: skip
-"""What :meth:`Fleet.events` reports (see :class:`Event`)."""
-
 Point = tuple[float, float]
 """A point (x, y) [m], world frame."""
 Pose = tuple[float, float, float]
@@ -72,73 +68,6 @@ class GoalRefused(FleetError, ValueError):
         super().__init__(f"{robot}: {reason}")
         self.robot = robot
         self.reason = reason
-
-
-@dataclass(frozen=True)
-class Event:
-    """Something that happened in the fleet, at ``step`` (the sample or step index, t = step·Ts).
-
-    ``kind`` is one of :data:`EVENT_KINDS`:
-
-    * ``arrived`` — ``robot`` settled at its current goal;
-    * ``waypoint`` — ``robot`` reached a waypoint of its mission (``detail``: which);
-    * ``fallback`` — ``robot``'s QP did not give a solution at that step; it followed its
-      shifted candidate (``detail``: the solver status);
-    * ``deadline_miss`` — ``robot``'s command missed its deadline; its robot side followed the
-      candidate or braked (process fleets);
-    * ``stale_neighbour`` / ``dead_neighbour`` — ``robot``'s plan did not arrive in time / its
-      agent left the fleet (process fleets);
-    * ``refused`` — a goal for ``robot`` was refused (``detail``: the reason).
-    """
-
-    step: int
-    robot: str
-    kind: str
-    detail: str = ""
-
-
-@dataclass
-class Sample:
-    """One sample of the fleet, at t = ``step``·Ts."""
-
-    step: int
-    truth: dict[str, Array]
-    """Each robot's true axle-centre pose (3,) [m, m, rad] (the camera's, on real robots)."""
-    measured: dict[str, Array]
-    """Each robot's measured pose (3,) [m, m, rad], as its agent sees it."""
-
-
-class Backend(Protocol):
-    """What a :class:`Fleet` drives: the in-process simulator or a fleet of processes."""
-
-    scenario: Scenario
-    footprint: float
-    """The design's footprint radius r [m]: goals clear walls and obstacles by it."""
-    realtime: bool
-
-    def sample(self) -> Sample:
-        """The newest sample."""
-        ...
-
-    def advance(self) -> bool:
-        """Run the fleet to its next sample; False once the fleet has ended."""
-        ...
-
-    def goals(self) -> dict[str, Array]:
-        """Each robot's current goal (2,) [m] (one just given counts)."""
-        ...
-
-    def send(self, goals: Mapping[str, Array]) -> dict[str, str]:
-        """Give these goals together; robot → reason for each one its agent refused."""
-        ...
-
-    def events(self) -> list[Event]:
-        """The backend's events since the last call."""
-        ...
-
-    def close(self) -> dict[str, Any] | None:
-        """End what this backend started; the run's summary, if there is one."""
-        ...
 
 
 @dataclass
@@ -239,6 +168,12 @@ class Fleet:
         return cls(ProcessFleet.attach(scn, eps, None if zenoh_config is None else str(zenoh_config), fleet))
 
     # ------------------------------------------------------------------ reading it
+    @property
+    def processes(self) -> dict[str, int]:
+        """The pid of every process :meth:`launch` started, by role (``tracker``,
+        ``supervisor``, ``agent r1`` …); empty in process and for a joined fleet."""
+        return self._b.processes
+
     @property
     def step(self) -> int:
         """The current sample's index k (t = k·Ts)."""
@@ -402,11 +337,12 @@ class Fleet:
             if arr.shape != (2,):
                 self._refused(rid, f"a goal is (x, y) [m], got {len(arr)} numbers")
             batch[rid] = arr
-        current = {**self._b.goals(), **(others or {}), **batch}
         fp = self._b.footprint
+        now = [SimpleNamespace(robot=r, goal=q, footprint=fp) for r, q in self._b.goals().items()]
+        given = {**(others or {}), **batch}
         for rid, arr in batch.items():
-            near = [SimpleNamespace(robot=r, goal=q, footprint=fp) for r, q in current.items() if r != rid]
-            problem = goal_problem(self.scenario, fp, arr, near)
+            near = [pl for pl in now if pl.robot != rid]
+            problem = goal_problem(self.scenario, fp, arr, near, {r: q for r, q in given.items() if r != rid})
             if problem is not None:
                 if quiet:
                     raise GoalRefused(rid, problem)
@@ -488,6 +424,10 @@ class SimulatedFleet:
     (:class:`fleet.simulate.Simulation`), stepped by the script."""
 
     realtime = False
+
+    @property
+    def processes(self) -> dict[str, int]:
+        return {}  # one process: the script's
 
     def __init__(self, scn: Scenario, seed: int | None, out: str | Path | None):
         from agent.tube import validated_design

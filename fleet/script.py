@@ -26,6 +26,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
+from fleet.backend import Event, Sample
 from ground.bus import Inbox
 from ground.geometry import Array
 from ground.net import NetConfig, SecureConfigError, load_config
@@ -39,6 +40,8 @@ REPLY_TIMEOUT = 10.0
 SAMPLE_TIMEOUT = 60.0
 """How long the next sample may take before the fleet counts as gone [s, wall time]."""
 SOLVED = "PROXQP_SOLVED"
+LOG = "fleet.log"
+"""The file in the run's directory that a launched fleet's processes write their log lines to."""
 
 
 class ProcessFleet:
@@ -71,7 +74,11 @@ class ProcessFleet:
         self.footprint = 0.0
         self._events: list[Any] = []
         self._dead: set[str] = set()
+        self._unseen: dict[int, set[str]] = {}
+        """Per step, the robots whose plan of it has not come yet."""
         self._lock = threading.Lock()
+        self.log: Any = None
+        """The processes' log file, while they run."""
 
     # ------------------------------------------------------------------ making one
     @classmethod
@@ -89,21 +96,26 @@ class ProcessFleet:
         design = validated_design(scn)  # bad designs fail here, once, not in every agent
         run_dir = (Path(out) if out is not None else Path("out") / scn.name).resolve()
         run_dir.mkdir(parents=True, exist_ok=True)
+        log = (run_dir / LOG).open("w")  # the processes' log lines, not the script's output
         try:
             launched = start_fleet(
                 str(Path(path).resolve()), [r.id for r in scn.robots], run_dir, seed, clock=clock,
-                scripted=True, **options,
+                scripted=True, stderr=log, **options,
             )  # fmt: skip
         except LaunchError as e:
-            raise ConfigError("processes", f"the fleet did not start: {e}") from None
+            log.close()
+            raise ConfigError("processes", f"the fleet did not start: {e} (see {run_dir / LOG})") from None
         import zenoh
 
+        mode = "client" if options.get("topology") == "star" else "peer"  # the star's hub routes
         try:
-            session = zenoh.open(NetConfig(connect=[launched.hub]).zenoh())
+            session = zenoh.open(NetConfig(connect=[launched.hub], mode=mode).zenoh())
         except BaseException:
             launched.stop()
+            log.close()
             raise
         me = cls(scn, session, Keys("lab"), launched, hold=clock == "lockstep")
+        me.log = log
         me.footprint = float(design.footprint)
         try:
             me._first_sample()
@@ -148,8 +160,6 @@ class ProcessFleet:
 
     # ------------------------------------------------------------------ Backend
     def sample(self) -> Any:
-        from fleet.api import Sample
-
         k, inbox = self.k, self.inbox
         with inbox.cond:
             truth = {r: _pose(t) for r in self.ids if (t := inbox.get(Truth, r, k)) is not None}
@@ -198,6 +208,11 @@ class ProcessFleet:
                 self._goals[rid] = np.asarray(g, dtype=float).copy()
         return refused
 
+    @property
+    def processes(self) -> dict[str, int]:
+        """The pid of every process this script started, by role."""
+        return {} if self.launched is None else dict(self.launched.pids)
+
     def events(self) -> list[Any]:
         with self._lock:
             out, self._events = self._events, []
@@ -212,6 +227,8 @@ class ProcessFleet:
         finally:
             if self.launched is not None:
                 self.launched.stop()
+            if self.log is not None:
+                self.log.close()
             for s in self.subs:
                 s.undeclare()
             self.token.undeclare()
@@ -261,19 +278,31 @@ class ProcessFleet:
         return False, f"no answer from its agent within {REPLY_TIMEOUT:g} s"
 
     def _collect_events(self, k: int) -> None:
-        """The events of step k: fallbacks in the plans, deadline misses in the tick, agents gone."""
-        from fleet.api import Event
-
+        """The events of step k, once sample k + 1 is in: deadline misses in the tick, agents
+        gone, and the plans' fallbacks.  A plan not in yet is looked for again one step later,
+        and only then counts as stale: in lockstep the tracker has every plan of step k before
+        it publishes sample k + 1, but this session may get the sample before the plan."""
         inbox, out = self.inbox, []
         with inbox.cond:
             tick = inbox.get(Tick, "tracker")
             live = set(inbox.live)
+            self._unseen[k] = set(self.ids)
+            for step in sorted(self._unseen):
+                for rid in sorted(self._unseen[step]):
+                    pl = inbox.get(Plan, rid, step)
+                    if pl is not None:
+                        self._unseen[step].discard(rid)
+                        if pl.status != SOLVED:
+                            out.append(Event(step, rid, "fallback", pl.status))
+                    elif step < k:
+                        self._unseen[step].discard(rid)
+                        if rid in live:
+                            out.append(
+                                Event(step, rid, "stale_neighbour", f"its plan of step {step} is late")
+                            )
+                if not self._unseen[step]:
+                    del self._unseen[step]
             for rid in self.ids:
-                pl = inbox.get(Plan, rid, k)
-                if pl is None and rid in live:
-                    out.append(Event(k, rid, "stale_neighbour", f"no plan of step {k}"))
-                elif pl is not None and pl.status != SOLVED:
-                    out.append(Event(k, rid, "fallback", pl.status))
                 if rid not in live and rid not in self._dead:
                     self._dead.add(rid)
                     out.append(Event(k, rid, "dead_neighbour", "its agent left the fleet"))
