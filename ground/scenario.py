@@ -135,6 +135,10 @@ class RobotSpec:
     """Coordination priority; the higher goes first."""
     link: str = "sim"
     """Communication link of the robot ("sim" in simulation; used by hardware runs)."""
+    waypoints: tuple[tuple[float, float], ...] = ()
+    """A mission: points of the controlled point [m], world frame, visited in order before
+    settling at ``goal``, the last of them (``fleet.Fleet.mission``); empty: straight to the
+    goal."""
     marker: int | None = None
     """ArUco id of the marker on the robot's top (camera source), in
     ``0 .. size-1`` of the camera's dictionary, unique across robots and
@@ -624,7 +628,9 @@ def _parse_arena(raw: object, path: str) -> tuple[float, float, float, float]:
     return (xmin, xmax, ymin, ymax)
 
 
-_ROBOT_KEYS = ("id", "start", "goal", "priority", "link", "marker")
+_ROBOT_KEYS = ("id", "start", "goal", "waypoints", "priority", "link", "marker")
+MAX_WAYPOINTS = 1000
+"""Most waypoints of one robot's mission."""
 
 
 def _parse_robots(raw: object, path: str) -> tuple[RobotSpec, ...]:
@@ -641,7 +647,7 @@ def _parse_robots(raw: object, path: str) -> tuple[RobotSpec, ...]:
     for i, item in enumerate(items):
         rpath = f"{path}[{i}]"
         table = _table(item, rpath)
-        _check_keys(table, rpath, _ROBOT_KEYS, required=("id", "start", "goal"))
+        _check_keys(table, rpath, _ROBOT_KEYS, required=("id", "start"))
         ipath = _join(rpath, "id")
         rid = _string(table["id"], ipath)
         if not ROBOT_ID.fullmatch(rid):
@@ -650,7 +656,21 @@ def _parse_robots(raw: object, path: str) -> tuple[RobotSpec, ...]:
             raise ConfigError(ipath, f"duplicate id {rid!r} (also {path}[{seen[rid]}].id)")
         seen[rid] = i
         sx, sy, sth = _vector(table["start"], _join(rpath, "start"), 3)
-        gx, gy = _vector(table["goal"], _join(rpath, "goal"), 2)
+        waypoints = _waypoints(table, rpath)
+        if "goal" in table:
+            gx, gy = _vector(table["goal"], _join(rpath, "goal"), 2)
+            if waypoints and (gx, gy) != waypoints[-1]:
+                raise ConfigError(
+                    _join(rpath, "goal"),
+                    f"({gx:g}, {gy:g}) is not the last waypoint {waypoints[-1]}: the goal is where the "
+                    "mission ends; omit it or make it the last waypoint",
+                )
+        elif waypoints:
+            gx, gy = waypoints[-1]
+        else:
+            raise ConfigError(
+                _join(rpath, "goal"), "missing (give a goal, or waypoints: the last one is the goal)"
+            )
         lo, hi = PRIORITY_RANGE
         priority = 0
         if "priority" in table:
@@ -672,9 +692,27 @@ def _parse_robots(raw: object, path: str) -> tuple[RobotSpec, ...]:
                 )
             markers[marker] = i
         robots.append(
-            RobotSpec(id=rid, start=(sx, sy, sth), goal=(gx, gy), priority=priority, link=link, marker=marker)
-        )
+            RobotSpec(
+                id=rid, start=(sx, sy, sth), goal=(gx, gy), waypoints=waypoints, priority=priority, link=link,
+                marker=marker,
+            )
+        )  # fmt: skip
     return tuple(robots)
+
+
+def _waypoints(table: Mapping[str, Any], rpath: str) -> tuple[tuple[float, float], ...]:
+    """A robot's ``waypoints``: [[x, y], ...] [m], at least one, at most :data:`MAX_WAYPOINTS`."""
+    if "waypoints" not in table:
+        return ()
+    wpath = _join(rpath, "waypoints")
+    items = _array(table["waypoints"], wpath, "points [[x, y], ...]")
+    if not 1 <= len(items) <= MAX_WAYPOINTS:
+        raise ConfigError(wpath, f"{len(items)} points; give 1 to {MAX_WAYPOINTS}")
+    out = []
+    for j, item in enumerate(items):
+        x, y = _vector(item, f"{wpath}[{j}]", 2)
+        out.append((x, y))
+    return tuple(out)
 
 
 def _convex_ccw(points: Sequence[tuple[float, float]], path: str) -> tuple[tuple[float, float], ...]:
@@ -1023,6 +1061,19 @@ def check_geometry(scn: Scenario, footprint: float) -> None:
     for i in range(len(scn.robots)):
         for kind, p, label in (("start", starts[i], "controlled point"), ("goal", goals[i], "goal")):
             check_point(scn, p, fp, f"robots[{i}].{kind}", label)
+        for j, wp in enumerate(scn.robots[i].waypoints):
+            field, at = f"robots[{i}].waypoints[{j}]", np.asarray(wp, dtype=float)
+            check_point(scn, at, fp, field, "waypoint")
+            for o, g in enumerate(goals):
+                d = float(np.linalg.norm(at - g))
+                if o != i and d < 2.0 * fp + GOAL_MARGIN:
+                    # The robot would wait there for ever for the other to leave its goal.
+                    raise ConfigError(
+                        field,
+                        f"waypoint {_xy(at)} of {scn.robots[i].id!r} is {d:.3f} m from the goal of "
+                        f"{scn.robots[o].id!r}, closer than their footprints allow "
+                        f"(2 × {fp:.3f} + {GOAL_MARGIN:g} = {2.0 * fp + GOAL_MARGIN:.3f} m)",
+                    )
 
     for kind, pts, label, margin in (
         ("start", starts, "controlled point", 0.0),
@@ -1072,13 +1123,19 @@ def _check_reachable(scn: Scenario, starts: list[np.ndarray], goals: list[np.nda
         return set(np.unique(labels[near & free]).tolist())
 
     for i, r in enumerate(scn.robots):
-        at_start, at_goal = pieces(starts[i]), pieces(goals[i])
-        if at_start and at_goal and not at_start & at_goal:
-            raise ConfigError(
-                f"robots[{i}].goal",
-                f"goal {_xy(goals[i])} of {r.id!r} cannot be reached from its start: the walls and "
-                f"obstacles leave no passage for its footprint of radius {fp:.3f} m",
-            )
+        at_start = pieces(starts[i])
+        stops = [
+            (f"robots[{i}].waypoints[{j}]", "waypoint", np.asarray(w, float))
+            for j, w in enumerate(r.waypoints)
+        ]
+        for field, label, p in [*stops, (f"robots[{i}].goal", "goal", goals[i])]:
+            there = pieces(p)
+            if at_start and there and not at_start & there:
+                raise ConfigError(
+                    field,
+                    f"{label} {_xy(p)} of {r.id!r} cannot be reached from its start: the walls and "
+                    f"obstacles leave no passage for its footprint of radius {fp:.3f} m",
+                )
 
 
 def settle_samples(Ts: float) -> int:

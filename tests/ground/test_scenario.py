@@ -294,6 +294,14 @@ BAD_INPUTS: list[tuple[str, Mutation, str]] = [
     ("missing robots", _delete("robots"), "robots"),
     ("missing bounds", _delete("arena.bounds"), "arena.bounds"),
     ("missing goal", _delete("robots.0.goal"), "robots[0].goal"),
+    ("goal not the last waypoint", _set("robots.0.waypoints", [[0.0, -0.4], [0.5, 0.0]]), "robots[0].goal"),
+    ("no waypoints", _set("robots.0.waypoints", []), "robots[0].waypoints"),
+    ("waypoint not a point", _set("robots.0.waypoints", [[0.0, 0.4, 1.0]]), "robots[0].waypoints[0]"),
+    (
+        "waypoint not finite",
+        _set("robots.1.waypoints", [[math.inf, 0.0], [-0.6, 0.0]]),
+        "robots[1].waypoints[0][0]",
+    ),
     ("no robots", _set("robots", []), "robots"),
     ("non-numeric weight", _set("controller.R", [20, "abc"]), "controller.R[1]"),
     ("bool as number", _set("controller.Ts", True), "controller.Ts"),
@@ -424,6 +432,24 @@ BAD_GEOMETRY: list[tuple[str, Mutation, str, str]] = [
         "closer than their",
     ),
     ("goal outside arena", _set("robots.0.goal", [1.2, 0.0]), "robots[0].goal", "outside the arena"),
+    (
+        "waypoint outside arena",
+        _set("robots.0.waypoints", [[0.0, -0.3], [1.5, 0.0], [0.6, 0.0]]),
+        "robots[0].waypoints[1]",
+        "outside the arena",
+    ),
+    (
+        "waypoint in an obstacle",
+        _set("robots.0.waypoints", [[0.0, 0.6], [0.6, 0.0]]),
+        "robots[0].waypoints[0]",
+        "inside obstacles[0]",
+    ),
+    (
+        "waypoint on another robot's goal",
+        _set("robots.0.waypoints", [[-0.55, 0.1], [0.6, 0.0]]),
+        "robots[0].waypoints[0]",
+        "from the goal of 'r2'",
+    ),
     ("goal near wall", _set("robots.0.goal", [0.9, 0.0]), "robots[0].goal", "from the arena wall x = 1"),
     (
         "start near wall",
@@ -519,6 +545,31 @@ def test_a_goal_in_a_pocket_of_obstacles_is_refused() -> None:
     for ob in data["obstacles"]:
         ob["circle"]["radius"] = 0.02
     check_geometry(parse_scenario(data), 0.134)
+
+
+def test_waypoints_are_a_mission_whose_last_point_is_the_goal() -> None:
+    data = base()
+    del data["robots"][0]["goal"]
+    data["robots"][0]["waypoints"] = [[0.0, -0.3], [-0.2, 0.3], [0.6, 0.0]]
+    scn = parse_scenario(data)
+    assert scn.robots[0].goal == (0.6, 0.0) and scn.robots[0].waypoints[1] == (-0.2, 0.3)
+    assert scn.robots[1].waypoints == ()
+    data["robots"][0]["goal"] = [0.6, 0.0]  # the same, said twice
+    assert parse_scenario(data) == dataclasses.replace(scn, source=parse_scenario(data).source)
+    check_geometry(scn, footprint_of(scn))
+
+
+def test_a_waypoint_in_a_pocket_of_obstacles_is_refused() -> None:
+    """A waypoint ringed by discs with gaps narrower than the footprint: refused, by index."""
+    data = base()
+    data["robots"][0]["waypoints"] = [[0.0, -0.3], [0.6, 0.0]]
+    data["obstacles"] = [
+        {"circle": {"center": [dx, -0.3 + dy], "radius": 0.12}}
+        for dx, dy in ((0.3, 0.0), (-0.3, 0.0), (0.0, 0.3), (0.0, -0.3))
+    ]
+    with pytest.raises(ConfigError) as exc:
+        check_geometry(parse_scenario(data), 0.134)
+    assert exc.value.field == "robots[0].waypoints[0]" and "cannot be reached" in exc.value.reason
 
 
 def test_distances_of_many_points_are_the_distances_of_each() -> None:
