@@ -35,6 +35,7 @@ docs/api.md documents every method with its units and frames.
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -141,14 +142,23 @@ class Fleet:
         if processes:
             from fleet.script import ProcessFleet
 
-            return cls(ProcessFleet.launch(scenario, scn, clock, seed, out, **run_options))
-        if clock != "lockstep":
-            raise ConfigError("clock", "the in-process simulator runs on lockstep only")
-        if run_options:
-            raise ConfigError(
-                next(iter(run_options)), "is an option of a process fleet; processes=False takes none"
-            )
-        return cls(SimulatedFleet(scn, seed, out))
+            fleet = cls(ProcessFleet.launch(scenario, scn, clock, seed, out, **run_options))
+        else:
+            if clock != "lockstep":
+                raise ConfigError("clock", "the in-process simulator runs on lockstep only")
+            if run_options:
+                raise ConfigError(
+                    next(iter(run_options)), "is an option of a process fleet; processes=False takes none"
+                )
+            fleet = cls(SimulatedFleet(scn, seed, out))
+        missions = {r.id: r.waypoints for r in scn.robots if r.waypoints}
+        if missions:  # the scenario's: from sample 0
+            try:
+                fleet.mission(missions)
+            except BaseException:
+                fleet.close()
+                raise
+        return fleet
 
     @classmethod
     def connect(
@@ -173,6 +183,12 @@ class Fleet:
         """The pid of every process :meth:`launch` started, by role (``tracker``,
         ``supervisor``, ``agent r1`` …); empty in process and for a joined fleet."""
         return self._b.processes
+
+    @property
+    def verdict(self) -> str | None:
+        """Once closed: why the run failed, in one line (a collision, a goal not reached, a
+        process that failed: ``fleet run``'s verdict), or None if it passed."""
+        return self._b.verdict if self._closed else None
 
     @property
     def step(self) -> int:
@@ -301,6 +317,11 @@ class Fleet:
             self.summary = self._b.close()
             if self.summary is not None:
                 self.summary["waypoints_reached"] = self.waypoints_reached()
+                if self._b.out is not None:  # in the file too
+                    from fleet.report import strict_json
+
+                    text = json.dumps(strict_json(self.summary), indent=2)
+                    (self._b.out / "summary.json").write_text(text + "\n")
         return self.summary
 
     def __enter__(self) -> Fleet:
@@ -438,8 +459,9 @@ class SimulatedFleet:
         self.footprint = float(design.footprint)
         self.sim = Simulation(scn, seed=seed, design=design)
         self.seed = self.sim.seed
-        self.out = Path(out) if out is not None else Path("out") / scn.name
+        self.out: Path | None = Path(out) if out is not None else Path("out") / scn.name
         self._events: list[Event] = []
+        self.verdict: str | None = None
 
     def sample(self) -> Sample:
         sim = self.sim
@@ -472,7 +494,22 @@ class SimulatedFleet:
 
     def close(self) -> dict[str, Any]:
         from fleet.simulate import save_run
+        from supervisor.judge import verdict
 
+        assert self.out is not None
         summary = save_run(self.sim.finish(), self.scenario, self.seed, self.out)
         summary["processes"] = {}
+        self.verdict = verdict(summary)
         return summary
+
+
+def run_scenario(
+    scenario: str | Path, processes: bool, seed: int | None = None, out: str | Path | None = None,
+    clock: str = "lockstep", **run_options: Any,
+) -> tuple[dict[str, Any] | None, str | None]:  # fmt: skip
+    """Run a scenario as ``fleet simulate`` (``processes=False``) or ``fleet run`` do, through a
+    script: its robots' missions from sample 0, the run ending once every robot has arrived or
+    at the scenario's duration.  (summary, verdict): the verdict is None if the run passed."""
+    with Fleet.launch(scenario, clock=clock, seed=seed, processes=processes, out=out, **run_options) as fleet:
+        fleet.wait_arrived(timeout=fleet.scenario.duration)
+    return fleet.summary, fleet.verdict

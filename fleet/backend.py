@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Protocol
 
 from ground.geometry import Array
@@ -58,6 +59,8 @@ class Backend(Protocol):
     footprint: float
     """The design's footprint radius r [m]: goals clear walls and obstacles by it."""
     realtime: bool
+    out: Path | None
+    """The run's directory (summary.json), None for a fleet the script joined."""
 
     def sample(self) -> Sample:
         """The newest sample."""
@@ -81,6 +84,12 @@ class Backend(Protocol):
 
     def close(self) -> dict[str, Any] | None:
         """End what this backend started; the run's summary, if there is one."""
+        ...
+
+    @property
+    def verdict(self) -> str | None:
+        """Once closed: why the run failed in one line (a collision, a goal not reached, a
+        process that failed), or None."""
         ...
 
     @property

@@ -129,11 +129,18 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         return _bad(f"--out: cannot create {out}: {e.strerror}")
-    result = run(scn, seed=args.seed, design=design)
-    from supervisor.judge import verdict
+    if any(r.waypoints for r in scn.robots):  # missions: run by a script (fleet.api)
+        from fleet.api import run_scenario
 
-    summary = save_run(result, scn, scn.simulation.seed if args.seed is None else args.seed, out)
-    why = verdict(summary)
+        got, why = run_scenario(args.scenario, processes=False, seed=args.seed, out=out)
+        assert got is not None
+        summary = got
+    else:
+        from supervisor.judge import verdict
+
+        result = run(scn, seed=args.seed, design=design)
+        summary = save_run(result, scn, scn.simulation.seed if args.seed is None else args.seed, out)
+        why = verdict(summary)
     st = summary.get("step_time_ms", {"p50": 0.0, "p99": 0.0})
     print(
         f"{scn.name}: {summary['steps']} steps, {summary['sim_time_s']:.1f} s simulated in "
@@ -142,6 +149,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         f"{sum(r['reached_goal'] for r in summary['robots'].values())}/{len(summary['robots'])}; "
         f"step time p50 {st['p50']:.2f} ms p99 {st['p99']:.2f} ms"
     )
+    if "waypoints_reached" in summary:
+        print(f"waypoints reached: {summary['waypoints_reached']}")
     print(f"summary: {out / 'summary.json'}")
     if why:
         print(f"fleet: run failed: {why}", file=sys.stderr)
@@ -180,11 +189,23 @@ def cmd_run(args: argparse.Namespace) -> int:
         return _bad("--clock: emulated robots move in wall time; use --clock realtime")
     out = Path(args.out) if args.out else Path("out") / scn.name
     out.mkdir(parents=True, exist_ok=True)
-    code, verdict, summary = run_fleet(
-        str(Path(args.scenario).resolve()), [r.id for r in scn.robots], out.resolve(), args.seed,
-        viewer=args.viewer, clock=clock, hub=args.listen, links=links, faults=args.faults,
-        exchange=args.exchange, lease=args.lease, topology=args.topology,
-    )  # fmt: skip
+    if any(r.waypoints for r in scn.robots):  # missions: run by a script (fleet.api)
+        if emulated:
+            return _bad("robots.waypoints: fleet run drives the missions of simulated robots only")
+        from fleet.api import run_scenario
+
+        summary, why = run_scenario(
+            str(Path(args.scenario).resolve()), processes=True, seed=args.seed, out=out.resolve(),
+            clock=clock, viewer=args.viewer, hub=args.listen, faults=args.faults, exchange=args.exchange,
+            lease=args.lease, topology=args.topology,
+        )  # fmt: skip
+        code, verdict = (1, why) if why else (0, "ok")
+    else:
+        code, verdict, summary = run_fleet(
+            str(Path(args.scenario).resolve()), [r.id for r in scn.robots], out.resolve(), args.seed,
+            viewer=args.viewer, clock=clock, hub=args.listen, links=links, faults=args.faults,
+            exchange=args.exchange, lease=args.lease, topology=args.topology,
+        )  # fmt: skip
     if summary is not None:
         print(
             f"{scn.name}: {summary['steps']} steps in {summary['wall_time_s']:.1f} s over "

@@ -33,7 +33,7 @@ from ground.net import NetConfig, SecureConfigError, load_config
 from ground.scenario import ConfigError, Scenario
 from ground.wire import SCRIPT, Goal, Keys, Plan, Pose, Script, Tick, Truth
 
-RUN_OPTIONS = ("exchange", "topology", "lease", "viewer", "faults")
+RUN_OPTIONS = ("exchange", "topology", "lease", "viewer", "faults", "hub")
 """``Fleet.launch`` options a process fleet takes (``fleet run``'s)."""
 REPLY_TIMEOUT = 10.0
 """How long an agent has to answer a goal query [s]."""
@@ -53,6 +53,7 @@ class ProcessFleet:
         self.keys = keys
         self.launched = launched
         """The processes this script started (:class:`fleet.launch.Launched`), or None."""
+        self.out: Path | None = None if launched is None else launched.out
         self.hold = hold
         """This script permits the steps (a lockstep fleet it launched)."""
         self.realtime = not hold
@@ -79,6 +80,8 @@ class ProcessFleet:
         self._lock = threading.Lock()
         self.log: Any = None
         """The processes' log file, while they run."""
+        self.verdict: str | None = None
+        """Once closed: why the run failed, in one line (``fleet run``'s), or None."""
 
     # ------------------------------------------------------------------ making one
     @classmethod
@@ -223,7 +226,8 @@ class ProcessFleet:
         try:
             if self.launched is not None:
                 self.permit.put(Script(robot=SCRIPT, step=max(self.k, -1), stop=True).encode())
-                _, _, summary = self.launched.wait(timeout=120.0)
+                code, why, summary = self.launched.wait(timeout=120.0)
+                self.verdict = None if code == 0 else why
         finally:
             if self.launched is not None:
                 self.launched.stop()

@@ -218,3 +218,20 @@ def test_examples_run_in_process(tmp_path, name, capsys):
         assert summary["waypoints_reached"] == {"r1": 9, "r2": 9}
     else:
         assert out.count("done") == 3
+
+
+def test_a_scenario_with_missions_runs_them_from_the_command_line(tmp_path, capsys):
+    """`fleet simulate` follows the waypoints of the scenario's robots, as a script does; the
+    summary counts them, the final goal once settled."""
+    from fleet.cli import main
+
+    out = tmp_path / "patrol"
+    assert main(["simulate", str(ROOT / "scenarios" / "patrol_two.toml"), "--out", str(out)]) == 0
+    assert "waypoints reached: {'r1': 5, 'r2': 5}" in capsys.readouterr().out
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["waypoints_reached"] == {"r1": 5, "r2": 5} and summary["all_goals_reached"]
+    assert summary["collisions"] == 0
+    # Each robot drove round the square, not straight to its goal: its path is at least the
+    # square's three sides and the way to and from it.
+    for rid in ("r1", "r2"):
+        assert summary["robots"][rid]["path_length_m"] > 3 * 0.8 + 0.5

@@ -242,3 +242,18 @@ def test_an_interrupted_wait_leaves_the_fleet_usable(tmp_path):
     finally:
         proc.kill()
         _kill_all(list(pids.values()))
+
+
+def test_fleet_run_follows_the_missions_as_fleet_simulate_does(tmp_path):
+    """A scenario with missions, as processes: the same steps, figures and waypoints as the
+    in-process simulator, every process exiting 0."""
+    from fleet.cli import main
+
+    patrol = str(ROOT / "scenarios" / "patrol_two.toml")
+    assert main(["simulate", patrol, "--out", str(tmp_path / "sim")]) == 0
+    assert main(["run", patrol, "--out", str(tmp_path / "run")]) == 0
+    sim, run = (json.loads((tmp_path / d / "summary.json").read_text()) for d in ("sim", "run"))
+    assert run["waypoints_reached"] == sim["waypoints_reached"] == {"r1": 5, "r2": 5}
+    for key in ("steps", "min_distance_m", "min_reference_separation_m", "all_goals_reached"):
+        assert run[key] == sim[key], key
+    assert set(run["exit_codes"].values()) == {0}
