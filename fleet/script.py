@@ -64,7 +64,7 @@ class ProcessFleet:
             inbox.subscribe(session, keys.truth(), Truth, keep=True),
             inbox.subscribe(session, keys.pose(), Pose, keep=True),
             inbox.subscribe(session, keys.plan(), Plan, keep=True),
-            inbox.subscribe(session, keys.clock, Tick),
+            inbox.subscribe(session, keys.clock, Tick, keep=True),
             inbox.watch_liveliness(session),
         ]
         self.permit = session.declare_publisher(keys.script)
@@ -282,13 +282,13 @@ class ProcessFleet:
         return False, f"no answer from its agent within {REPLY_TIMEOUT:g} s"
 
     def _collect_events(self, k: int) -> None:
-        """The events of step k, once sample k + 1 is in: deadline misses in the tick, agents
-        gone, and the plans' fallbacks.  A plan not in yet is looked for again one step later,
-        and only then counts as stale: in lockstep the tracker has every plan of step k before
-        it publishes sample k + 1, but this session may get the sample before the plan."""
+        """The events of step k, once sample k + 1 is in: the commands of step k − 1 not applied
+        (tick k says so), agents gone, and the plans' fallbacks.  A plan not in yet is looked for
+        again one step later, and only then counts as stale: in lockstep the tracker has every
+        plan of step k before it publishes sample k + 1, but this session may get the sample
+        before the plan."""
         inbox, out = self.inbox, []
         with inbox.cond:
-            tick = inbox.get(Tick, "tracker")
             live = set(inbox.live)
             self._unseen[k] = set(self.ids)
             for step in sorted(self._unseen):
@@ -310,10 +310,11 @@ class ProcessFleet:
                 if rid not in live and rid not in self._dead:
                     self._dead.add(rid)
                     out.append(Event(k, rid, "dead_neighbour", "its agent left the fleet"))
-            if tick is not None and tick.step == k + 1:
-                for rid, done in {**tick.fallback, **tick.braked}.items():
-                    what = "braked" if rid in tick.braked else "followed its candidate"
-                    out.append(Event(k, rid, "deadline_miss", f"{what} after step {done}"))
+            said = inbox.get(Tick, "tracker", k)  # what the robot sides did over step k − 1
+            if said is not None and k > 0:
+                for rid, done in {**said.fallback, **said.braked}.items():
+                    what = "braked" if rid in said.braked else "followed its candidate"
+                    out.append(Event(k - 1, rid, "deadline_miss", f"{what} after step {done}"))
             inbox.prune(k - 2)
         with self._lock:
             self._events += out

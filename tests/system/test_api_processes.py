@@ -257,3 +257,20 @@ def test_fleet_run_follows_the_missions_as_fleet_simulate_does(tmp_path):
     for key in ("steps", "min_distance_m", "min_reference_separation_m", "all_goals_reached"):
         assert run[key] == sim[key], key
     assert set(run["exit_codes"].values()) == {0}
+
+
+def test_events_report_an_agent_that_dies(tmp_path):
+    """An agent killed mid-run: the script hears that it left, and that its robot side braked
+    instead of applying its commands; the run's verdict names the process."""
+    with Fleet.launch(TWO, seed=1, processes=True, out=tmp_path) as fleet:
+        fleet.wait(0.5)
+        pid = fleet.processes["agent r2"]
+        os.kill(pid, signal.SIGKILL)
+        assert _gone([pid]) == []
+        fleet.wait(2.0)  # lockstep goes on without it, its robot braked
+        evs = list(fleet.events())
+        assert [e.robot for e in evs if e.kind == "dead_neighbour"] == ["r2"]
+        misses = [e for e in evs if e.kind == "deadline_miss"]
+        assert misses and {e.robot for e in misses} == {"r2"} and "braked" in misses[0].detail
+        assert all(e.step >= 5 for e in misses)
+    assert fleet.verdict is not None and "agent r2" in fleet.verdict
