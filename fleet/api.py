@@ -51,6 +51,8 @@ from ground.scenario import GOAL_TOLERANCE, Scenario, goal_problem, load_scenari
 
 CLOCKS = ("lockstep", "realtime")
 """The fleet's clocks: lockstep steps when every agent has answered; realtime steps at Ts."""
+MAX_EVENTS = 100_000
+"""Most events kept waiting for :meth:`Fleet.events` (a script that never reads them)."""
 Point = tuple[float, float]
 """A point (x, y) [m], world frame."""
 Pose = tuple[float, float, float]
@@ -106,6 +108,8 @@ class Fleet:
         """The sampling period [s]."""
         self._lookahead = self.scenario.controller.lookahead
         self._queue: list[Event] = []
+        self.events_dropped = 0
+        """Events dropped unread: beyond :data:`MAX_EVENTS` waiting, the oldest go."""
         self._progress = {rid: _Progress(np.asarray(g, dtype=float)) for rid, g in backend.goals().items()}
         self._seen = -1
         self.summary: dict[str, Any] | None = None
@@ -438,6 +442,9 @@ class Fleet:
 
     def _poll_events(self) -> None:
         self._queue.extend(self._b.events())
+        if len(self._queue) > MAX_EVENTS:  # nobody reads them: keep the newest
+            self.events_dropped += len(self._queue) - MAX_EVENTS
+            del self._queue[:-MAX_EVENTS]
 
 
 class SimulatedFleet:

@@ -235,3 +235,21 @@ def test_a_scenario_with_missions_runs_them_from_the_command_line(tmp_path, caps
     # square's three sides and the way to and from it.
     for rid in ("r1", "r2"):
         assert summary["robots"][rid]["path_length_m"] > 3 * 0.8 + 0.5
+
+
+def test_the_readme_script_runs_as_it_stands(tmp_path, monkeypatch, capsys):
+    """The README's script, on the in-process simulator (the process fleet runs the same
+    script in tests/system/test_api_processes.py)."""
+    text = (ROOT / "README.md").read_text()
+    code = text.split("```python\n", 1)[1].split("```", 1)[0]
+    assert "Fleet.launch(" in code and len(code.strip().splitlines()) <= 12
+    launch = Fleet.launch.__func__  # type: ignore[attr-defined]
+    monkeypatch.setattr(
+        Fleet,
+        "launch",
+        classmethod(lambda cls, *a, **k: launch(cls, *a, **{**k, "processes": False, "out": tmp_path})),
+    )
+    monkeypatch.chdir(ROOT)
+    exec(compile(code, "README.md", "exec"), {})
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("True {") and lines[-1] == "True"
