@@ -32,7 +32,8 @@ def send_goal(
 
     ``connect``: the hub's endpoints (peer-to-peer on loopback), or
     ``zenoh_config``: a JSON5 file, such as deploy/operator.json5 for the
-    secure deployment (the operator's certificate may publish goals only).
+    secure deployment (the operator's certificate may give goals and publish
+    nothing else).
     Exit 2: bad input (the line names the field); 1: the robot is not up, did
     not take the goal within ``timeout`` [s], or a neighbour parks too close."""
     import zenoh

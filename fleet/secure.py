@@ -2,16 +2,17 @@
 
 Topology.  One Zenoh router, on the lab computer, listens on a ``tls/``
 endpoint.  Every fleet process (agents, ``epuck_link``, tracker, supervisor,
-``fleet goal``) is a Zenoh *client* of that router, so every message passes
-through it and nothing travels peer to peer.  The link is TLS 1.3 with
-certificates on both sides (mTLS), all issued by the fleet's own CA
-(``deploy/make_certs.py``): a client without a certificate, or with one from
-another CA, fails the handshake and never gets a session.
+``fleet goal``, a script's ``Fleet.connect``) is a Zenoh *client* of that
+router, so every message passes through it and nothing travels peer to peer.
+The link is TLS 1.3 with certificates on both sides (mTLS), all issued by the
+fleet's own CA (``deploy/make_certs.py``): a client without a certificate, or
+with one from another CA, fails the handshake and never gets a session.
 
 Identity.  A client's identity is the common name (CN) of its certificate:
 the robot id for the agent and the ``epuck_link`` of that robot, and
-``tracker``, ``supervisor``, ``operator`` for the services (``router`` is the
-router's own).  :func:`identity` maps a process role to it.
+``tracker``, ``supervisor``, ``operator`` (``fleet goal`` and scripts) for the
+services (``router`` is the router's own).  :func:`identity` maps a process
+role to it.
 
 Rights.  The router's access control (Zenoh ``access_control``) is
 default-deny and grants, for fleet ``F`` (keys of :mod:`ground.wire`):
@@ -26,16 +27,27 @@ robot ``R``     ``F/plan/R`` ``F/cmd/R`` ``F/odom/R`` ``F/wheels/R``     ``F/ali
                 the simulated tracker plays every robot's side and
                 relays plans)
 ``supervisor``  —                                                       ``F/alive/supervisor``
-``operator``    ``F/goal/*``                                            —
+``operator``    ``F/goal/*``                                            ``F/alive/script``
 ==============  ======================================================  =====================
 
-and to every identity of the fleet: declaring subscribers, liveliness
-subscribers and liveliness queries on ``F/**``, and receiving what is
-published there.  Everything else is dropped at the router: a put outside
-the table (robot r1 on ``F/plan/r2``, anyone but the tracker on ``F/pose/*``),
-deletes, queries, queryables, any key outside ``F/**``, anything from a
-client whose CN is not in the fleet.  Drops are silent to the sender (Zenoh
-does not report them); the router logs each decision at ``RUST_LOG=trace``.
+Goals also travel as Zenoh queries (a script of :class:`fleet.Fleet` asks for
+them and waits for the agent's answer): only the ``operator`` may query
+``F/goal/*``, robot ``R`` receives the queries on ``F/goal/R`` only and may
+declare its queryable and reply there, and only the operator receives the
+replies.  So a script with the operator's certificate joins a fleet
+(``Fleet.connect``) with its token ``F/alive/script``; it cannot permit or stop
+steps (``F/script`` is granted to nobody: a script permits steps only to a
+fleet it launched itself, on loopback).
+
+Every identity of the fleet may declare subscribers, liveliness subscribers and
+liveliness queries on ``F/**`` and receive what is published there.
+Everything else is dropped at the router: a put outside the table (robot r1 on
+``F/plan/r2``, anyone but the tracker on ``F/pose/*``, anyone on
+``F/script``), deletes, a query from anyone but the operator, a queryable or a
+reply anywhere but a robot's own goal key, any key outside ``F/**``, anything
+from a client whose CN is not in the fleet.  Drops are silent to the sender
+(Zenoh does not report them; a dropped query ends at once without a reply); the
+router logs each decision at ``RUST_LOG=trace``.
 
 Configuration.  :func:`client_config` builds the ``zenoh.Config`` of a role
 from a certificate directory and the router's endpoint, :func:`router_config`
@@ -70,7 +82,7 @@ from pathlib import Path
 from typing import Any
 
 from ground.net import SecureConfigError, load_config
-from ground.wire import ROBOT_ID, Keys
+from ground.wire import ROBOT_ID, SCRIPT, Keys
 
 SERVICES = ("tracker", "supervisor", "operator")
 """Identities of the fleet's services (certificate common names)."""
@@ -204,6 +216,9 @@ def acl_json(robots: Sequence[str], fleet: str = "lab", sim_tracker: bool = Fals
         rule("publish-tracker", ["put"], "ingress", tracker_puts),
         rule("token-supervisor", ["liveliness_token"], "ingress", [k.alive("supervisor")]),
         rule("publish-operator", ["put"], "ingress", [k.goal()]),
+        rule("query-operator", ["query"], "ingress", [k.goal()]),
+        rule("token-operator", ["liveliness_token"], "ingress", [k.alive(SCRIPT)]),
+        rule("answers-operator", ["reply"], "egress", [k.goal()]),
     ]  # fmt: skip
     subjects = [{"id": "members", "cert_common_names": [*robots, *SERVICES]}]
     subjects += [{"id": s, "cert_common_names": [s]} for s in SERVICES]
@@ -211,8 +226,9 @@ def acl_json(robots: Sequence[str], fleet: str = "lab", sim_tracker: bool = Fals
         {"id": "members", "rules": ["subscribe", "deliver"], "subjects": ["members"]},
         {"id": "tracker", "rules": ["publish-tracker"], "subjects": ["tracker"]},
         {"id": "supervisor", "rules": ["token-supervisor"], "subjects": ["supervisor"]},
-        {"id": "operator", "rules": ["publish-operator"], "subjects": ["operator"]},
-    ]
+        {"id": "operator", "subjects": ["operator"],
+         "rules": ["publish-operator", "query-operator", "token-operator", "answers-operator"]},
+    ]  # fmt: skip
     for r in robots:
         rules += [
             rule(
@@ -222,10 +238,12 @@ def acl_json(robots: Sequence[str], fleet: str = "lab", sim_tracker: bool = Fals
                 [k.plan(r), k.cmd(r), k.odom(r), k.wheels(r), k.emu(r), k.applied(r), k.link(r)],
             ),
             rule(f"token-{r}", ["liveliness_token"], "ingress", [k.alive(r)]),
+            rule(f"goals-{r}", ["declare_queryable", "reply"], "ingress", [k.goal(r)]),
+            rule(f"asked-{r}", ["query"], "egress", [k.goal(r)]),
         ]
         subjects.append({"id": f"robot-{r}", "cert_common_names": [r]})
-        policies.append({"id": f"robot-{r}", "rules": [f"publish-{r}", f"token-{r}"],
-                         "subjects": [f"robot-{r}"]})  # fmt: skip
+        policies.append({"id": f"robot-{r}", "subjects": [f"robot-{r}"],
+                         "rules": [f"publish-{r}", f"token-{r}", f"goals-{r}", f"asked-{r}"]})  # fmt: skip
     return {
         "enabled": True,
         "default_permission": "deny",
@@ -369,11 +387,17 @@ def probe(conf: Any, subs: Iterable[str], lives: Iterable[str], label: str) -> i
     or ``{"event": "open_failed", "error"}``, then ``{"event": "sample", "key",
     "payload"}`` per sample on ``subs``, ``{"event": "token", "key", "kind"}``
     per liveliness change on ``lives`` (``kind`` put or delete), ``{"event":
-    "done", "op", "key"}`` after each request and ``{"event": "error", ...}``
-    for a bad one.  stdin, one JSON object per line: ``{"put": KEY, "payload":
-    TEXT}`` (blocking congestion control, express, as the fleet's
-    publishers) or ``{"token": KEY}`` (declare a liveliness token).  EOF ends
-    the probe."""
+    "query", "key", "payload"}`` per query its queryables receive, ``{"event":
+    "reply", "key", "payload"}`` per reply to its query (``"error"`` instead of
+    ``"payload"`` for an error reply), ``{"event": "done", "op", "key"}`` after
+    each request (with ``"replies"``, their number, after a query) and
+    ``{"event": "error", ...}`` for a bad one.  stdin, one JSON object per
+    line: ``{"put": KEY, "payload": TEXT}`` (blocking congestion control,
+    express, as the fleet's publishers), ``{"token": KEY}`` (declare a
+    liveliness token), ``{"queryable": KEY, "reply": TEXT}`` (declare a
+    queryable that answers TEXT on KEY) or ``{"get": KEY, "payload": TEXT,
+    "timeout": SECONDS}`` (query KEY, every reply kept, and wait for the end
+    of the query; default timeout 10 s).  EOF ends the probe."""
     import zenoh
 
     from ground.process import announce
@@ -391,6 +415,14 @@ def probe(conf: Any, subs: Iterable[str], lives: Iterable[str], label: str) -> i
     def on_token(s: Any) -> None:
         kind = "delete" if s.kind == zenoh.SampleKind.DELETE else "put"
         out(event="token", key=str(s.key_expr), kind=kind)
+
+    def answer(key: str, text: str) -> Any:
+        def on_query(q: Any) -> None:
+            payload = b"" if q.payload is None else q.payload.to_bytes()
+            out(event="query", key=str(q.key_expr), payload=payload.decode(errors="replace"))
+            q.reply(key, text.encode())
+
+        return on_query
 
     keep: list[Any] = [session.declare_subscriber(k, on_sample) for k in subs]
     keep += [session.liveliness().declare_subscriber(k, on_token, history=True) for k in lives]
@@ -415,9 +447,26 @@ def probe(conf: Any, subs: Iterable[str], lives: Iterable[str], label: str) -> i
                     key = str(req["token"])
                     keep.append(session.liveliness().declare_token(key))
                     out(event="done", op="token", key=key)
+                elif "queryable" in req:
+                    key = str(req["queryable"])
+                    keep.append(session.declare_queryable(key, answer(key, str(req.get("reply", "")))))
+                    out(event="done", op="queryable", key=key)
+                elif "get" in req:
+                    key, n = str(req["get"]), 0
+                    payload, timeout = str(req.get("payload", "")).encode(), float(req.get("timeout", 10.0))
+                    none = zenoh.ConsolidationMode.NONE
+                    for r in session.get(key, payload=payload, timeout=timeout, consolidation=none):
+                        n += 1
+                        if r.ok is not None:
+                            text = r.ok.payload.to_bytes().decode(errors="replace")
+                            out(event="reply", key=str(r.ok.key_expr), payload=text)
+                        elif r.err is not None:
+                            text = r.err.payload.to_bytes().decode(errors="replace")
+                            out(event="reply", key=key, error=text)
+                    out(event="done", op="get", key=key, replies=n)
                 else:
                     out(event="error", error=f"unknown request {sorted(req)}")
-            except (json.JSONDecodeError, AttributeError, TypeError, zenoh.ZError) as e:
+            except (json.JSONDecodeError, AttributeError, TypeError, ValueError, zenoh.ZError) as e:
                 out(event="error", error=f"{type(e).__name__}: {e}")
     finally:
         session.close()

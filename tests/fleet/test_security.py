@@ -43,7 +43,7 @@ from fleet.secure import (
     to_zenoh,
 )
 from ground.net import free_port, render
-from ground.wire import Keys
+from ground.wire import SCRIPT, Keys
 
 ROOT = Path(__file__).resolve().parents[2]
 DEPLOY = ROOT / "deploy"
@@ -303,6 +303,102 @@ def test_only_the_tracker_publishes_poses_truth_and_the_clock(
         assert got == []
 
 
+def _done(p: Proc, op: str, n: int, timeout: float = DELIVERY_S) -> int:
+    """Wait until probe ``p`` has done its ``n``-th request ``op``; the index of that event."""
+
+    def nth(_: Event) -> bool:
+        return sum(e["event"] == "done" and e["op"] == op for e in p.events) >= n
+
+    assert p.wait_for(nth, timeout) is not None, f"{p.name} did not do {op} #{n}: {p.tail()}"
+    with p.cond:
+        return [i for i, e in enumerate(p.events) if e["event"] == "done" and e["op"] == op][n - 1]
+
+
+def _replies(p: Proc, key: str, payload: str, timeout: float = DELIVERY_S) -> list[Event]:
+    """Have probe ``p`` query ``key`` with ``payload`` and wait for the query to end; its replies."""
+    with p.cond:
+        start, n = len(p.events), sum(e["event"] == "done" and e["op"] == "get" for e in p.events)
+    p.send(get=key, payload=payload, timeout=str(timeout))
+    end = _done(p, "get", n + 1, timeout + DELIVERY_S)
+    with p.cond:
+        return [e for e in p.events[start:end] if e["event"] == "reply"]
+
+
+def _queries(p: Proc, payload: str) -> list[Event]:
+    with p.cond:
+        return [e for e in p.events if e["event"] == "query" and e["payload"] == payload]
+
+
+def test_only_the_operator_asks_for_goals_and_only_the_robot_answers(
+    certs: tuple[Path, Path], router: tuple[str, Proc]
+) -> None:
+    """Goals as queries (a script's ``Fleet.connect``): the operator's query on r1's goal key
+    reaches r1's queryable and r1's reply comes back; r2 cannot answer for r1 (its queryable on
+    r1's key is refused, r1's queries are not passed to it, nor would its reply on r1's key be),
+    and a robot or the supervisor that asks is refused, its query ending at once without r1's
+    reply and never reaching r1."""
+    endpoint, _ = router
+    with probes() as start:
+        operator = start("operator", *_member(certs[0], endpoint, "operator"))
+        r1 = start("r1", *_member(certs[0], endpoint, "agent", "r1"))
+        r2 = start("r2", *_member(certs[0], endpoint, "agent", "r2"))
+        supervisor = start("supervisor", *_member(certs[0], endpoint, "supervisor"))
+        for p in (operator, r1, r2, supervisor):
+            p.ready()
+        r1.send(queryable=K.goal("r1"), reply="genuine r1")
+        # r2's forged queryable first, then its own: both declarations travel in order on r2's link.
+        r2.send(queryable=K.goal("r1"), reply="forged by r2")
+        r2.send(queryable=K.goal("r2"), reply="genuine r2")
+        _done(r1, "queryable", 1)
+        _done(r2, "queryable", 2)
+        # Controls, repeated until the routes exist: the operator's queries are answered by each robot.
+        for rid in ("r2", "r1"):
+            deadline = time.monotonic() + DELIVERY_S
+            while not (got := _replies(operator, K.goal(rid), f"ask {rid}", 1.0)):
+                assert time.monotonic() < deadline, f"no answer from {rid}: {operator.tail()}"
+            assert [e["payload"] for e in got] == [f"genuine {rid}"], got
+        assert r2.wait_for(lambda e: e["event"] == "query" and e["key"] == K.goal("r2"), DELIVERY_S)
+        # Only r1 answers on r1's key: once r2's own queryable answers, its forged one would have too.
+        got = _replies(operator, K.goal("r1"), "ask r1 again")
+        assert [(e["key"], e["payload"]) for e in got] == [(K.goal("r1"), "genuine r1")], got
+        assert [e for e in r2.events if e["event"] == "query" and e["key"] == K.goal("r1")] == []
+        # Anyone else's query ends at once without r1's reply, and never reaches r1.  (r2's own
+        # queryable on r1's key answers it, locally.)
+        for asker, local in ((r2, ["forged by r2"]), (supervisor, [])):
+            got = _replies(asker, K.goal("r1"), f"asked by {asker.name}")
+            assert [e["payload"] for e in got] == local, got
+        _replies(operator, K.goal("r1"), "barrier")  # behind theirs on the router's link to r1
+        assert r1.wait_for(lambda e: e["event"] == "query" and e["payload"] == "barrier", DELIVERY_S)
+        assert _queries(r1, "asked by r2") == [] and _queries(r1, "asked by supervisor") == []
+
+
+def test_the_operator_declares_the_script_token_and_publishes_goals_only(
+    certs: tuple[Path, Path], router: tuple[str, Proc]
+) -> None:
+    """What a script joining with the operator's certificate may not do: speak for a robot (a
+    plan, a command, a robot's token) or hold and stop the fleet's clock (``F/script``, which
+    only a script that launched its own fleet locally uses).  Its token ``F/alive/script`` and its
+    goals go through."""
+    endpoint, _ = router
+    with probes() as start:
+        observer = start("supervisor", *_member(certs[0], endpoint, "supervisor"),
+                         subs=(f"{K.root}/**",), lives=(K.alive(),))  # fmt: skip
+        operator = start("operator", *_member(certs[0], endpoint, "operator"))
+        for p in (observer, operator):
+            p.ready()
+        deliver(operator, K.goal("r1"), [observer])
+        for key in (K.plan("r1"), K.cmd("r1"), K.script, K.odom("r1"), K.applied("r1")):
+            operator.send(put=key, payload="forged by operator")
+        barrier(operator, K.goal("r1"), [observer])
+        assert [e["key"] for e in observer.samples() if e["payload"] == "forged by operator"] == []
+        operator.send(token=K.alive("r1"))
+        operator.send(token=K.alive("supervisor"))
+        operator.send(token=K.alive(SCRIPT))
+        own = observer.wait_for(lambda e: e["event"] == "token" and e["key"] == K.alive(SCRIPT), DELIVERY_S)
+        assert own is not None and own["kind"] == "put"
+        assert [e["key"] for e in observer.tokens()] == [K.alive(SCRIPT)]
+
+
 GRACE_S = 1.0
 """How long after a listed client got a sample an unlisted one must still have nothing [s]."""
 
@@ -387,6 +483,44 @@ def test_acl_grants_exactly_the_documented_rights() -> None:
     assert sorted(r["id"] for r in ingress_puts) == ["publish-operator", "publish-r1", "publish-r2",
                                                      "publish-tracker"]  # fmt: skip
     assert all(r["permission"] == "allow" for r in acl["rules"])
+    # Beyond reading (every member: the subscribe and deliver rules), each identity's grants as
+    # (flow, message, key): the operator's are exactly what fleet goal and Fleet.connect need.
+    members = {p["id"]: p for p in acl["policies"]}["members"]
+    assert members["subjects"] == ["members"] and members["rules"] == ["subscribe", "deliver"]
+    assert {r["id"]: r for r in acl["rules"]}["deliver"]["flows"] == ["egress"]
+    reading = {"declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"}
+    assert set(rules["subscribe"]["messages"]) == reading
+    names = {s["id"]: s["cert_common_names"] for s in acl["subjects"]}
+    grants: dict[str, set[tuple[str, str, str]]] = {}
+    for pol in acl["policies"]:
+        if pol["id"] == "members":
+            continue
+        for subject in pol["subjects"]:
+            (cn,) = names[subject]
+            grants.setdefault(cn, set()).update(
+                (flow, m, key) for r in pol["rules"] for flow in rules[r]["flows"]
+                for m in rules[r]["messages"] for key in rules[r]["key_exprs"]
+            )  # fmt: skip
+    robot = {
+        *{("ingress", "put", key) for key in rules["publish-r1"]["key_exprs"]},
+        ("ingress", "liveliness_token", K.alive("r1")),
+        ("ingress", "declare_queryable", K.goal("r1")),  # the agent's goal queryable
+        ("ingress", "reply", K.goal("r1")),  # its answers
+        ("egress", "query", K.goal("r1")),  # the queries for it, and no other robot's
+    }
+    assert grants == {
+        "r1": robot,
+        "r2": {(f, m, key.replace("r1", "r2")) for f, m, key in robot},
+        "tracker": {("ingress", "put", key) for key in (K.pose(), K.truth(), K.clock)},
+        "supervisor": {("ingress", "liveliness_token", K.alive("supervisor"))},
+        "operator": {
+            ("ingress", "put", K.goal()),  # fleet goal
+            ("ingress", "query", K.goal()),  # a script's goals, answered by the agents
+            ("egress", "reply", K.goal()),
+            ("ingress", "liveliness_token", K.alive(SCRIPT)),  # a script's token
+        },
+    }
+    assert not any(K.script in r["key_exprs"] for r in acl["rules"])  # nobody permits or stops steps
 
 
 def test_bad_configurations_are_refused_naming_the_field(certs: tuple[Path, Path], tmp_path: Path) -> None:
