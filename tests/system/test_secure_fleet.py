@@ -45,6 +45,11 @@ control granting r1 r2's two keys as well (a default-deny configuration that ``f
 router`` accepts): there the observer does see the forged messages, and recognises them as such.
 (The whole run under that grant, tried once by hand: every forged message delivered, 374
 colliding steps, 2 mm at the closest, goals missed, and still every process exited 0.)
+
+:func:`test_a_script_joins_the_secure_fleet_with_the_operators_certificate`: a Python script
+(``Fleet.connect``) joins a fleet behind the same router with the operator's configuration, the
+shipped ``deploy/operator.json5`` filled in, gives a goal its agent acknowledges, and leaves;
+the operator's certificate still cannot publish a plan or a script message.
 """
 
 from __future__ import annotations
@@ -233,9 +238,10 @@ import json, sys, threading
 import zenoh
 from ground.process import announce, exit_process
 from ground.net import load_config
-from ground.wire import Command, Plan, WireError, decode
+from ground.wire import Command, Goal, Plan, Script, WireError, decode
 
 lock = threading.Lock()
+TYPES = {"plan": Plan, "cmd": Command, "script": Script, "goal": Goal}
 
 
 def out(**event):
@@ -246,14 +252,19 @@ def out(**event):
 
 def on_sample(s):
     key = str(s.key_expr)
-    typ = Plan if key.split("/")[-2] == "plan" else Command
+    typ = TYPES.get(key.split("/")[2], Command)
     try:
         m = decode(s.payload.to_bytes(), typ)
     except WireError as e:
         out(event="sample", key=key, error=e.reason)
         return
     if typ is Plan:
-        out(event="sample", key=key, robot=m.robot, step=m.step, status=m.status, solve_time=m.solve_time)
+        out(event="sample", key=key, robot=m.robot, step=m.step, status=m.status, solve_time=m.solve_time,
+            goal=m.goal.tolist())
+    elif typ is Script:
+        out(event="sample", key=key, robot=m.robot, step=m.step, stop=m.stop)
+    elif typ is Goal:
+        out(event="sample", key=key, robot=m.robot, goal=m.goal.tolist())
     else:
         out(event="sample", key=key, robot=m.robot, step=m.step, ax=m.ax, ay=m.ay)
 
@@ -268,8 +279,9 @@ session.close()
 exit_process(0)
 """
 """The observer: ``python -c OBSERVER CONF KEY...`` prints ``{"event": "sample", "key", "robot",
-"step", ...}`` for every plan (status, solve_time) and command (ax, ay) on the keys; EOF ends it.
-Floats go through JSON exactly (``repr``)."""
+"step", ...}`` for every plan (status, solve_time, goal), command (ax, ay), script message (step,
+stop) and goal (goal, no step) on the keys; EOF ends it.  Floats go through JSON exactly
+(``repr``)."""
 
 
 @pytest.fixture(scope="module")
@@ -339,8 +351,10 @@ class Net:
                 repr(FORGED_SOLVE_TIME), str(CONTROL_STEP), str(MID_CONTROL)]  # fmt: skip
         return self.start("attacker", ["-c", ATTACKER, *args], stdin=True)
 
-    def observer(self) -> HostProc:
-        keys = [K.plan(ATTACKER_ID), K.cmd(ATTACKER_ID), K.plan(VICTIM), K.cmd(VICTIM)]
+    def observer(self, keys: list[str] | None = None) -> HostProc:
+        """The observer, with the supervisor's certificate, on ``keys`` (default: r1's and r2's plans
+        and commands)."""
+        keys = keys or [K.plan(ATTACKER_ID), K.cmd(ATTACKER_ID), K.plan(VICTIM), K.cmd(VICTIM)]
         return self.start("observer", ["-c", OBSERVER, self.config("supervisor"), *keys], stdin=True)
 
 
@@ -530,3 +544,117 @@ def test_the_observer_sees_forged_messages_the_router_lets_through(net: Net) -> 
     assert all(_forged(e, forged_cmds) for e in plans + cmds)
     assert all(e["status"] == FORGED_STATUS and e["solve_time"] == FORGED_SOLVE_TIME for e in plans)
     assert (len(plans), len(cmds)) == want, report["puts"]
+
+
+# ------------------------------------------------------------ a script joins
+TWO = ROOT / "scenarios" / "paper_two_robots.toml"
+"""The joined fleet: r1 and r2 of the router's r1 r2 r3, so nobody acts on r3's goal key."""
+JOINED_STEPS = 150
+"""The joined fleet's run: at most this many steps (15 s on the wall clock) [steps]."""
+NEW_GOAL = (0.3, 0.5)
+"""The goal the script gives r1 [m], clear of r2's goal and of the walls."""
+
+
+def _forge(conf: Path, horizon: int, observer: HostProc) -> None:
+    """On a session of the operator's configuration ``conf``: a well-formed plan of r1 (the
+    forged status and solve time) and a script message that would stop a scripted run, between
+    goals for r3, which the operator may publish and nobody acts on.  The first goal is repeated
+    until the observer has it (a new client learns of the subscribers asynchronously, and its
+    publishers were declared in this order); the last one is the barrier behind the forgeries."""
+    import numpy as np
+    import zenoh
+
+    from ground.bus import publisher
+    from ground.net import load_config
+    from ground.wire import SCRIPT, Goal, Plan, Script
+
+    z = np.zeros(2)
+    plan = Plan(robot="r1", step=CONTROL_STEP, t0=0.0, Ts=0.1, committed=np.zeros((horizon, 2)),
+                nominal=np.zeros((horizon + 1, 2)), footprint=0.1, priority=0, rank=0, phase=0, target=z,
+                goal=z, status=FORGED_STATUS, solve_time=FORGED_SOLVE_TIME, tube_ok=True)  # fmt: skip
+    stop = Script(robot=SCRIPT, step=CONTROL_STEP, stop=True)
+    session = zenoh.open(load_config(conf))
+    try:
+        pubs = {key: publisher(session, key) for key in (K.plan("r1"), K.script, K.goal("r3"))}
+
+        def goal_r3(x: float, timeout: float) -> bool:
+            pubs[K.goal("r3")].put(Goal(robot="r3", goal=np.array([x, 0.0])).encode())
+            got = observer.wait_for(lambda e: e.get("key") == K.goal("r3") and e["goal"] == [x, 0.0], timeout)
+            return got is not None
+
+        deadline = time.monotonic() + DELIVERY_S
+        n = 1
+        while not goal_r3(0.001 * n, 0.3):
+            assert time.monotonic() < deadline, "no goal of the operator reached the observer"
+            n += 1
+        pubs[K.plan("r1")].put(plan.encode())
+        pubs[K.script].put(stop.encode())
+        assert goal_r3(-1.0, DELIVERY_S), "the barrier did not reach the observer"
+    finally:
+        session.close()
+
+
+def test_a_script_joins_the_secure_fleet_with_the_operators_certificate(net: Net) -> None:
+    """``Fleet.connect(scenario, zenoh_config=...)`` with the operator's configuration (the
+    shipped ``deploy/operator.json5``, filled in) joins a two-robot realtime fleet behind the
+    secure router: it reads the poses and the clock, declares its token, gives r1 a goal that
+    r1's agent acknowledges through the router (``goto`` raises ``GoalRefused`` otherwise) and
+    r1's next plans carry, and leaves the fleet running.  A session of the same configuration
+    cannot publish a plan of r1 nor a script message (which would stop a scripted run): the
+    observer, behind a barrier, sees neither.  The fleet then runs to its end with every process
+    exiting 0, and its summary has r1's new goal."""
+    from fleet import Fleet
+    from ground.net import render
+    from ground.scenario import load_scenario
+
+    net.router()
+    observer = net.observer([K.plan("r1"), K.script, K.goal("r3")])
+    observer.ready(READY_S)
+    common = ["--scenario", str(TWO), "--clock", "realtime"]
+    out = net.tmp / "out"
+    tracker = net.start("tracker", ["-m", "tracker", *common, "--source", "sim", "--steps", str(JOINED_STEPS),
+                                    "--zenoh-config", net.config("tracker")])  # fmt: skip
+    net.start("supervisor", ["-m", "supervisor", *common, "--out", str(out),
+                             "--zenoh-config", net.config("supervisor")])  # fmt: skip
+    for rid in ("r1", "r2"):
+        net.start(f"agent {rid}", ["-m", "agent", *common, "--robot", rid,
+                                   "--zenoh-config", net.config("agent", rid)])  # fmt: skip
+    fleet_names = [n for n in net.procs if n in ("tracker", "supervisor") or n.startswith("agent ")]
+    for name in fleet_names:
+        net.procs[name].ready(READY_S)
+    conf = net.tmp / "operator-shipped.json5"
+    text = (ROOT / "deploy" / "operator.json5").read_text()
+    conf.write_text(render(text, {"CERTS": str(net.certs), "ROUTER": net.endpoint}))
+
+    with Fleet.connect(TWO, zenoh_config=conf) as fleet:
+        poses = fleet.poses()
+        assert set(poses) == {"r1", "r2"}, poses
+        assert all(-1.0 < x < 1.0 and -1.0 < y < 1.0 and math.isfinite(th) for x, y, th in poses.values())
+        k = fleet.step
+        fleet.goto({"r1": NEW_GOAL})  # raises GoalRefused unless r1's agent answered yes
+        assert fleet.goals()["r1"] == NEW_GOAL
+        carried = observer.wait_for(
+            lambda e: e.get("key") == K.plan("r1") and e.get("goal") == list(NEW_GOAL), DELIVERY_S
+        )
+        assert carried is not None and carried["step"] >= k, "no plan of r1 carries the new goal"
+        fleet.wait(0.5)  # the fleet's clock runs on under the script (it does not hold it)
+        assert fleet.step >= k + 5
+        _forge(conf, load_scenario(TWO).controller.horizon, observer)
+        plans, scripts = _samples(observer, K.plan("r1")), _samples(observer, K.script)
+        assert [e for e in plans if e.get("status") == FORGED_STATUS or "error" in e] == [] and scripts == []
+        assert [e for e in plans if e["goal"] == list(NEW_GOAL)], "r1's real plans reach the observer"
+    assert fleet.summary is None
+    assert [n for n in fleet_names if net.procs[n].popen.poll() is not None] == []  # leaving stops nothing
+
+    assert tracker.wait(RUN_S) is not None, f"the run did not end within {RUN_S} s: {tracker.tail()}"
+    for name in fleet_names:
+        assert net.procs[name].wait(EXIT_S) is not None, f"{name} still running {EXIT_S} s after the tracker"
+    net.stop_all()
+    bad = {n: c for n, c in net.codes.items() if c != 0}
+    assert not bad, "exit codes " + "; ".join(f"{n}: {c}: {net.procs[n].tail(8)}" for n, c in bad.items())
+    took = [ln for ln in net.procs["agent r1"].lines() if f"new goal {list(NEW_GOAL)} at step" in ln]
+    assert len(took) == 1, net.procs["agent r1"].tail()
+    for name in fleet_names:
+        assert [ln for ln in net.procs[name].lines() if "rejected payload from" in ln] == [], name
+    s = json.loads((out / "summary.json").read_text())
+    assert s["robots"]["r1"]["goal"] == list(NEW_GOAL) and s["rejected_payloads"] == 0, s
