@@ -19,6 +19,7 @@ token goes and the tracker ends the run by itself (no orphans).
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -67,7 +68,7 @@ class ProcessFleet:
             inbox.subscribe(session, keys.clock, Tick, keep=True),
             inbox.watch_liveliness(session),
         ]
-        self.permit = session.declare_publisher(keys.script)
+        self.permit = session.declare_publisher(keys.script) if hold else None
         self.token = session.liveliness().declare_token(keys.alive(SCRIPT))
         self.k = -1
         """The newest complete sample."""
@@ -173,7 +174,7 @@ class ProcessFleet:
         """Lockstep, holding the clock: permit step k, then wait for sample k + 1.  Otherwise
         wait for a newer sample than k; a script slower than the clock skips samples."""
         k = self.k
-        if self.hold:
+        if self.permit is not None:
             self.permit.put(Script(robot=SCRIPT, step=k, stop=False).encode())
         if not self._wait_sample(k + 1):
             return False
@@ -225,7 +226,11 @@ class ProcessFleet:
         summary = None
         try:
             if self.launched is not None:
-                self.permit.put(Script(robot=SCRIPT, step=max(self.k, -1), stop=True).encode())
+                stop = Script(robot=SCRIPT, step=max(self.k, -1), stop=True).encode()
+                if self.permit is not None:
+                    self.permit.put(stop)
+                else:  # a realtime fleet it launched: its clock is not held, but it ends it
+                    self.session.put(self.keys.script, stop)
                 code, why, summary = self.launched.wait(timeout=120.0)
                 self.verdict = None if code == 0 else why
         finally:
@@ -241,7 +246,7 @@ class ProcessFleet:
 
     # ------------------------------------------------------------------ inside
     def _first_sample(self) -> None:
-        if not self._wait_sample(0, whole=False):
+        if not self._wait_sample(0, whole=self.hold):  # a held clock: all of sample 0
             raise ConfigError("processes", f"no sample from the fleet within {SAMPLE_TIMEOUT:g} s")
         self.k = 0 if self.hold else self._newest()
 
@@ -252,7 +257,11 @@ class ProcessFleet:
 
         def come(r: str) -> bool:
             t = inbox.get(Truth, r)
-            return t is not None and t.seq >= k and inbox.newest(Pose, r, t.seq) is not None
+            if t is None or t.seq < k:
+                return False
+            # A held clock sends the sample's pose with its truth: wait for that very one (the
+            # truth may come first); a running one may skip, or lose, a pose.
+            return (inbox.get(Pose, r, t.seq) if self.hold else inbox.newest(Pose, r, t.seq)) is not None
 
         def complete() -> bool:
             if self._stopped():
@@ -268,6 +277,7 @@ class ProcessFleet:
 
     def _ask(self, rid: str, goal: Array, batch: dict[str, Array]) -> tuple[bool, str]:
         payload = Goal(robot=rid, goal=goal, batch=batch).encode()
+        asked = time.monotonic()
         replies = self.session.get(self.keys.goal(rid), payload=payload, timeout=REPLY_TIMEOUT)
         for reply in replies:
             if reply.ok is None:
@@ -279,6 +289,8 @@ class ProcessFleet:
             if isinstance(got, dict) and got.get("ok") is True:
                 return True, ""
             return False, str(got.get("reason", "refused")) if isinstance(got, dict) else "refused"
+        if time.monotonic() - asked < 0.5 * REPLY_TIMEOUT:  # the query ended without an answer
+            return False, "no agent answered (it is not running, or access control refused the query)"
         return False, f"no answer from its agent within {REPLY_TIMEOUT:g} s"
 
     def _collect_events(self, k: int) -> None:

@@ -274,3 +274,14 @@ def test_events_report_an_agent_that_dies(tmp_path):
         assert misses and {e.robot for e in misses} == {"r2"} and "braked" in misses[0].detail
         assert all(e.step >= 5 for e in misses)
     assert fleet.verdict is not None and "agent r2" in fleet.verdict
+
+
+def test_a_realtime_fleet_runs_on_the_wall_clock_and_ends_with_the_script(tmp_path):
+    with Fleet.launch(TWO, clock="realtime", seed=1, processes=True, out=tmp_path) as fleet:
+        t0, k0 = time.monotonic(), fleet.step
+        fleet.wait(2.0)  # the fleet's clock: wall time, not held by the script
+        assert fleet.step >= k0 + 20 and time.monotonic() - t0 >= 1.8
+        assert fleet.wait_arrived(timeout=60)
+        pids = list(fleet.processes.values())
+    assert _gone(pids, timeout=1.0) == []
+    assert fleet.summary is not None and fleet.summary["all_goals_reached"] and fleet.verdict is None
