@@ -22,7 +22,8 @@ machine; on realtime it is wall time.
   its current goal for :data:`ground.scenario.SETTLE_TIME`, counted from the sample its goal was
   given.  The summary's ``reached_goal`` uses the same rule.
 * **Goals** are checked as the scenario's are: inside the arena, clear of the walls and the
-  obstacles by the robot's footprint, and the two footprints and
+  obstacles by the robot's footprint, reachable from where the robot is past them, and the two
+  footprints and
   :data:`ground.scenario.GOAL_MARGIN` away from every other robot's goal (the goals given in the
   same call count in place of the ones they replace).  A refused call raises
   :class:`GoalRefused` naming the robot and the reason, and changes nothing.
@@ -47,7 +48,7 @@ import numpy as np
 
 from fleet.backend import Backend, Event, Sample
 from ground.geometry import Array, controlled_point
-from ground.scenario import GOAL_TOLERANCE, Scenario, goal_problem, load_scenario, settled_since
+from ground.scenario import GOAL_TOLERANCE, Scenario, free_space, goal_problem, load_scenario, settled_since
 
 CLOCKS = ("lockstep", "realtime")
 """The fleet's clocks: lockstep steps when every agent has answered; realtime steps at Ts."""
@@ -107,6 +108,8 @@ class Fleet:
         self.Ts = self.scenario.controller.Ts
         """The sampling period [s]."""
         self._lookahead = self.scenario.controller.lookahead
+        self._joined = free_space(self.scenario, backend.footprint)
+        """Whether the footprint can go from one point to another past walls and obstacles."""
         self._queue: list[Event] = []
         self.events_dropped = 0
         """Events dropped unread: beyond :data:`MAX_EVENTS` waiting, the oldest go."""
@@ -365,9 +368,15 @@ class Fleet:
         fp = self._b.footprint
         now = [SimpleNamespace(robot=r, goal=q, footprint=fp) for r, q in self._b.goals().items()]
         given = {**(others or {}), **batch}
+        here = self.points()
         for rid, arr in batch.items():
             near = [pl for pl in now if pl.robot != rid]
             problem = goal_problem(self.scenario, fp, arr, near, {r: q for r, q in given.items() if r != rid})
+            if problem is None and rid in here and not self._joined(np.array(here[rid]), arr):
+                problem = (
+                    f"goal ({arr[0]:.2f}, {arr[1]:.2f}) cannot be reached from where it is: the walls and "
+                    f"obstacles leave no passage for its footprint of radius {fp:.3f} m"
+                )
             if problem is not None:
                 if quiet:
                     raise GoalRefused(rid, problem)

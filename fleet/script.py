@@ -76,6 +76,8 @@ class ProcessFleet:
         self.footprint = 0.0
         self._events: list[Any] = []
         self._dead: set[str] = set()
+        self._was_live: set[str] = set()
+        """Every robot whose agent this session has seen live."""
         self._unseen: dict[int, set[str]] = {}
         """Per step, the robots whose plan of it has not come yet."""
         self._lock = threading.Lock()
@@ -318,8 +320,9 @@ class ProcessFleet:
                             )
                 if not self._unseen[step]:
                     del self._unseen[step]
-            for rid in self.ids:
-                if rid not in live and rid not in self._dead:
+            self._was_live |= live
+            for rid in self.ids:  # gone after this session saw it (its token may come late)
+                if rid in self._was_live and rid not in live and rid not in self._dead:
                     self._dead.add(rid)
                     out.append(Event(k, rid, "dead_neighbour", "its agent left the fleet"))
             said = inbox.get(Tick, "tracker", k)  # what the robot sides did over step k − 1

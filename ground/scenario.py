@@ -1095,14 +1095,34 @@ def check_geometry(scn: Scenario, footprint: float) -> None:
 
 
 def _check_reachable(scn: Scenario, starts: list[np.ndarray], goals: list[np.ndarray], fp: float) -> None:
-    """Raise :class:`ConfigError` for the first robot whose goal cannot be reached from its start
-    by a disc of radius ``fp`` [m] past the walls and static obstacles (the other robots aside).
+    """Raise :class:`ConfigError` for the first robot whose goal or waypoint cannot be reached
+    from its start by a disc of radius ``fp`` [m] past the walls and static obstacles (the other
+    robots aside; :func:`free_space`)."""
+    joined = free_space(scn, fp)
+    for i, r in enumerate(scn.robots):
+        stops = [
+            (f"robots[{i}].waypoints[{j}]", "waypoint", np.asarray(w, float))
+            for j, w in enumerate(r.waypoints)
+        ]
+        for field, label, p in [*stops, (f"robots[{i}].goal", "goal", goals[i])]:
+            if not joined(starts[i], p):
+                raise ConfigError(
+                    field,
+                    f"{label} {_xy(p)} of {r.id!r} cannot be reached from its start: the walls and "
+                    f"obstacles leave no passage for its footprint of radius {fp:.3f} m",
+                )
+
+
+def free_space(scn: Scenario, fp: float) -> Callable[[np.ndarray, np.ndarray], bool]:
+    """Whether a disc of radius ``fp`` [m] can go from one point (2,) [m] to another past the
+    scenario's walls and static obstacles (the robots aside): a function of the two points.
 
     Free space is searched on a grid of :data:`REACH_CELLS` cells along the longer side: a cell
     is free when its centre clears every wall and obstacle by ``fp``, and free cells that share
     an edge or a corner are connected.  A passage counts when it is about a cell wider than
     2·``fp`` (the footprint already holds the tube); one narrower than 2·``fp`` never does.  A
-    start or goal is joined to the free cells within a cell diagonal of it."""
+    point is joined to the free cells within a cell diagonal of it; one with no free cell near
+    it (checked elsewhere, against the walls and obstacles) is not judged here."""
     from scipy import ndimage
 
     xmin, xmax, ymin, ymax = scn.arena
@@ -1122,20 +1142,11 @@ def _check_reachable(scn: Scenario, starts: list[np.ndarray], goals: list[np.nda
         near = (X - p[0]) ** 2 + (Y - p[1]) ** 2 <= reach**2
         return set(np.unique(labels[near & free]).tolist())
 
-    for i, r in enumerate(scn.robots):
-        at_start = pieces(starts[i])
-        stops = [
-            (f"robots[{i}].waypoints[{j}]", "waypoint", np.asarray(w, float))
-            for j, w in enumerate(r.waypoints)
-        ]
-        for field, label, p in [*stops, (f"robots[{i}].goal", "goal", goals[i])]:
-            there = pieces(p)
-            if at_start and there and not at_start & there:
-                raise ConfigError(
-                    field,
-                    f"{label} {_xy(p)} of {r.id!r} cannot be reached from its start: the walls and "
-                    f"obstacles leave no passage for its footprint of radius {fp:.3f} m",
-                )
+    def joined(a: np.ndarray, b: np.ndarray) -> bool:
+        at_a, at_b = pieces(a), pieces(b)
+        return not (at_a and at_b) or bool(at_a & at_b)
+
+    return joined
 
 
 def settle_samples(Ts: float) -> int:

@@ -253,3 +253,21 @@ def test_the_readme_script_runs_as_it_stands(tmp_path, monkeypatch, capsys):
     exec(compile(code, "README.md", "exec"), {})
     lines = capsys.readouterr().out.splitlines()
     assert lines[0].startswith("True {") and lines[-1] == "True"
+
+
+def test_a_goal_ringed_by_obstacles_is_refused(tmp_path):
+    """Four discs ring a point, the gaps between them narrower than the footprint: a goal
+    inside the ring is clear of every disc, yet cannot be reached; one outside it is taken."""
+    ring = "".join(
+        f"\n[[obstacles]]\ncircle = {{ center = [{x}, {y}], radius = 0.12 }}\n"
+        for x, y in ((0.3, 0.55), (-0.3, 0.55), (0.0, 0.85), (0.0, 0.25))
+    )
+    path = tmp_path / "ring.toml"
+    path.write_text((ROOT / "scenarios" / "paper_two_robots.toml").read_text() + ring)
+    with Fleet.launch(path, seed=1, processes=False, out=tmp_path / "run") as fleet:
+        before = fleet.goals()
+        with pytest.raises(GoalRefused, match="cannot be reached from where it is") as info:
+            fleet.goto({"r1": (0.0, 0.55)})
+        assert info.value.robot == "r1" and fleet.goals() == before
+        fleet.goto({"r1": (0.6, -0.5)})
+        assert fleet.wait_arrived(["r1"], timeout=60)
