@@ -33,6 +33,7 @@ from ground.geometry import Array
 from ground.net import NetConfig, SecureConfigError, load_config
 from ground.scenario import ConfigError, Scenario
 from ground.wire import SCRIPT, Goal, Keys, Plan, Pose, Script, Tick, Truth
+from supervisor.judge import SOLVED
 
 RUN_OPTIONS = ("exchange", "topology", "lease", "viewer", "faults", "hub")
 """``Fleet.launch`` options a process fleet takes (``fleet run``'s)."""
@@ -40,7 +41,6 @@ REPLY_TIMEOUT = 10.0
 """How long an agent has to answer a goal query [s]."""
 SAMPLE_TIMEOUT = 60.0
 """How long the next sample may take before the fleet counts as gone [s, wall time]."""
-SOLVED = "PROXQP_SOLVED"
 LOG = "fleet.log"
 """The file in the run's directory that a launched fleet's processes write their log lines to."""
 

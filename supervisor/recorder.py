@@ -33,6 +33,7 @@ import numpy as np
 
 from ground.scenario import Scenario
 from ground.wire import Plan, Pose
+from supervisor.judge import SOLVED
 from supervisor.trace import outlines
 
 PALETTE = [
@@ -204,7 +205,7 @@ class Recorder:
             row(f"solve_ms/{rid}", rr.Scalars, k, Ts, scalars=[pl.solve_time * 1e3])
         self._time(k, Ts)
         for rid, pl in plans.items():
-            if pl.status != "PROXQP_SOLVED":
+            if pl.status != SOLVED:
                 self.event(f"{rid}: fallback at step {step} ({pl.status})", "WARN")
             if not pl.tube_ok:
                 self.event(f"{rid}: tube exit at step {step}", "WARN")
