@@ -414,8 +414,15 @@ class SimTracker:
                 if not self.behind:
                     log(ROLE, f"step {k}: the tick went out {lag * 1e3:.0f} ms late; the clock starts over")
             self.behind = lag > LAG_LIMIT * p.Ts
-            _until(sent + args.deadline * p.Ts)  # sent ≥ t_start + t: it waited for it
-            inbox.drain()
+            due = sent + args.deadline * p.Ts
+            _until(due)  # sent ≥ t_start + t: it waited for it
+            if time.monotonic() - due > LAG_LIMIT * p.Ts:
+                # This process itself woke late (stopped, or starved of the CPU): commands
+                # that came in time may still sit in Zenoh's queues, unread while it slept.
+                # They are given one deadline's length to be read before any is judged missed.
+                inbox.drain_until(partial(_answered, inbox, answering, k), args.deadline * p.Ts)
+            else:
+                inbox.drain()
             late = [r for r in self.ids if inbox.get(Command, r, k) is None and r in inbox.live]
             if late and self.world.drives:  # emulated robots: their links judge (Applied)
                 self.misses += len(late)
