@@ -31,7 +31,6 @@ import time
 from functools import partial
 from typing import Any
 
-import msgpack
 import numpy as np
 
 from agent.controller import TubeMPC
@@ -39,7 +38,7 @@ from agent.coordination import NeighbourInfo
 from agent.hazards import Guard, neighbour_of
 from agent.messages import command_message, plan_message
 from agent.tube import validated_design
-from ground.bus import Inbox, open_session, publisher, remember_steps
+from ground.bus import Inbox, goal_reply, open_session, publisher, remember_steps
 from ground.geometry import controlled_point, measured_state
 from ground.process import add_common_args, announce, fault_plan, log
 from ground.scenario import ConfigError, Scenario, goal_problem, load_scenario
@@ -351,7 +350,7 @@ class Agent:
             except WireError as e:
                 with inbox.cond:
                     inbox.rejects.reject(str(query.key_expr), e)
-                query.reply_err(_goal_reply(e.reason))
+                query.reply_err(goal_reply(e.reason))
                 return
             with inbox.cond:
                 problem = self._goal_problem(goal)
@@ -359,7 +358,7 @@ class Agent:
                     self.pending = goal
             if problem is not None:
                 log(self.role, f"goal {goal.goal.round(3).tolist()} rejected: {problem}")
-            query.reply(self.keys.goal(self.me), _goal_reply(problem))
+            query.reply(self.keys.goal(self.me), goal_reply(problem))
         finally:
             query.drop()
 
@@ -425,13 +424,6 @@ class _Link:
         for sub in self.subs:
             sub.undeclare()
         self.session.close()
-
-
-def _goal_reply(problem: str | None) -> bytes:
-    """The answer to a goal query, a msgpack map: ``{"ok": True}`` when ``problem`` is None, else
-    ``{"ok": False, "reason": problem}`` (one line)."""
-    body: dict[str, Any] = {"ok": True} if problem is None else {"ok": False, "reason": problem}
-    return bytes(msgpack.packb(body, use_bin_type=True))
 
 
 def _wait_matching(pub: Any, timeout: float) -> bool:

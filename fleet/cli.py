@@ -6,7 +6,8 @@
   one process (:mod:`fleet.simulate`), writes ``DIR/summary.json`` and exits 0 only if
   the run completed with zero collisions and every robot reached its goal.
 * ``fleet run SCENARIO.toml [--out DIR] [--clock C] [--exchange E] [--seed N] [--viewer]
-  [--listen ENDPOINT] [--lease S] [--topology T]`` runs the fleet as processes over Zenoh.
+  [--listen ENDPOINT] [--lease S] [--topology T] [--ros2 [--ros-domain N]]`` runs the fleet as
+  processes over Zenoh (with ``--ros2``, ROS 2 sees it too: docs/ros2.md).
 * ``fleet goal SCENARIO.toml --robot ID X Y --connect ENDPOINT`` gives a
   running agent a new goal.
 * ``fleet report DIR`` writes the figures of a run.
@@ -19,6 +20,7 @@ Bad input gets one line naming the field and the reason, and exit code 2.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import signal
 import sys
@@ -28,7 +30,7 @@ from typing import Any
 from fleet.launch import TOPOLOGIES
 from fleet.report import strict_json
 from ground.params import PRESETS, preset
-from ground.process import lease_arg, seed_arg
+from ground.process import domain_arg, lease_arg, seed_arg
 from ground.scenario import ConfigError, load_scenario
 
 DEFAULT_ARENA = (-1.0, 1.0, -1.0, 1.0)
@@ -183,6 +185,17 @@ def cmd_run(args: argparse.Namespace) -> int:
                 return _bad(
                     f"--faults: faults.links.{rid}: {rid} has no radio link (link 'sim'); cut emulator links"
                 )
+    ros2 = args.ros2 or scn.ros2.enabled
+    if args.ros_domain is not None and not ros2:
+        return _bad("--ros-domain: the ROS 2 face is off; add --ros2 (or [ros2] enabled = true)")
+    if ros2:
+        from ground.scenario import ros2_problem
+
+        problem = ros2_problem([r.id for r in scn.robots])
+        if problem is not None:
+            return _bad(f"--ros2: {problem}")
+        if importlib.util.find_spec("rosbags") is None:
+            return _bad("--ros2: needs rosbags: pip install 'epuck-fleet[ros2]'")
     emulated = "emulator" in links.values()
     clock = args.clock or ("realtime" if emulated else "lockstep")
     if emulated and clock != "realtime":
@@ -197,14 +210,15 @@ def cmd_run(args: argparse.Namespace) -> int:
         summary, why = run_scenario(
             str(Path(args.scenario).resolve()), processes=True, seed=args.seed, out=out.resolve(),
             clock=clock, viewer=args.viewer, hub=args.listen, faults=args.faults, exchange=args.exchange,
-            lease=args.lease, topology=args.topology,
+            lease=args.lease, topology=args.topology, ros2=ros2, ros_domain=args.ros_domain,
         )  # fmt: skip
         code, verdict = (1, why) if why else (0, "ok")
     else:
         code, verdict, summary = run_fleet(
             str(Path(args.scenario).resolve()), [r.id for r in scn.robots], out.resolve(), args.seed,
             viewer=args.viewer, clock=clock, hub=args.listen, links=links, faults=args.faults,
-            exchange=args.exchange, lease=args.lease, topology=args.topology,
+            exchange=args.exchange, lease=args.lease, topology=args.topology, ros2=ros2,
+            ros_domain=args.ros_domain,
         )  # fmt: skip
     if summary is not None:
         print(
@@ -404,6 +418,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="how the processes link: mesh (every one a Zenoh peer, default) or star (the tracker a "
         "router, the others its clients: one link each, and a 1 s lease; with --exchange relay, the "
         "lightest for large realtime fleets; docs/design.md, \"Topology\")",
+    )  # fmt: skip
+    r.add_argument(
+        "--ros2", action="store_true",
+        help="also show the fleet to ROS 2 over rmw_zenoh, with no bridge: /<id>/pose, plan, reference, "
+        "goal_pose and /fleet/footprints (docs/ros2.md; needs the [ros2] extra)",
+    )  # fmt: skip
+    r.add_argument(
+        "--ros-domain", metavar="N", type=domain_arg,
+        help="ROS 2 domain id of --ros2, 0 … 232 (default the scenario's [ros2] domain, else 0)",
     )  # fmt: skip
     r.set_defaults(func=cmd_run)
     g = sub.add_parser("goal", help="give a running agent a new goal and wait until it takes it")

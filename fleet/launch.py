@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from ground.net import NetConfig, free_port, loopback
+from ground.scenario import load_scenario
 from supervisor.judge import verdict
 
 TOPOLOGIES = ("mesh", "star")
@@ -213,6 +214,8 @@ def start_fleet(
     scripted: bool = False,
     agent_timeout: float | None = None,
     stderr: int | IO[str] | None = None,
+    ros2: bool | None = None,
+    ros_domain: int | None = None,
 ) -> Launched:
     """Start the fleet of ``scenario`` (its robots ``robots``), writing to ``out``, and return
     once every process is ready.  Raises :class:`LaunchError` if one does not start, once the
@@ -239,7 +242,9 @@ def start_fleet(
     the run ends when it says so or leaves.  ``agent_timeout``: each agent's ``--timeout`` [s]
     (default 30): how long it waits for a tick, a measurement or the neighbours' plans.
     ``stderr``: where the processes' log lines go (a file descriptor or file; default this
-    process's stderr)."""
+    process's stderr).  ``ros2``: also start the fleet's ROS 2 face (``python -m ros2_link``,
+    docs/ros2.md) on domain ``ros_domain`` (default the scenario's ``[ros2]`` domain); None: as the
+    scenario's ``[ros2] enabled`` says."""
     if topology not in TOPOLOGIES:
         raise ValueError(f"topology {topology!r} is not one of {', '.join(TOPOLOGIES)}")
     emulated = [r for r in robots if (links or {}).get(r, "sim") == "emulator"]
@@ -295,12 +300,18 @@ def start_fleet(
             raise LaunchError(f"not ready: {', '.join(late)}")
         sup_args = [*spoke, "--connect", hub, "--out", str(out), *(["--viewer"] if viewer else [])]
         sup = start("supervisor", "supervisor", sup_args)
+        observers = [sup]
+        if ros2 is None:
+            ros2 = load_scenario(scenario).ros2.enabled
+        if ros2:
+            domain = [] if ros_domain is None else ["--ros-domain", str(ros_domain)]
+            observers.append(start("ros2", "ros2_link", [*spoke, "--connect", hub, *domain]))
         agents = [
             start(f"agent {rid}", "agent", [*spoke, "--connect", hub, "--robot", rid, *agent_args])
             for rid in robots
         ]
-        procs += [sup, *agents]
-        late = _wait_ready([sup, *agents], 120.0)
+        procs += [*observers, *agents]
+        late = _wait_ready([*observers, *agents], 120.0)
         if late:
             raise LaunchError(f"not ready: {', '.join(late)}")
         started = True

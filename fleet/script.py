@@ -19,26 +19,22 @@ token goes and the tracker ends the run by itself (no orphans).
 from __future__ import annotations
 
 import threading
-import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import msgpack
 import numpy as np
 
 from fleet.backend import Event, Sample
-from ground.bus import Inbox
+from ground.bus import GOAL_REPLY_TIMEOUT, Inbox, ask_goal
 from ground.geometry import Array
 from ground.net import NetConfig, SecureConfigError, load_config
 from ground.scenario import ConfigError, Scenario
 from ground.wire import SCRIPT, Goal, Keys, Plan, Pose, Script, Tick, Truth
 from supervisor.judge import SOLVED
 
-RUN_OPTIONS = ("exchange", "topology", "lease", "viewer", "faults", "hub")
+RUN_OPTIONS = ("exchange", "topology", "lease", "viewer", "faults", "hub", "ros2", "ros_domain")
 """``Fleet.launch`` options a process fleet takes (``fleet run``'s)."""
-REPLY_TIMEOUT = 10.0
-"""How long an agent has to answer a goal query [s]."""
 SAMPLE_TIMEOUT = 60.0
 """How long the next sample may take before the fleet counts as gone [s, wall time]."""
 LOG = "fleet.log"
@@ -278,22 +274,7 @@ class ProcessFleet:
         return tick is not None and tick.stop
 
     def _ask(self, rid: str, goal: Array, batch: dict[str, Array]) -> tuple[bool, str]:
-        payload = Goal(robot=rid, goal=goal, batch=batch).encode()
-        asked = time.monotonic()
-        replies = self.session.get(self.keys.goal(rid), payload=payload, timeout=REPLY_TIMEOUT)
-        for reply in replies:
-            if reply.ok is None:
-                continue
-            try:
-                got = msgpack.unpackb(reply.ok.payload.to_bytes())
-            except (ValueError, msgpack.ExtraData) as e:
-                return False, f"unreadable answer ({e})"
-            if isinstance(got, dict) and got.get("ok") is True:
-                return True, ""
-            return False, str(got.get("reason", "refused")) if isinstance(got, dict) else "refused"
-        if time.monotonic() - asked < 0.5 * REPLY_TIMEOUT:  # the query ended without an answer
-            return False, "no agent answered (it is not running, or access control refused the query)"
-        return False, f"no answer from its agent within {REPLY_TIMEOUT:g} s"
+        return ask_goal(self.session, self.keys, Goal(robot=rid, goal=goal, batch=batch), GOAL_REPLY_TIMEOUT)
 
     def _collect_events(self, k: int) -> None:
         """The events of step k, once sample k + 1 is in: the commands of step k − 1 not applied

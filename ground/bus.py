@@ -18,7 +18,7 @@ from typing import Any, TypeVar
 from ground.faults import DELIVER, FaultPlan
 from ground.net import NetConfig, load_config, loopback
 from ground.process import log
-from ground.wire import Digest, Keys, Message, Plan, RejectCounter, WireError, decode
+from ground.wire import Digest, Goal, Keys, Message, Plan, RejectCounter, WireError, decode
 
 M = TypeVar("M", bound=Message)
 _SENDER_KEYS = ("/clock", "/digest")
@@ -118,6 +118,44 @@ def publisher(session: Any, key: str, express: bool = True) -> Any:
     import zenoh
 
     return session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK, express=express)
+
+
+GOAL_REPLY_TIMEOUT = 10.0
+"""How long an agent has to answer a goal query [s]."""
+
+
+def goal_reply(problem: str | None) -> bytes:
+    """An agent's answer to a goal query, a msgpack map: ``{"ok": True}`` when ``problem`` is
+    None, else ``{"ok": False, "reason": problem}`` (one line)."""
+    import msgpack
+
+    body: dict[str, Any] = {"ok": True} if problem is None else {"ok": False, "reason": problem}
+    return bytes(msgpack.packb(body, use_bin_type=True))
+
+
+def ask_goal(session: Any, keys: Keys, goal: Goal, timeout: float = GOAL_REPLY_TIMEOUT) -> tuple[bool, str]:
+    """Give ``goal`` to its robot's agent as a query on its goal key and wait (at most
+    ``timeout`` [s]) for the answer (:func:`goal_reply`): (accepted, the reason if not).
+
+    The agent checks the goal as every goal is checked (:func:`ground.scenario.goal_problem`)
+    and, if it accepts it, takes it at its next step."""
+    import msgpack
+
+    asked = time.monotonic()
+    replies = session.get(keys.goal(goal.robot), payload=goal.encode(), timeout=timeout)
+    for reply in replies:
+        if reply.ok is None:
+            continue
+        try:
+            got = msgpack.unpackb(reply.ok.payload.to_bytes())
+        except (ValueError, msgpack.ExtraData) as e:
+            return False, f"unreadable answer ({e})"
+        if isinstance(got, dict) and got.get("ok") is True:
+            return True, ""
+        return False, str(got.get("reason", "refused")) if isinstance(got, dict) else "refused"
+    if time.monotonic() - asked < 0.5 * timeout:  # the query ended without an answer
+        return False, "no agent answered (it is not running, or access control refused the query)"
+    return False, f"no answer from its agent within {timeout:g} s"
 
 
 class Inbox:

@@ -18,7 +18,7 @@ from typing import Any, NoReturn
 
 from ground.faults import FaultPlan, FaultPlanError
 from ground.net import MODES, NetConfig, lease_seconds
-from ground.scenario import MAX_SEED
+from ground.scenario import MAX_SEED, ROS_DOMAIN_MAX
 
 
 def lease_arg(text: str) -> float:
@@ -37,6 +37,17 @@ def seed_arg(text: str) -> int:
         raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
     if not 0 <= n <= MAX_SEED:
         raise argparse.ArgumentTypeError(f"must be in [0, {MAX_SEED}], got {n}")
+    return n
+
+
+def domain_arg(text: str) -> int:
+    """argparse type of ``--ros-domain``: an integer in [0, :data:`ground.scenario.ROS_DOMAIN_MAX`]."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if not 0 <= n <= ROS_DOMAIN_MAX:
+        raise argparse.ArgumentTypeError(f"must be in [0, {ROS_DOMAIN_MAX}], got {n}")
     return n
 
 

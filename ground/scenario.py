@@ -48,6 +48,7 @@ import difflib
 import itertools
 import math
 import numbers
+import re
 import stat
 import tomllib
 from collections.abc import Callable, Mapping, Sequence
@@ -259,6 +260,34 @@ ARUCO_DICTIONARIES: dict[str, int] = {
 dictionaries) → number of marker ids (ids are ``0 .. n-1``)."""
 
 
+ROS_DOMAIN_MAX = 232
+"""Largest ROS 2 domain id (``ROS_DOMAIN_ID``): 0 … 232."""
+ROS_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
+"""A robot id that can be a ROS 2 topic name token (``/<id>/pose``): a letter first, then letters,
+digits and underscores; no ``-``, and no ``__`` (checked apart)."""
+
+
+@dataclass(frozen=True)
+class Ros2Spec:
+    """The ``[ros2]`` table: the fleet as ROS 2 sees it over rmw_zenoh (docs/ros2.md)."""
+
+    enabled: bool = False
+    """Publish the fleet's topics and take RViz goals (``fleet run --ros2`` does the same)."""
+    domain: int = 0
+    """ROS 2 domain id, 0 … :data:`ROS_DOMAIN_MAX`: the first part of every ROS key."""
+
+
+def ros2_problem(ids: Sequence[str]) -> str | None:
+    """Why these robot ids cannot be ROS 2 topic names (``/<id>/pose``), or None."""
+    for rid in ids:
+        if not ROS_NAME.fullmatch(rid) or "__" in rid:
+            return (
+                f"robot id {rid!r} cannot name a ROS 2 topic (/{rid}/pose): it must start with a letter "
+                "and hold only letters, digits and single underscores"
+            )
+    return None
+
+
 @dataclass(frozen=True)
 class Fiducial:
     """A fixed ArUco marker at a known place, for the floor homography."""
@@ -335,6 +364,8 @@ class Scenario:
     """Where the scenario came from: a file path or "<dict>"."""
     camera: CameraSpec | None = None
     """The ``[camera]`` table, None when absent."""
+    ros2: Ros2Spec = Ros2Spec()
+    """The ``[ros2]`` table (off when absent)."""
 
 
 # --------------------------------------------------------------------------- primitive validators
@@ -911,7 +942,7 @@ def _check_markers(robots: Sequence[RobotSpec], camera: CameraSpec | None) -> No
             raise ConfigError(mpath, f"marker id {r.marker} is also camera.fiducials[{fids[r.marker]}].id")
 
 
-_TOP_KEYS = ("name", "duration", "arena", "controller", "simulation", "robots", "obstacles", "camera")
+_TOP_KEYS = ("name", "duration", "arena", "controller", "simulation", "robots", "obstacles", "camera", "ros2")
 
 
 def parse_scenario(
@@ -937,6 +968,7 @@ def parse_scenario(
         base_dir = Path(source).parent if source != "<dict>" else None
         camera = _parse_camera(table["camera"], "camera", base_dir)
     _check_markers(robots, camera)
+    ros2 = _parse_ros2(table.get("ros2"), "ros2", [r.id for r in robots])
     return Scenario(
         name=name,
         duration=duration,
@@ -947,7 +979,23 @@ def parse_scenario(
         obstacles=obstacles,
         source=source,
         camera=camera,
+        ros2=ros2,
     )
+
+
+def _parse_ros2(raw: object, path: str, ids: Sequence[str]) -> Ros2Spec:
+    table = _table(raw, path) if raw is not None else {}
+    _check_keys(table, path, [f.name for f in dataclasses.fields(Ros2Spec)])
+    spec = Ros2Spec()
+    if "enabled" in table:
+        spec = dataclasses.replace(spec, enabled=_boolean(table["enabled"], _join(path, "enabled")))
+    if "domain" in table:
+        domain = _integer(table["domain"], _join(path, "domain"), ge=0, le=ROS_DOMAIN_MAX)
+        spec = dataclasses.replace(spec, domain=domain)
+    problem = ros2_problem(ids) if spec.enabled else None
+    if problem is not None:
+        raise ConfigError(_join(path, "enabled"), problem)
+    return spec
 
 
 def load_scenario(path: str | Path, preset_override: str | None = None) -> Scenario:

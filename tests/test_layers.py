@@ -4,7 +4,8 @@ The packages stand in layers, the contract at the bottom:
 
     ground                              the contract: wire, schema, geometry, model, bus
     agent, epuck_link                   the math of one robot; the robot side
-    tracker, supervisor                 the world and its camera; the judge and the recording
+    tracker, supervisor, ros2_link      the world and its camera; the judge and the recording;
+                                        the fleet as ROS 2 sees it
     fleet                               the command line, the launcher, simulate, bench
 
 A module imports only from its own package and from the packages :data:`ALLOWED` lists for it,
@@ -25,14 +26,15 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-LAYERS = {"ground": 0, "agent": 1, "epuck_link": 1, "tracker": 2, "supervisor": 2, "fleet": 3}
+LAYERS = {"ground": 0, "agent": 1, "epuck_link": 1, "tracker": 2, "supervisor": 2, "ros2_link": 2, "fleet": 3}
 ALLOWED = {
     "ground": set(),
     "agent": {"ground"},
     "epuck_link": {"ground"},
     "tracker": {"ground", "epuck_link"},
     "supervisor": {"ground"},
-    "fleet": {"ground", "agent", "epuck_link", "tracker", "supervisor"},
+    "ros2_link": {"ground"},
+    "fleet": {"ground", "agent", "epuck_link", "tracker", "supervisor", "ros2_link"},
 }
 """The packages each package may import besides itself."""
 OURS = set(LAYERS) | {"benchmarks", "tests"}
@@ -155,10 +157,11 @@ package cannot be imported."""
         ("tracker", ["--start-timeout", "30"]),
         ("supervisor", ["--out", "{tmp}"]),
         ("epuck_link", ["--robot", "r1", "--link", "emulator"]),
+        ("ros2_link", []),
     ],
 )
 def test_the_robot_side_tracker_and_supervisor_start_without_the_solver(module, args, tmp_path):
-    """``python -m tracker``, ``epuck_link`` and ``supervisor`` come up (their readiness line)
+    """``python -m tracker``, ``epuck_link``, ``supervisor`` and ``ros2_link`` come up (their readiness line)
     in a fresh interpreter where proxsuite, scipy and the agent package cannot be imported:
     none of them loads the QP solver or synthesises the tube."""
     from ground.net import free_port, loopback
