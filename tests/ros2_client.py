@@ -30,7 +30,7 @@ TYPES = ("geometry_msgs/msg/PoseStamped", "visualization_msgs/msg/MarkerArray")
 
 
 def _field(store, desc) -> str:
-    from rosbags.typesys.msg import Nodetype
+    from rosbags.interfaces import Nodetype
 
     kind, rest = desc
     if kind == Nodetype.BASE:
@@ -45,13 +45,13 @@ def _field(store, desc) -> str:
     return f"{_field(store, inner)}[<={n}]" if n else f"{_field(store, inner)}[]"
 
 
-def write_msgs(root: Path) -> None:
-    """``root/<pkg>/msg/<Name>.msg`` for TYPES and everything they use."""
+def write_msgs(root: Path, types: tuple[str, ...] | list[str] = TYPES) -> None:
+    """``root/<pkg>/msg/<Name>.msg`` for ``types`` and everything they use."""
+    from rosbags.interfaces import Nodetype
     from rosbags.typesys import Stores, get_typestore
-    from rosbags.typesys.msg import Nodetype
 
     store = get_typestore(Stores.ROS2_JAZZY)
-    todo, done = list(TYPES), set()
+    todo, done = list(types), set()
     while todo:
         t = todo.pop()
         if t in done:
@@ -81,7 +81,9 @@ def main() -> int:
     ap.add_argument("--port", type=int, required=True)
     ap.add_argument("--domain", type=int, default=0)
     ap.add_argument("--robot", required=True)
-    ap.add_argument("--index", type=int, required=True, help="the robot's place in the scenario (its marker id)")
+    ap.add_argument(
+        "--index", type=int, required=True, help="the robot's place in the scenario (its marker id)"
+    )
     ap.add_argument("--goal", type=float, nargs=2, required=True)
     ap.add_argument("--bad-goal", type=float, nargs=2, action="append", default=[])
     ap.add_argument("--msgs", required=True, help="a directory for the .msg files")

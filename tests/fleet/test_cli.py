@@ -619,3 +619,43 @@ def test_design_and_run_refuse_a_pose_noise_below_the_cameras_floor_error(tmp_pa
     # Without a homography file there is nothing to check.
     proc = fleet("design", scenario("nofile", {"homography": "missing.json"}))
     assert proc.returncode == 0, proc.stderr
+
+
+@pytest.mark.parametrize(
+    "args, field",
+    [
+        (["--ros2", "--ros-domain", "233"], "fleet run: error: argument --ros-domain: "),
+        (["--ros2", "--ros-domain", "x"], "fleet run: error: argument --ros-domain: "),
+        (["--ros-domain", "3"], "--ros-domain: the ROS 2 face is off"),
+    ],
+)
+def test_bad_ros2_options_are_refused_in_one_line(tmp_path, args, field):
+    proc = fleet("run", SCENARIOS / "paper_two_robots.toml", "--out", tmp_path, *args)
+    no_traceback(proc)
+    assert proc.returncode == 2, proc.stderr
+    assert field in proc.stderr.strip().splitlines()[-1], proc.stderr
+    assert not (tmp_path / "summary.json").exists()
+
+
+def test_a_robot_id_that_cannot_name_a_ros_topic_is_refused_with_ros2(tmp_path):
+    """``r-1`` is a fleet id but not a ROS 2 name (``/r-1/pose``): with the ROS face on, the run is
+    refused before any process starts; without it, the id is fine."""
+    text = (SCENARIOS / "paper_two_robots.toml").read_text().replace('"r1"', '"r-1"')
+    f = tmp_path / "dash.toml"
+    f.write_text(text)
+    proc = fleet("run", f, "--out", tmp_path / "a", "--ros2")
+    no_traceback(proc)
+    assert proc.returncode == 2, proc.stderr
+    assert "robot id 'r-1' cannot name a ROS 2 topic" in proc.stderr.strip().splitlines()[-1], proc.stderr
+    f.write_text(text + "\n[ros2]\nenabled = true\n")
+    proc = fleet("simulate", f, "--out", tmp_path / "b")
+    no_traceback(proc)
+    assert proc.returncode == 2, proc.stderr
+    assert (
+        proc.stderr.strip()
+        .splitlines()[-1]
+        .endswith(
+            "ros2.enabled: robot id 'r-1' cannot name a ROS 2 topic (/r-1/pose): it must start with a letter "
+            "and hold only letters, digits and single underscores"
+        )
+    ), proc.stderr
