@@ -10,7 +10,10 @@ Every Zenoh node of a secure deployment authenticates with mutual TLS: its
 certificate's common name (CN) is its identity, and the router's access
 control grants rights by that name (``fleet/secure.py``).  Identities are the
 robot ids (the agent and the ``epuck_link`` of robot R both use R), plus
-``tracker``, ``supervisor``, ``operator`` (``fleet goal``) and ``router``.
+``tracker``, ``supervisor``, ``operator`` (``fleet goal``), ``router``, and for the
+fleet's ROS 2 face ``ros2`` (``python -m ros2_link``) and ``ros_client`` (ROS 2 tools
+such as ``ros2 topic echo`` or RViz; the router grants these two anything only when it
+is given a ROS domain).
 
 Layout written into DIR::
 
@@ -51,7 +54,7 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 NAME = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 """Identity names: the robot-id pattern of ground/wire.py."""
-SERVICES = ("tracker", "supervisor", "operator", "router")
+SERVICES = ("tracker", "supervisor", "operator", "router", "ros2", "ros_client")
 """Identities made besides the robots."""
 ROUTER = "router"
 

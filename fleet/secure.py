@@ -11,8 +11,8 @@ with one from another CA, fails the handshake and never gets a session.
 Identity.  A client's identity is the common name (CN) of its certificate:
 the robot id for the agent and the ``epuck_link`` of that robot, and
 ``tracker``, ``supervisor``, ``operator`` (``fleet goal`` and scripts) for the
-services (``router`` is the router's own).  :func:`identity` maps a process
-role to it.
+services (``router`` is the router's own), ``ros2`` for the ROS 2 face and
+``ros_client`` for ROS 2 tools.  :func:`identity` maps a process role to it.
 
 Rights.  The router's access control (Zenoh ``access_control``) is
 default-deny and grants, for fleet ``F`` (keys of :mod:`ground.wire`):
@@ -38,6 +38,27 @@ replies.  So a script with the operator's certificate joins a fleet
 (``Fleet.connect``) with its token ``F/alive/script``; it cannot permit or stop
 steps (``F/script`` is granted to nobody: a script permits steps only to a
 fleet it launched itself, on loopback).
+
+ROS 2.  With a ROS domain ``D`` (``acl_json(..., ros_domain=D)``, ``--ros-domain D``), the
+ROS face (``python -m ros2_link``, identity ``ros2``) and ROS 2 clients (rmw_zenoh: ``ros2
+topic echo``, RViz; identity ``ros_client``) get, for every robot ``R`` (keys of
+:func:`ros_keys`; a topic's DDS type name and type hash follow it):
+
+==============  ===========================================  =========================================
+identity        may publish (put)                            may also
+==============  ===========================================  =========================================
+``ros2``        ``D/R/pose/**`` ``D/R/plan/**``              subscribe to ``F/pose/*`` ``F/plan/*``
+                ``D/R/reference/**``                         ``F/clock`` and ``D/R/goal_pose/**``;
+                ``D/fleet/footprints/**``                    query ``F/goal/*`` (the agents answer);
+                                                             tokens under ``@ros2_lv/D/**``
+``ros_client``  —                                            subscribe to the ROS data keys (the
+                                                             first column); subscribe to and query
+                                                             ``@ros2_lv/D/**``, tokens there
+``operator``    ``D/R/goal_pose/**`` (RViz's goals)          as ``ros_client``
+==============  ===========================================  =========================================
+
+``ros2`` and ``ros_client`` are not members of the fleet: they read nothing else of
+``F/**``, and ``ros_client`` publishes nothing at all (its ``goal_pose`` is dropped).
 
 Every identity of the fleet may declare subscribers, liveliness subscribers and
 liveliness queries on ``F/**`` and receive what is published there.
@@ -82,14 +103,21 @@ from pathlib import Path
 from typing import Any
 
 from ground.net import SecureConfigError, load_config
+from ground.scenario import ROS_DOMAIN_MAX
 from ground.wire import ROBOT_ID, SCRIPT, Keys
+from ros2_link.graph import ADMIN_SPACE
 
 SERVICES = ("tracker", "supervisor", "operator")
 """Identities of the fleet's services (certificate common names)."""
+ROS = ("ros2", "ros_client")
+"""Identities of the ROS 2 face (``python -m ros2_link``) and of ROS 2 clients (``ros2 topic echo``,
+RViz): not members of the fleet, they have only the ROS rights of :func:`acl_json`."""
 ROUTER = "router"
 """Common name of the router's certificate."""
-ROLES = ("agent", "link", "tracker", "supervisor", "operator")
+ROLES = ("agent", "link", "tracker", "supervisor", "operator", *ROS)
 """Process roles: ``agent`` and ``link`` (``epuck_link``) act for a robot and use its identity."""
+ROS_TOPICS = ("pose", "plan", "reference")
+"""The ROS topics ``/<id>/<topic>`` the ROS face publishes for every robot (besides ``/fleet/footprints``)."""
 WILDCARD_HOSTS = ("0.0.0.0", "[::]", "::", "*")
 _ENDPOINT = re.compile(r"^tls/(?P<host>\[[0-9A-Fa-f:.]+\]|[^/:\[\]]+):(?P<port>\d{1,5})$")
 
@@ -101,7 +129,7 @@ def identity(role: str, robot: str | None = None) -> str:
     if role in ("agent", "link"):
         if robot is None or not ROBOT_ID.fullmatch(robot):
             raise SecureConfigError(f"robot: role {role!r} needs a robot id matching {ROBOT_ID.pattern}")
-        if robot in (*SERVICES, ROUTER):
+        if robot in (*SERVICES, *ROS, ROUTER):
             raise SecureConfigError(f"robot: {robot!r} is the name of a service")
         return robot
     if robot is not None:
@@ -190,11 +218,30 @@ def client_json(
     }
 
 
-def acl_json(robots: Sequence[str], fleet: str = "lab", sim_tracker: bool = False) -> dict[str, Any]:
+def ros_keys(robots: Sequence[str], domain: int) -> tuple[list[str], list[str], list[str]]:
+    """(data, goals, graph): the key expressions of the ROS face on ROS domain ``domain``.
+
+    ``data``: what the face publishes, ``<domain>/<id>/<topic>/**`` for the topics of
+    :data:`ROS_TOPICS` and ``<domain>/fleet/footprints/**`` (a topic's DDS type name and type
+    hash follow its name); ``goals``: ``<domain>/<id>/goal_pose/**``, where it takes goals;
+    ``graph``: ``@ros2_lv/<domain>/**``, the domain's liveliness tokens (rmw_zenoh's
+    discovery)."""
+    if isinstance(domain, bool) or not isinstance(domain, int) or not 0 <= domain <= ROS_DOMAIN_MAX:
+        raise SecureConfigError(f"ros_domain: {domain!r} is not a ROS 2 domain id, 0 … {ROS_DOMAIN_MAX}")
+    data = [f"{domain}/{r}/{t}/**" for r in robots for t in ROS_TOPICS] + [f"{domain}/fleet/footprints/**"]
+    return data, [f"{domain}/{r}/goal_pose/**" for r in robots], [f"{ADMIN_SPACE}/{domain}/**"]
+
+
+def acl_json(
+    robots: Sequence[str], fleet: str = "lab", sim_tracker: bool = False, ros_domain: int | None = None
+) -> dict[str, Any]:
     """The router's ``access_control`` section for ``robots`` of fleet ``fleet`` (see the module table).
 
     ``sim_tracker``: the tracker may also publish every robot's ``odom`` (the
-    simulated tracker plays the robots' side; a camera tracker does not)."""
+    simulated tracker plays the robots' side; a camera tracker does not).
+    ``ros_domain``: the ROS 2 domain of the fleet's ROS face (``python -m ros2_link
+    --ros-domain N``), which then gets the rights of the module's ROS table; None: no ROS
+    rights at all."""
     robots = list(robots)
     for r in robots:
         identity("agent", r)
@@ -244,6 +291,34 @@ def acl_json(robots: Sequence[str], fleet: str = "lab", sim_tracker: bool = Fals
         subjects.append({"id": f"robot-{r}", "cert_common_names": [r]})
         policies.append({"id": f"robot-{r}", "subjects": [f"robot-{r}"],
                          "rules": [f"publish-{r}", f"token-{r}", f"goals-{r}", f"asked-{r}"]})  # fmt: skip
+    if ros_domain is not None:
+        data, goals, graph = ros_keys(robots, ros_domain)
+        fleet_reads = [k.pose(), k.plan(), k.clock]
+        rules += [
+            rule("ros-subscribe", ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
+                 "ingress", data + graph),
+            rule("ros-deliver",
+                 ["put", "liveliness_token", "declare_liveliness_subscriber", "liveliness_query"],
+                 "egress", data + graph),
+            rule("ros-token", ["liveliness_token"], "ingress", graph),
+            rule("ros-goal-subscribers", ["declare_subscriber"], "egress", goals),
+            rule("publish-ros2", ["put"], "ingress", data),
+            rule("ros2-subscribers", ["declare_subscriber"], "egress", data),
+            rule("read-ros2", ["declare_subscriber"], "ingress", fleet_reads + goals),
+            rule("receive-ros2", ["put"], "egress", fleet_reads + goals),
+            rule("query-ros2", ["query"], "ingress", [k.goal()]),
+            rule("answers-ros2", ["reply"], "egress", [k.goal()]),
+            rule("publish-goal-pose", ["put"], "ingress", goals),
+        ]  # fmt: skip
+        subjects += [{"id": s, "cert_common_names": [s]} for s in ROS]
+        policies += [
+            {"id": "ros-readers", "subjects": ["ros_client", "operator"],
+             "rules": ["ros-subscribe", "ros-deliver", "ros-token", "ros-goal-subscribers"]},
+            {"id": "ros2", "subjects": ["ros2"],
+             "rules": ["ros-token", "publish-ros2", "ros2-subscribers", "read-ros2", "receive-ros2",
+                       "query-ros2", "answers-ros2"]},
+            {"id": "ros-operator", "subjects": ["operator"], "rules": ["publish-goal-pose"]},
+        ]  # fmt: skip
     return {
         "enabled": True,
         "default_permission": "deny",
@@ -261,6 +336,7 @@ def router_json(
     sim_tracker: bool = False,
     allow_wildcard: bool = False,
     check: bool = True,
+    ros_domain: int | None = None,
 ) -> dict[str, Any]:
     """The router's Zenoh configuration, as a JSON-able dict.
 
@@ -268,7 +344,7 @@ def router_json(
     network's interface (the address must be in the router certificate's
     subject alternative names, see ``make_certs.py --router-host``).  mTLS
     against the fleet CA, access control of :func:`acl_json`, no outgoing
-    connections, multicast scouting off."""
+    connections, multicast scouting off.  ``ros_domain``: see :func:`acl_json`."""
     creds = Credentials.of(certs, ROUTER, check=check)
     return {
         "mode": "router",
@@ -286,7 +362,7 @@ def router_json(
                 }
             }
         },
-        "access_control": acl_json(robots, fleet, sim_tracker),
+        "access_control": acl_json(robots, fleet, sim_tracker, ros_domain),
     }
 
 
@@ -305,10 +381,15 @@ def client_config(
 
 
 def router_config(
-    listen: str, certs: str | Path, robots: Sequence[str], fleet: str = "lab", sim_tracker: bool = False
+    listen: str,
+    certs: str | Path,
+    robots: Sequence[str],
+    fleet: str = "lab",
+    sim_tracker: bool = False,
+    ros_domain: int | None = None,
 ) -> Any:
     """The router's ``zenoh.Config`` (see :func:`router_json`)."""
-    return to_zenoh(router_json(listen, certs, robots, fleet, sim_tracker))
+    return to_zenoh(router_json(listen, certs, robots, fleet, sim_tracker, ros_domain=ros_domain))
 
 
 def _get(conf: Any, key: str) -> Any:
@@ -496,6 +577,9 @@ def _parser() -> argparse.ArgumentParser:
                        help="the simulated tracker: it may also publish every robot's odom")  # fmt: skip
         p.add_argument("--allow-wildcard", action="store_true",
                        help="accept a listen endpoint on every interface (0.0.0.0, [::])")  # fmt: skip
+        p.add_argument("--ros-domain", type=int, metavar="N",
+                       help="grant the ROS 2 face (ros2) and ROS 2 clients (ros_client) their rights on "
+                            f"this ROS domain, 0 … {ROS_DOMAIN_MAX} (default: no ROS rights)")  # fmt: skip
 
     r = sub.add_parser("router", help="run the fleet's router until SIGTERM")
     r.add_argument("--config", help="router configuration file (JSON5; instead of --certs/--listen/--robots)")
@@ -539,14 +623,14 @@ def main(argv: list[str] | None = None) -> int:
                 _need(args, "certs", "listen", "robots")
                 conf = to_zenoh(
                     router_json(args.listen, args.certs, args.robots, args.fleet, args.sim_tracker,
-                                args.allow_wildcard)
+                                args.allow_wildcard, ros_domain=args.ros_domain)
                 )  # fmt: skip
             return serve_router(conf, args.allow_wildcard)
         if args.cmd == "config":
             if args.role == ROUTER:
                 _need(args, "certs", "listen", "robots")
                 d = router_json(args.listen, args.certs, args.robots, args.fleet, args.sim_tracker,
-                                args.allow_wildcard)  # fmt: skip
+                                args.allow_wildcard, ros_domain=args.ros_domain)  # fmt: skip
             else:
                 _need(args, "certs", "router")
                 d = client_json(args.role, args.certs, args.router, args.robot, args.connect_timeout)

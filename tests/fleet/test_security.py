@@ -24,6 +24,7 @@ import time
 import uuid
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +33,7 @@ from netns_util import LOCAL, HostProc
 from procfs import tcp_sockets
 
 from fleet.secure import (
+    ROS,
     Credentials,
     SecureConfigError,
     acl_json,
@@ -39,6 +41,8 @@ from fleet.secure import (
     check_router,
     client_json,
     identity,
+    main,
+    ros_keys,
     router_json,
     to_zenoh,
 )
@@ -150,7 +154,7 @@ def test_make_certs_writes_a_ca_and_one_identity_per_name(certs: tuple[Path, Pat
     ca = x509.load_pem_x509_certificate((fleet / "ca.pem").read_bytes())
     other_ca = x509.load_pem_x509_certificate((rogue / "ca.pem").read_bytes())
     assert stat.S_IMODE((fleet / "ca.key").stat().st_mode) == 0o600
-    for name in ("r1", "r2", "r3", "tracker", "supervisor", "operator", "router"):
+    for name in ("r1", "r2", "r3", "tracker", "supervisor", "operator", "router", "ros2", "ros_client"):
         d = fleet / name
         assert stat.S_IMODE(d.stat().st_mode) == 0o700
         assert stat.S_IMODE((d / "key.pem").stat().st_mode) == 0o600
@@ -314,6 +318,12 @@ def _done(p: Proc, op: str, n: int, timeout: float = DELIVERY_S) -> int:
         return [i for i, e in enumerate(p.events) if e["event"] == "done" and e["op"] == op][n - 1]
 
 
+def _count(p: Proc, op: str) -> int:
+    """How many requests ``op`` probe ``p`` has done so far."""
+    with p.cond:
+        return sum(e["event"] == "done" and e["op"] == op for e in p.events)
+
+
 def _replies(p: Proc, key: str, payload: str, timeout: float = DELIVERY_S) -> list[Event]:
     """Have probe ``p`` query ``key`` with ``payload`` and wait for the query to end; its replies."""
     with p.cond:
@@ -433,6 +443,91 @@ def test_a_fleet_certificate_missing_from_the_acl_gets_nothing(
         assert [e["key"] for e in observer.tokens()] == [K.alive("r1")]
 
 
+# ------------------------------------------------------------------ ROS 2
+ROS_POSE, ROS_GOAL = "0/r1/pose/T/H", "0/r1/goal_pose/T/H"
+"""Keys of /r1/pose and /r1/goal_pose on ROS domain 0 (T and H stand for the DDS type name and
+the type hash, which the access control does not look at)."""
+FACE_TOKEN, CLIENT_TOKEN = "@ros2_lv/0/aa/0/0/NN/%/%/fleet_lab", "@ros2_lv/0/bb/0/0/NN/%/%/rviz"
+
+
+def _token(key: str, e: Event) -> bool:
+    return bool(e["event"] == "token" and e["key"] == key)
+
+
+def _forged_for(receiver: str, e: Event) -> bool:
+    """``e`` is a forged sample that ``receiver`` did not send itself."""
+    return (
+        e["event"] == "sample"
+        and e["payload"].startswith("forged")
+        and e["payload"] != f"forged by {receiver}"
+    )
+
+
+@pytest.fixture(scope="module")
+def ros_router(certs: tuple[Path, Path]) -> Iterator[tuple[str, Proc]]:
+    """(endpoint, process) of a router for r1 r2 r3 with the ROS rights of domain 0, from the
+    command line (``router ... --ros-domain 0``)."""
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    args = ["--certs", str(certs[0]), "--listen", endpoint, "--robots", "r1", "r2", "r3", "--ros-domain", "0"]
+    proc = _local("router-ros", ["-m", "fleet.secure", "router", *args], ends_on_eof=False)
+    try:
+        assert proc.ready()["listen"] == [endpoint]
+        yield endpoint, proc
+    finally:
+        code = proc.stop()
+    assert code == 0, f"the router did not stop cleanly on SIGTERM: {proc.tail()}"
+
+
+def test_only_the_ros_face_publishes_ros_topics_and_only_the_operator_gives_goals(
+    certs: tuple[Path, Path], ros_router: tuple[str, Proc]
+) -> None:
+    """A ROS client reads the face's topics and tokens and declares its own token, but reads
+    nothing of the fleet and writes nothing: its pose and goal_pose are dropped, as is anyone's
+    but the face's pose and anyone's but the operator's goal_pose.  The face reads the fleet's
+    poses and the operator's goal_pose, and cannot publish for the tracker.  None of the
+    dropped senders has an allowed put the same receiver gets, so absence is judged GRACE_S
+    after an allowed sample sent behind them reached that receiver."""
+    endpoint, _ = ros_router
+    c = certs[0]
+    with probes() as start:
+        reader = start("reader", *_member(c, endpoint, "ros_client"), subs=("0/r1/pose/**", f"{K.root}/**"),
+                       lives=("@ros2_lv/0/**",))  # fmt: skip
+        face = start("face", *_member(c, endpoint, "ros2"), subs=("0/r1/goal_pose/**", K.pose()))
+        observer = start("observer", *_member(c, endpoint, "supervisor"), subs=(f"{K.root}/**",))
+        writer = start("writer", *_member(c, endpoint, "ros_client"))
+        operator = start("operator", *_member(c, endpoint, "operator"))
+        tracker = start("tracker", *_member(c, endpoint, "tracker"))
+        r1 = start("r1", *_member(c, endpoint, "agent", "r1"))
+        for p in (reader, face, observer, writer, operator, tracker, r1):
+            p.ready()
+        face.send(token=FACE_TOKEN)
+        writer.send(token=CLIENT_TOKEN)
+        for token in (FACE_TOKEN, CLIENT_TOKEN):
+            assert reader.wait_for(partial(_token, token), DELIVERY_S), token
+        # Controls: the face's pose reaches the client, the operator's goal and the tracker's pose the face.
+        deliver(face, ROS_POSE, [reader])
+        deliver(operator, ROS_GOAL, [face])
+        fleet_pose = deliver(tracker, K.pose("r1"), [face, observer])
+        # Forged: a pose on ROS by anyone but the face, a goal_pose by anyone but the operator,
+        # a fleet pose by the face.
+        sent = {p.name: _count(p, "put") for p in (writer, operator, tracker, r1, face)}
+        for p in (writer, operator, tracker, r1):
+            p.send(put=ROS_POSE, payload=f"forged by {p.name}")
+        for p in (writer, tracker, r1, face):
+            p.send(put=ROS_GOAL, payload=f"forged by {p.name}")
+        face.send(put=K.pose("r2"), payload="forged by face")
+        for p, n in ((writer, 2), (operator, 1), (tracker, 2), (r1, 2), (face, 2)):
+            _done(p, "put", sent[p.name] + n)
+        deliver(face, ROS_POSE, [reader])
+        deliver(operator, ROS_GOAL, [face])
+        deliver(tracker, K.pose("r1"), [observer])
+        for p in (reader, face, observer):  # (the face's own goal_pose is delivered to it locally)
+            late = p.wait_for(partial(_forged_for, p.name), GRACE_S)
+            assert late is None, p.samples()
+        # The client got nothing of the fleet itself.
+        assert [e for e in reader.samples() if e["key"].startswith(f"{K.root}/")] == [], fleet_pose
+
+
 # ----------------------------------------------------- configuration code
 def _same(a: Any, b: Any, keys: list[str]) -> None:
     for k in keys:
@@ -442,7 +537,7 @@ def _same(a: Any, b: Any, keys: list[str]) -> None:
 COMMON = ["mode", "connect/endpoints", "listen/endpoints", "scouting/multicast/enabled", "transport/link/tls"]
 
 
-@pytest.mark.parametrize("role", ["agent", "tracker", "supervisor", "operator"])
+@pytest.mark.parametrize("role", ["agent", "tracker", "supervisor", "operator", "ros2", "ros_client"])
 def test_client_templates_equal_the_builder(role: str, certs: tuple[Path, Path]) -> None:
     endpoint = "tls/127.0.0.1:7447"
     robot = "r1" if role == "agent" else None
@@ -521,6 +616,85 @@ def test_acl_grants_exactly_the_documented_rights() -> None:
         },
     }
     assert not any(K.script in r["key_exprs"] for r in acl["rules"])  # nobody permits or stops steps
+
+
+def _grants(acl: dict[str, Any]) -> dict[str, set[tuple[str, str, str]]]:
+    """Each certificate common name's (flow, message, key) grants, by every policy."""
+    rules = {r["id"]: r for r in acl["rules"]}
+    names = {s["id"]: s["cert_common_names"] for s in acl["subjects"]}
+    grants: dict[str, set[tuple[str, str, str]]] = {}
+    for pol in acl["policies"]:
+        for subject in pol["subjects"]:
+            for cn in names[subject]:
+                grants.setdefault(cn, set()).update(
+                    (flow, m, key) for r in pol["rules"] for flow in rules[r]["flows"]
+                    for m in rules[r]["messages"] for key in rules[r]["key_exprs"]
+                )  # fmt: skip
+    return grants
+
+
+def test_acl_grants_the_ros_rights_of_its_domain_only() -> None:
+    """With a ROS domain, the ROS face (ros2) and ROS clients (ros_client) get exactly their ROS
+    rights, and the operator those of a ROS client plus RViz's goals; the fleet's own grants are
+    unchanged, and without a domain nothing is granted on any ROS key."""
+    plain, acl = acl_json(["r1", "r2"]), acl_json(["r1", "r2"], ros_domain=7)
+    grants, before = _grants(acl), _grants(plain)
+    assert not ({"ros2", "ros_client"} & set(before))
+    assert all(k.startswith(f"{K.root}/") for g in before.values() for _, _, k in g)
+    data = [f"7/{r}/{t}/**" for r in ("r1", "r2") for t in ("pose", "plan", "reference")]
+    data.append("7/fleet/footprints/**")
+    goals, graph = ["7/r1/goal_pose/**", "7/r2/goal_pose/**"], ["@ros2_lv/7/**"]
+    assert ros_keys(["r1", "r2"], 7) == (data, goals, graph)
+    reading = {"declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"}
+    delivered = {"put", "liveliness_token", "declare_liveliness_subscriber", "liveliness_query"}
+    client = {
+        *{("ingress", m, k) for m in reading for k in data + graph},  # ros2 topic echo, RViz, discovery
+        *{("egress", m, k) for m in delivered for k in data + graph},
+        *{("ingress", "liveliness_token", k) for k in graph},  # its own node and endpoints
+        *{("egress", "declare_subscriber", k) for k in goals},  # the face's goal_pose subscriptions
+    }
+    fleet_reads = [K.pose(), K.plan(), K.clock]
+    face = {
+        *{("ingress", "put", k) for k in data},
+        *{("egress", "declare_subscriber", k) for k in data},  # its publishers see the clients
+        *{("ingress", "liveliness_token", k) for k in graph},
+        *{
+            (flow, m, k)
+            for flow, m in (("ingress", "declare_subscriber"), ("egress", "put"))
+            for k in fleet_reads + goals
+        },
+        ("ingress", "query", K.goal()),  # goal_pose given to the agent as a goal query
+        ("egress", "reply", K.goal()),
+    }
+    assert grants.pop("ros_client") == client
+    assert grants.pop("ros2") == face
+    assert grants.pop("operator") == before.pop("operator") | client | {("ingress", "put", k) for k in goals}
+    assert grants == before  # nothing else changed
+    members = next(s for s in acl["subjects"] if s["id"] == "members")["cert_common_names"]
+    assert not set(ROS) & set(members)  # the ROS identities read nothing else of the fleet
+    # Only the face puts on the ROS data keys; only the operator on goal_pose.
+    puts = {cn for cn, g in _grants(acl).items() for f, m, k in g if (f, m) == ("ingress", "put")
+            and not k.startswith(f"{K.root}/")}  # fmt: skip
+    assert puts == {"ros2", "operator"}
+    for bad in (-1, 233, True, "0", 1.0):
+        with pytest.raises(SecureConfigError, match="ros_domain"):
+            acl_json(["r1"], ros_domain=bad)  # type: ignore[arg-type]
+
+
+def test_the_command_line_grants_the_ros_rights(
+    certs: tuple[Path, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    args = ["config", "router", "--certs", str(certs[0]), "--listen", "tls/127.0.0.1:7447", "--robots", "r1"]
+    assert main(args) == 0
+    assert "ros2" not in capsys.readouterr().out
+    assert main([*args, "--ros-domain", "3"]) == 0
+    assert json.loads(capsys.readouterr().out)["access_control"] == acl_json(["r1"], ros_domain=3)
+    assert main([*args, "--ros-domain", "300"]) == 2
+    assert "ros_domain" in capsys.readouterr().err
+    for role in ROS:
+        assert main(["config", role, "--certs", str(certs[0]), "--router", "tls/127.0.0.1:7447"]) == 0
+        tls = json.loads(capsys.readouterr().out)["transport"]["link"]["tls"]
+        assert tls["connect_certificate"] == str(certs[0] / role / "cert.pem")
 
 
 def test_bad_configurations_are_refused_naming_the_field(certs: tuple[Path, Path], tmp_path: Path) -> None:
