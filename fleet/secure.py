@@ -105,7 +105,7 @@ from typing import Any
 from ground.net import SecureConfigError, load_config
 from ground.scenario import ROS_DOMAIN_MAX
 from ground.wire import ROBOT_ID, SCRIPT, Keys
-from ros2_link.graph import ADMIN_SPACE
+from ros2_link.graph import ADMIN_SPACE, FOOTPRINTS, GOAL_POSE, ROBOT_TOPICS, robot_topic
 
 SERVICES = ("tracker", "supervisor", "operator")
 """Identities of the fleet's services (certificate common names)."""
@@ -116,8 +116,6 @@ ROUTER = "router"
 """Common name of the router's certificate."""
 ROLES = ("agent", "link", "tracker", "supervisor", "operator", *ROS)
 """Process roles: ``agent`` and ``link`` (``epuck_link``) act for a robot and use its identity."""
-ROS_TOPICS = ("pose", "plan", "reference")
-"""The ROS topics ``/<id>/<topic>`` the ROS face publishes for every robot (besides ``/fleet/footprints``)."""
 WILDCARD_HOSTS = ("0.0.0.0", "[::]", "::", "*")
 _ENDPOINT = re.compile(r"^tls/(?P<host>\[[0-9A-Fa-f:.]+\]|[^/:\[\]]+):(?P<port>\d{1,5})$")
 
@@ -222,14 +220,17 @@ def ros_keys(robots: Sequence[str], domain: int) -> tuple[list[str], list[str], 
     """(data, goals, graph): the key expressions of the ROS face on ROS domain ``domain``.
 
     ``data``: what the face publishes, ``<domain>/<id>/<topic>/**`` for the topics of
-    :data:`ROS_TOPICS` and ``<domain>/fleet/footprints/**`` (a topic's DDS type name and type
-    hash follow its name); ``goals``: ``<domain>/<id>/goal_pose/**``, where it takes goals;
+    :data:`ros2_link.graph.ROBOT_TOPICS` and ``<domain>/fleet/footprints/**`` (a topic's DDS type
+    name and type hash follow its name); ``goals``: ``<domain>/<id>/goal_pose/**``, where it takes goals;
     ``graph``: ``@ros2_lv/<domain>/**``, the domain's liveliness tokens (rmw_zenoh's
     discovery)."""
     if isinstance(domain, bool) or not isinstance(domain, int) or not 0 <= domain <= ROS_DOMAIN_MAX:
         raise SecureConfigError(f"ros_domain: {domain!r} is not a ROS 2 domain id, 0 … {ROS_DOMAIN_MAX}")
-    data = [f"{domain}/{r}/{t}/**" for r in robots for t in ROS_TOPICS] + [f"{domain}/fleet/footprints/**"]
-    return data, [f"{domain}/{r}/goal_pose/**" for r in robots], [f"{ADMIN_SPACE}/{domain}/**"]
+    data = [f"{domain}{robot_topic(r, t)}/**" for r in robots for t in ROBOT_TOPICS] + [
+        f"{domain}{FOOTPRINTS}/**"
+    ]
+    goals = [f"{domain}{robot_topic(r, GOAL_POSE)}/**" for r in robots]
+    return data, goals, [f"{ADMIN_SPACE}/{domain}/**"]
 
 
 def acl_json(

@@ -29,6 +29,13 @@ ATTACHMENT_SIZE = 8 + 8 + 1 + GID_SIZE
 """Bytes of a publication's attachment: 33."""
 NODE, PUBLISHER, SUBSCRIPTION = "NN", "MP", "MS"
 """Entity kinds of the liveliness tokens this fleet declares."""
+POSE, PLAN, REFERENCE, GOAL_POSE = "pose", "plan", "reference", "goal_pose"
+"""The fleet's topics of each robot ``<id>``: ``/<id>/pose``, ``/<id>/plan`` and ``/<id>/reference``
+are published, ``/<id>/goal_pose`` is subscribed."""
+ROBOT_TOPICS = (POSE, PLAN, REFERENCE)
+"""The topics the fleet's ROS face publishes for every robot."""
+FOOTPRINTS = "/fleet/footprints"
+"""The fleet's one topic of all robots (their footprints and goals)."""
 _TYPE = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)/(msg|srv|action)/([A-Za-z][A-Za-z0-9_]*)$")
 
 
@@ -44,6 +51,11 @@ def dds_type_name(ros_type: str) -> str:
         raise ValueError(f"{ros_type!r} is not a ROS 2 type name (package/msg/Name)")
     package, kind, name = m.groups()
     return f"{package}::{kind}::dds_::{name}_"
+
+
+def robot_topic(robot: str, topic: str) -> str:
+    """``/<robot>/<topic>``, e.g. ``/r1/pose``."""
+    return f"/{robot}/{topic}"
 
 
 def topic_key(domain: int, topic: str, ros_type: str, type_hash: str) -> str:

@@ -73,11 +73,11 @@ class RosFace:
         self.plan: dict[str, _Topic] = {}
         self.reference: dict[str, _Topic] = {}
         for rid in self.ids:
-            self.pose[rid] = self._publisher(f"/{rid}/pose", types.POSE_STAMPED)
-            self.plan[rid] = self._publisher(f"/{rid}/plan", types.PATH)
-            self.reference[rid] = self._publisher(f"/{rid}/reference", types.PATH)
-            self._subscription(f"/{rid}/goal_pose", types.POSE_STAMPED, rid)
-        self.footprints = self._publisher("/fleet/footprints", types.MARKER_ARRAY)
+            self.pose[rid] = self._publisher(graph.robot_topic(rid, graph.POSE), types.POSE_STAMPED)
+            self.plan[rid] = self._publisher(graph.robot_topic(rid, graph.PLAN), types.PATH)
+            self.reference[rid] = self._publisher(graph.robot_topic(rid, graph.REFERENCE), types.PATH)
+            self._subscription(graph.robot_topic(rid, graph.GOAL_POSE), types.POSE_STAMPED, rid)
+        self.footprints = self._publisher(graph.FOOTPRINTS, types.MARKER_ARRAY)
         self.goals: deque[tuple[str, bytes]] = deque()
         self.dropped_goals = 0
         self.sent_pose: dict[str, int] = {}
@@ -169,7 +169,8 @@ class RosFace:
             self._goal(robot, payload)
 
     def _goal(self, robot: str, payload: bytes) -> None:
-        source = graph.topic_key(self.node.domain, f"/{robot}/goal_pose", self.types.POSE_STAMPED, "…")
+        topic = graph.robot_topic(robot, graph.GOAL_POSE)
+        source = graph.topic_key(self.node.domain, topic, self.types.POSE_STAMPED, "…")
         try:
             if len(payload) > MAX_PAYLOAD:
                 raise ValueError(f"{len(payload)} bytes, more than {MAX_PAYLOAD}")
