@@ -8,7 +8,7 @@ republishes each measured pose, each plan and, once per tick, the footprints.  A
 (RViz's "2D Goal Pose") is checked as ``fleet goal`` checks a goal: in the arena and outside
 every obstacle here, then by the robot's agent (walls, obstacles and the neighbours' goals, with
 its footprint), to which it goes as a goal query; a refused goal is logged with its reason and
-changes nothing.  It ends with the run (the tracker's stop tick) or on SIGTERM.
+changes nothing.  It ends with the run (the tracker's stop tick), or on SIGTERM or SIGINT.
 
 It observes only: it takes no part in any step, and no agent waits for it.
 """
@@ -244,6 +244,7 @@ def main(argv: list[str] | None = None) -> int:
             inbox.cond.notify_all()
 
     signal.signal(signal.SIGTERM, on_term)
+    signal.signal(signal.SIGINT, on_term)  # Ctrl-C of a face started by hand: the same clean end
     face = RosFace(scn, session, keys, inbox, domain, args.fleet)
     announce(ROLE, domain=domain, node=face.node.name, session=face.node.session_id)
     log(ROLE, f"ROS 2 node /{face.node.name} on domain {domain}: /<id>/pose, plan, reference, goal_pose")
