@@ -8,20 +8,27 @@ robot-steps between them, is the marginal CPU per robot-step: start-up and shut-
 * ``fleet simulate`` (the whole fleet in one process) is the math: controllers, plants, judge.
 * ``fleet run`` with its defaults, and with ``--exchange relay --topology star``: one process
   per robot, a tracker and a supervisor, talking over Zenoh on loopback.
+* ``fleet run --ros2``: the defaults plus the fleet's ROS 2 face (``python -m ros2_link``), a
+  process of its own that observes the fleet and republishes it as ROS 2 messages.  Its CPU
+  is its role's ("ros2") in the split, set against the whole fleet's and the agents'; and the
+  agents' CPU with it over the agents' CPU without it (the defaults' row) says whether the
+  face costs the control loop anything.  Without rosbags (the ``ros2`` extra) the row is
+  skipped.
 
 Each run's total CPU is exact (``getrusage`` of the waited-for process tree).  The split by
-process role (agents, tracker, supervisor, launcher) and by thread (a process's main thread,
-the Python threads Zenoh runs subscriber callbacks on, Zenoh's own runtime threads, the Rerun
-recorder's threads) comes from ``/proc/PID/task/TID/stat`` sampled every ``POLL`` seconds; a
-thread's last fraction of a poll before its process exits is missed, and each process's
-start-up varies from run to run, so the split is worth reading only where the marginal work
-dominates: 8 robots or more at the default lengths.  Figures are ratios to ``fleet simulate``
-measured in the same run, since this machine's speed drifts.
+process role (agents, tracker, supervisor, ros2, launcher) and by thread (a process's main
+thread, the Python threads Zenoh runs subscriber callbacks on, Zenoh's own runtime threads, the
+Rerun recorder's threads) comes from ``/proc/PID/task/TID/stat`` sampled every ``POLL``
+seconds; a thread's last fraction of a poll before its process exits is missed, and each
+process's start-up varies from run to run, so the split is worth reading only where the
+marginal work dominates: 8 robots or more at the default lengths.  Figures are ratios to ``fleet
+simulate`` measured in the same run, since this machine's speed drifts.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import os
 import platform
@@ -40,8 +47,14 @@ POLL = 0.05
 """Seconds between two samples of the fleet's threads."""
 CONFIGS: dict[str, list[str]] = {
     "fleet run (defaults)": [],
+    "fleet run --ros2": ["--ros2"],
     "fleet run --exchange relay --topology star": ["--exchange", "relay", "--topology", "star"],
 }
+"""``fleet run``'s flags by row label; ``--ros2`` next to the defaults it is compared with."""
+ROS2 = ("fleet run --ros2", "fleet run (defaults)")
+"""The row with the ROS 2 face and the row without it (the same flags otherwise)."""
+ROLES = {"agent": "agents", "tracker": "tracker", "supervisor": "supervisor", "ros2_link": "ros2"}
+"""A process's role by the module it runs (``python -m MODULE``); any other is the launcher."""
 ZENOH_THREADS = ("rx-", "tx-", "net-", "acc-", "app-")
 """Name prefixes of Zenoh's runtime threads (Rust)."""
 
@@ -87,9 +100,9 @@ def _descendants(root: int) -> dict[int, str]:
 
 
 def _role(cmdline: str) -> str:
-    for role in ("agent", "tracker", "supervisor"):
-        if f"-m {role} " in cmdline:
-            return role + "s" if role == "agent" else role
+    for module, role in ROLES.items():
+        if f"-m {module} " in cmdline:
+            return role
     return "launcher"
 
 
@@ -156,6 +169,24 @@ def _steps(out: Path) -> int:
     return int(json.loads((out / "summary.json").read_text())["steps"])
 
 
+def ros2_share(rows: list[dict[str, Any]]) -> dict[str, float] | None:
+    """What the ROS 2 face costs, from the rows of one run: its role's CPU per robot-step, that
+    over the whole fleet's (exact total) and over the agents' in the same run, and the agents'
+    CPU with the face over the agents' without it.  None without a ``--ros2`` row."""
+    by = {r["config"]: r for r in rows}
+    if ROS2[0] not in by or ROS2[1] not in by:
+        return None
+    with_, without = by[ROS2[0]], by[ROS2[1]]
+    ms = with_["by_role_ms"].get("ros2", 0.0)
+    agents = with_["by_role_ms"]["agents"]
+    return {
+        "ms_per_robot_step": ms,
+        "over_fleet": ms / with_["ms_per_robot_step"],
+        "over_agents": ms / agents,
+        "agents_with_over_without": agents / without["by_role_ms"]["agents"],
+    }
+
+
 def run(args: argparse.Namespace) -> int:
     n = int(args.cpu)
     if n not in SCENES:
@@ -181,6 +212,9 @@ def run(args: argparse.Namespace) -> int:
         tmp = Path(tmpdir)
         scenes = {s: _scene(n, s, tmp) for s in (short, long)}
         runs = {"fleet simulate": ["simulate"], **{k: ["run", *v] for k, v in CONFIGS.items()}}
+        if importlib.util.find_spec("rosbags") is None:
+            del runs[ROS2[0]]
+            print(f"  {ROS2[0]}: skipped (needs rosbags: pip install 'epuck-fleet[ros2]')", flush=True)
         for label, extra in runs.items():
             got = {}
             for s, scn in scenes.items():
@@ -209,8 +243,16 @@ def run(args: argparse.Namespace) -> int:
         lines.append(f"\n{r['config']}, marginal CPU per robot-step [ms] by process and by thread:")
         lines += [f"  {k:<28} {v:6.2f}" for k, v in sorted(r["by_role_ms"].items(), key=lambda kv: -kv[1])]
         lines += [f"  {k:<28} {v:6.2f}" for k, v in sorted(r["by_thread_ms"].items(), key=lambda kv: -kv[1])]
+    ros2 = ros2_share(rows)
+    if ros2 is not None:
+        lines += [
+            f"\nthe ROS 2 face (role ros2): {ros2['ms_per_robot_step']:.2f} ms per robot-step, "
+            f"{ros2['over_fleet']:.3f} of the fleet's, {ros2['over_agents']:.3f} of the agents'",
+            f"agents with --ros2 / without: {ros2['agents_with_over_without']:.3f}",
+        ]
     print("\n".join(lines), flush=True)
-    json_path.write_text(json.dumps({"schema": SCHEMA, "robots": n, "rows": rows, "table": lines}, indent=1))
+    out_json = {"schema": SCHEMA, "robots": n, "rows": rows, "ros2": ros2, "table": lines}
+    json_path.write_text(json.dumps(out_json, indent=1))
     print(f"figures: {json_path}", flush=True)
     return 0
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib.util
 import json
 import math
 import os
@@ -279,11 +280,12 @@ def test_cpu_figures_cover_a_window_shorter_than_the_sampling_period() -> None:
 
 
 def test_cpu_harness_splits_a_fleets_cpu_by_process_and_thread(tmp_path):
-    """``fleet bench --cpu 3``: the marginal CPU per robot-step of ``fleet run`` (defaults, and
-    relay + star) next to ``fleet simulate``'s, from two run lengths, with its split by process
-    role and by thread.  A fleet of processes costs more than the one-process simulator (it
-    does the same math and talks besides).  The split of three robots' short runs is mostly
-    start-up noise, so only its parts are checked here, not their sizes."""
+    """``fleet bench --cpu 3``: the marginal CPU per robot-step of ``fleet run`` (defaults,
+    ``--ros2`` and relay + star) next to ``fleet simulate``'s, from two run lengths, with its
+    split by process role and by thread.  A fleet of processes costs more than the one-process
+    simulator (it does the same math and talks besides).  The split of three robots' short runs
+    is mostly start-up noise, so only its parts and their accounting are checked here, not their
+    sizes: the ROS 2 face's CPU is its own role's ("ros2"), in the ``--ros2`` row only."""
     out = tmp_path / "cpu.json"
     res = subprocess.run(
         [sys.executable, *_command(), "--cpu", "3", "--cpu-s", "2,20", "--out", str(tmp_path),
@@ -294,17 +296,50 @@ def test_cpu_harness_splits_a_fleets_cpu_by_process_and_thread(tmp_path):
     d = json.loads(out.read_text())
     assert d["schema"] == "fleet-bench-cpu/1" and d["robots"] == 3
     sim, *fleets = d["rows"]
-    assert sim["config"] == "fleet simulate" and len(fleets) == 2
+    ros2 = importlib.util.find_spec("rosbags") is not None  # the ros2 extra, in the test extras
+    labels = ["fleet run (defaults)", *(["fleet run --ros2"] if ros2 else []),
+              "fleet run --exchange relay --topology star"]  # fmt: skip
+    assert sim["config"] == "fleet simulate" and [r["config"] for r in fleets] == labels
     for r in d["rows"]:
         assert r["steps"][1] > r["steps"][0] > 0 and math.isfinite(r["ms_per_robot_step"]), r
         assert r["ms_per_robot_step"] > 0, r
     for r in fleets:
         assert r["ms_per_robot_step"] > sim["ms_per_robot_step"], (r, sim)
-        assert {"agents", "tracker", "supervisor"} <= set(r["by_role_ms"]), r["by_role_ms"]
+        roles = {"agents", "tracker", "supervisor", *(["ros2"] if r["config"] == "fleet run --ros2" else [])}
+        assert roles <= set(r["by_role_ms"]) <= roles | {"launcher"}, r["by_role_ms"]
         assert {"main thread", "zenoh runtime"} <= set(r["by_thread_ms"]), r["by_thread_ms"]
         split = sum(r["by_role_ms"].values())
         assert split == pytest.approx(sum(r["by_thread_ms"].values()), rel=1e-6)  # one sample set
     assert "× simulate" in res.stdout
+    if not ros2:
+        assert d["ros2"] is None and "fleet run --ros2: skipped" in res.stdout
+        return
+    with_, without = fleets[1], fleets[0]
+    face = with_["by_role_ms"]["ros2"]
+    positive(face, "ros2 ms per robot-step")
+    assert d["ros2"] == pytest.approx(
+        {
+            "ms_per_robot_step": face,
+            "over_fleet": face / with_["ms_per_robot_step"],
+            "over_agents": face / with_["by_role_ms"]["agents"],
+            "agents_with_over_without": with_["by_role_ms"]["agents"] / without["by_role_ms"]["agents"],
+        }
+    )
+    assert "the ROS 2 face (role ros2)" in res.stdout and "agents with --ros2 / without" in res.stdout
+
+
+def test_cpu_harness_names_each_process_by_the_module_it_runs() -> None:
+    """The split's roles: the ROS 2 face (``python -m ros2_link``) is not an agent, nor is the
+    launcher; a child not yet exec'd (the launcher's command line) stays the launcher's."""
+    from fleet.bench import CPU, _harness
+
+    role = _harness(CPU)._role
+    py = sys.executable
+    assert role(f"{py} -m agent --scenario s.toml --robot e1 ") == "agents"
+    assert role(f"{py} -m tracker --scenario s.toml ") == "tracker"
+    assert role(f"{py} -m supervisor --scenario s.toml ") == "supervisor"
+    assert role(f"{py} -m ros2_link --scenario s.toml --connect tcp/127.0.0.1:7447 ") == "ros2"
+    assert role(f"{py} -m fleet.cli run s.toml --ros2 ") == "launcher"
 
 
 def test_cpu_harness_refuses_bad_lengths_in_one_line(tmp_path):
