@@ -6,8 +6,8 @@
   one process (:mod:`fleet.simulate`), writes ``DIR/summary.json`` and exits 0 only if
   the run completed with zero collisions and every robot reached its goal.
 * ``fleet run SCENARIO.toml [--out DIR] [--clock C] [--exchange E] [--seed N] [--viewer]
-  [--listen ENDPOINT] [--lease S] [--topology T] [--ros2 [--ros-domain N]]`` runs the fleet as
-  processes over Zenoh (with ``--ros2``, ROS 2 sees it too: docs/ros2.md).
+  [--listen ENDPOINT] [--lease S] [--topology T] [--ros2 [--ros-domain N] [--ros-listen E]]``
+  runs the fleet as processes over Zenoh (with ``--ros2``, ROS 2 sees it too: docs/ros2.md).
 * ``fleet goal SCENARIO.toml --robot ID X Y --connect ENDPOINT`` gives a
   running agent a new goal.
 * ``fleet report DIR`` writes the figures of a run.
@@ -186,8 +186,11 @@ def cmd_run(args: argparse.Namespace) -> int:
                     f"--faults: faults.links.{rid}: {rid} has no radio link (link 'sim'); cut emulator links"
                 )
     ros2 = args.ros2 or scn.ros2.enabled
-    if args.ros_domain is not None and not ros2:
-        return _bad("--ros-domain: the ROS 2 face is off; add --ros2 (or [ros2] enabled = true)")
+    for name, value in (("--ros-domain", args.ros_domain), ("--ros-listen", args.ros_listen)):
+        if value is not None and not ros2:
+            return _bad(f"{name}: the ROS 2 face is off; add --ros2 (or [ros2] enabled = true)")
+    if args.ros_listen is not None and args.topology == "star":
+        return _bad("--ros-listen: in the star topology ROS 2 tools connect to the hub (--listen)")
     if ros2:
         from ground.scenario import ros2_problem
 
@@ -211,6 +214,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             str(Path(args.scenario).resolve()), processes=True, seed=args.seed, out=out.resolve(),
             clock=clock, viewer=args.viewer, hub=args.listen, faults=args.faults, exchange=args.exchange,
             lease=args.lease, topology=args.topology, ros2=ros2, ros_domain=args.ros_domain,
+            ros_listen=args.ros_listen,
         )  # fmt: skip
         code, verdict = (1, why) if why else (0, "ok")
     else:
@@ -218,7 +222,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             str(Path(args.scenario).resolve()), [r.id for r in scn.robots], out.resolve(), args.seed,
             viewer=args.viewer, clock=clock, hub=args.listen, links=links, faults=args.faults,
             exchange=args.exchange, lease=args.lease, topology=args.topology, ros2=ros2,
-            ros_domain=args.ros_domain,
+            ros_domain=args.ros_domain, ros_listen=args.ros_listen,
         )  # fmt: skip
     if summary is not None:
         print(
@@ -427,6 +431,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument(
         "--ros-domain", metavar="N", type=domain_arg,
         help="ROS 2 domain id of --ros2, 0 … 232 (default the scenario's [ros2] domain, else 0)",
+    )  # fmt: skip
+    r.add_argument(
+        "--ros-listen", metavar="ENDPOINT", type=_endpoint,
+        help="where ROS 2 tools connect to the fleet's ROS face, e.g. tcp/127.0.0.1:7447 (default a free "
+        "loopback port, printed; in the star topology, the hub)",
     )  # fmt: skip
     r.set_defaults(func=cmd_run)
     g = sub.add_parser("goal", help="give a running agent a new goal and wait until it takes it")

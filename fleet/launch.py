@@ -216,6 +216,7 @@ def start_fleet(
     stderr: int | IO[str] | None = None,
     ros2: bool | None = None,
     ros_domain: int | None = None,
+    ros_listen: str | None = None,
 ) -> Launched:
     """Start the fleet of ``scenario`` (its robots ``robots``), writing to ``out``, and return
     once every process is ready.  Raises :class:`LaunchError` if one does not start, once the
@@ -244,7 +245,12 @@ def start_fleet(
     ``stderr``: where the processes' log lines go (a file descriptor or file; default this
     process's stderr).  ``ros2``: also start the fleet's ROS 2 face (``python -m ros2_link``,
     docs/ros2.md) on domain ``ros_domain`` (default the scenario's ``[ros2]`` domain); None: as the
-    scenario's ``[ros2] enabled`` says."""
+    scenario's ``[ros2] enabled`` says.  ``ros_listen``: the endpoint the ROS face listens on for
+    ROS 2 tools in the mesh (default a free loopback port); a ROS 2 session must link to the face
+    itself, since peers do not forward each other's data.  In the star, ROS 2 tools connect to the
+    hub, the router."""
+    if ros_listen is not None and topology == "star":
+        raise ValueError("ros_listen: in the star topology ROS 2 tools connect to the hub (the router)")
     if topology not in TOPOLOGIES:
         raise ValueError(f"topology {topology!r} is not one of {', '.join(TOPOLOGIES)}")
     emulated = [r for r in robots if (links or {}).get(r, "sim") == "emulator"]
@@ -305,7 +311,13 @@ def start_fleet(
             ros2 = load_scenario(scenario).ros2.enabled
         if ros2:
             domain = [] if ros_domain is None else ["--ros-domain", str(ros_domain)]
-            observers.append(start("ros2", "ros2_link", [*spoke, "--connect", hub, *domain]))
+            if topology == "star":
+                ros_endpoint, listen = hub, []
+            else:
+                ros_endpoint = ros_listen or loopback(free_port())
+                listen = ["--listen", ros_endpoint]
+            print(f"fleet: ROS 2 tools connect to {ros_endpoint} (docs/ros2.md)", file=sys.stderr, flush=True)
+            observers.append(start("ros2", "ros2_link", [*spoke, "--connect", hub, *listen, *domain]))
         agents = [
             start(f"agent {rid}", "agent", [*spoke, "--connect", hub, "--robot", rid, *agent_args])
             for rid in robots
@@ -319,7 +331,9 @@ def start_fleet(
         if not started:
             _stop(procs, robots=tuple(emulators))
     lease_s = NetConfig.lease if lease is None else lease
-    network = {"topology": topology, "exchange": exchange, "lease_s": lease_s}
+    network: dict[str, Any] = {"topology": topology, "exchange": exchange, "lease_s": lease_s}
+    if ros2:
+        network["ros_endpoint"] = ros_endpoint
     return Launched(procs, emulators, hub, out, network)
 
 

@@ -627,6 +627,12 @@ def test_design_and_run_refuse_a_pose_noise_below_the_cameras_floor_error(tmp_pa
         (["--ros2", "--ros-domain", "233"], "fleet run: error: argument --ros-domain: "),
         (["--ros2", "--ros-domain", "x"], "fleet run: error: argument --ros-domain: "),
         (["--ros-domain", "3"], "--ros-domain: the ROS 2 face is off"),
+        (["--ros-listen", "tcp/127.0.0.1:7447"], "--ros-listen: the ROS 2 face is off"),
+        (["--ros2", "--ros-listen", "udp/127.0.0.1:7447"], "fleet run: error: argument --ros-listen: "),
+        (
+            ["--ros2", "--topology", "star", "--ros-listen", "tcp/127.0.0.1:7447"],
+            "--ros-listen: in the star topology ROS 2 tools connect to the hub",
+        ),
     ],
 )
 def test_bad_ros2_options_are_refused_in_one_line(tmp_path, args, field):
