@@ -170,6 +170,9 @@ class Navigator:
     """Extra distance beyond r_i + r_j within which a higher robot is yielded to [m]."""
     corridor_margin: float = 0.05
     """Extra corridor half-width beyond r_i + r_j [m]."""
+    close_goals: float = 0.075
+    """A parked robot does not yield to a returning one whose goal is within r_i + r_j + this of
+    its own [m] (see :meth:`target`)."""
     lookahead: float = 0.3
     """Carrot distance along the planned path [m]."""
     replan_steps: int = 10
@@ -260,11 +263,11 @@ class Navigator:
                 self.phase == PARKED
                 and nb.phase == RETURNING
                 and nb.goal is not None
-                and math.hypot(nb.goal[0] - goal[0], nb.goal[1] - goal[1]) < R + self.corridor_margin
+                and math.hypot(nb.goal[0] - goal[0], nb.goal[1] - goal[1]) < R + self.close_goals
             ):
-                # Goals closer than a corridor's half-width: yielding to a robot returning to
-                # its own would displace this one from its goal, and the two would trade
-                # places for ever.  The returning robot plans around this parked one instead.
+                # Close goals: yielding to a robot returning to its own would displace this one
+                # from its goal, and the two would trade places for ever.  The returning robot
+                # plans around this parked one instead (docs/method.md §7, "Close goals").
                 continue
             q = nb.last_point
             if math.hypot(q[0] - c[0], q[1] - c[1]) > R + self.conflict_range:
