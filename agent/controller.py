@@ -164,6 +164,9 @@ class TubeMPC:
         """The next step's target chosen ahead (:meth:`steer_ahead`): the committed reference
         ỹ it was chosen for, the target (2,) [m] and the mode."""
         self.reached_once = False
+        self.phase_age = 0
+        """Steps spent in the current :attr:`phase`, counted after each step [steps]."""
+        self._aged_phase = UNDER_WAY
         self.k = 0
         self.reset(np.asarray(start, dtype=float))
 
@@ -202,6 +205,12 @@ class TubeMPC:
             return UNDER_WAY
         return PARKED if d < PARKED_RADIUS else RETURNING
 
+    def _age_phase(self) -> None:
+        """Count the steps spent in the current phase (after each step)."""
+        phase = self.phase
+        self.phase_age = self.phase_age + 1 if phase == self._aged_phase else 0
+        self._aged_phase = phase
+
     def set_goal(self, goal: Array) -> None:
         """Accept a new goal (2,) [m] at run time."""
         self.goal = np.asarray(goal, dtype=float)
@@ -220,6 +229,7 @@ class TubeMPC:
             target=np.asarray(self.target, dtype=float).copy(),
             goal=self.goal.copy(),
             phase=self.phase,
+            phase_age=self.phase_age,
         )
 
     def candidate(self) -> Array:
@@ -251,7 +261,7 @@ class TubeMPC:
         Shaping only: whatever it returns, the step's constraints are the same."""
         if not self.params.deadlock:
             return self.goal, "goal"
-        self.nav.phase = self.phase
+        self.nav.phase, self.nav.phase_age = self.phase, self.phase_age
         return self.nav.target(self.last_point, self.goal, known)
 
     def steer_ahead(self, known: Sequence[NeighbourInfo]) -> None:
@@ -359,6 +369,7 @@ class TubeMPC:
         self._append(xi[qp.iy])
         plan = (qp.S_pos @ xi).reshape(self.N + 1, 2)
         self.k += 1
+        self._age_phase()
         nxt = self.candidate()
         return StepOutput(
             a=a,
@@ -393,6 +404,7 @@ class TubeMPC:
         a = np.clip(-np.asarray(x)[[1, 3]] / p.Ts, -p.a_max, p.a_max)
         self.counters.holds += 1
         self.k += 1
+        self._age_phase()
         nxt = self.candidate()
         return StepOutput(
             a=a, committed=self.y_ref.copy(), plan=(qp.S_pos @ cand).reshape(self.N + 1, 2),

@@ -64,6 +64,9 @@ class NeighbourInfo:
     phase: int = 0
     """Precedence class: 0 under way (goal never reached), 1 returning (goal
     reached once, now displaced), 2 parked (at its goal).  Lower goes first."""
+    phase_age: int = 0
+    """Steps j has been in ``phase`` [steps]: among returning robots the one displaced
+    first goes first (:func:`precedence`)."""
 
 
 def shares(prio_i: int, prio_j: int, share_hi: float) -> float:
@@ -78,6 +81,15 @@ def shares(prio_i: int, prio_j: int, share_hi: float) -> float:
 def order_key(priority: int, rank: int) -> tuple[int, int]:
     """Sort key: smaller goes first (higher priority, then lower rank)."""
     return (-priority, rank)
+
+
+def precedence(phase: int, phase_age: int, priority: int, rank: int) -> tuple[int, int, int, int]:
+    """The navigator's total order (docs/method.md §7): smaller goes first.  By phase (under
+    way, returning, parked); among returning robots, the one displaced longest ago first;
+    then by priority and rank.  The age is what breaks the cycle of two robots that displace
+    each other in turn: a parked robot that steps aside for a returning one becomes returning
+    later than it, so it keeps yielding to it until that one has parked."""
+    return (phase, -phase_age if phase == RETURNING else 0, *order_key(priority, rank))
 
 
 def split_halfplanes(

@@ -24,7 +24,7 @@ def neighbour_of(plan: Plan) -> NeighbourInfo:
     plan's, which nothing changes (a copy each costs three calls per neighbour and step)."""
     return NeighbourInfo(
         plan.robot, plan.committed[-1], plan.footprint, plan.priority, plan.rank, plan.target, plan.goal,
-        plan.phase,
+        plan.phase, plan.phase_age,
     )  # fmt: skip
 
 

@@ -7,10 +7,11 @@ whatever it does cannot break a guarantee (docs/method.md §7).
 
 * :class:`GridPlanner` — shortest paths on a grid over the arena, around walls, obstacles and
   parked robots; the robot follows a carrot along its path.
-* :class:`Navigator` — *precedence yielding*: robots are totally ordered by (phase, priority,
-  rank); a robot inside the corridor that a nearby robot of higher precedence still has to
-  sweep steps out of it to the best free point around it, and a progress watchdog sends a
-  stalled robot to a clearance-seeking escape point for a while.
+* :class:`Navigator` — *precedence yielding*: robots are totally ordered by (phase, age,
+  priority, rank) (:func:`agent.coordination.precedence`); a robot inside the corridor that a
+  nearby robot of higher precedence still has to sweep steps out of it to the best free point
+  around it, and a progress watchdog sends a stalled robot to a clearance-seeking escape point
+  for a while.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from agent.coordination import PARKED, RETURNING, NeighbourInfo, order_key
+from agent.coordination import PARKED, RETURNING, NeighbourInfo, precedence
 from agent.sets import Array
 
 
@@ -155,11 +156,12 @@ class Navigator:
     that, the yielding rule: a robot inside the corridor of a nearby robot
     that goes first (the segment to that robot's carrot, widened by
     r_i + r_j + ``corridor_margin``) moves to the best free point out of it.
-    Precedence is (phase, priority, rank): robots under way (goal never
+    Precedence is (phase, age, priority, rank): robots under way (goal never
     reached) go first, then robots returning to a goal they were displaced
-    from, then parked robots, which step aside when they block a path and
-    return afterwards.  Parked robots never need to yield to each other, and
-    the first robot in precedence never waits on a robot that can move."""
+    from, the one displaced first before the others, then parked robots,
+    which step aside when they block a path and return afterwards.  Parked
+    robots never need to yield to each other, and the first robot in
+    precedence never waits on a robot that can move."""
 
     footprint: float
     arena: tuple[float, float, float, float]
@@ -187,6 +189,8 @@ class Navigator:
     seed: int = 0
     phase: int = 0
     """This robot's precedence class (set by the controller each step)."""
+    phase_age: int = 0
+    """Steps this robot has been in ``phase`` (set by the controller each step)."""
     _grid: GridPlanner | None = None
     _ring: Array = field(default_factory=lambda: np.zeros((0, 2)))
     _ring_norm: Array = field(default_factory=lambda: np.zeros(0))
@@ -206,6 +210,11 @@ class Navigator:
         self._ring_norm = np.linalg.norm(self._ring, axis=1)
         self._rng = np.random.default_rng(self.seed)
 
+    @property
+    def precedence(self) -> tuple[int, int, int, int]:
+        """This robot's place in the order (:func:`agent.coordination.precedence`)."""
+        return precedence(self.phase, self.phase_age, self.priority, self.rank)
+
     def reset_goal(self) -> None:
         """Forget the plan and the watchdog state (new goal)."""
         self._pred = None
@@ -217,12 +226,12 @@ class Navigator:
         g = self._grid
         assert g is not None
         cost = g.static.copy()
-        me = (self.phase, *order_key(self.priority, self.rank))
+        me = self.precedence
         pts, radii, extras = [], [], []
         for nb in neighbours:
             if nb.phase == PARKED:
                 extras.append(self.parked_cost)
-            elif (nb.phase, *order_key(nb.priority, nb.rank)) < me:
+            elif precedence(nb.phase, nb.phase_age, nb.priority, nb.rank) < me:
                 extras.append(self.soft_cost)  # goes first: plan around it
             else:
                 continue  # goes after this robot: it yields, so plan through it
@@ -252,11 +261,11 @@ class Navigator:
         """Target of the goal term and the mode (``goal``, ``path``, ``yield``, ``escape``)."""
         wp = self.waypoint(c, goal, neighbours)
         mode = "goal" if wp is goal else "path"
-        me = order_key(self.priority, self.rank)
+        me = self.precedence
         corridors = []
         for nb in neighbours:
-            # Yield to lower phases; within a phase, to the higher-ordered.
-            if nb.phase == PARKED or (nb.phase, *order_key(nb.priority, nb.rank)) > (self.phase, *me):
+            # Yield to those that go first (:func:`agent.coordination.precedence`).
+            if nb.phase == PARKED or precedence(nb.phase, nb.phase_age, nb.priority, nb.rank) > me:
                 continue
             R = self.footprint + nb.footprint
             if (

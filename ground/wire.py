@@ -41,7 +41,7 @@ import msgpack
 import numpy as np
 from numpy.typing import NDArray
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 """The version of every message's layout; a message of another version is rejected.
 
 2: :class:`Command` carries the shifted candidate and :class:`Tick` what the robot side applied;
@@ -316,6 +316,9 @@ class Plan(Message):
     """QP update + solve time [s]."""
     tube_ok: bool
     """x − x̂ ∈ Z held at this step."""
+    phase_age: int = 0
+    """Steps the robot has been in ``phase`` as of this step [steps]: among returning
+    robots the one displaced first goes first (docs/method.md §7)."""
 
     @classmethod
     def _check(cls, d: dict[str, Any]) -> dict[str, Any]:
@@ -337,6 +340,7 @@ class Plan(Message):
             "priority": _int(d["priority"], "priority", -(2**31), 2**31),
             "rank": _int(d["rank"], "rank", 0, 2**31),
             "phase": _int(d["phase"], "phase", 0, 2),
+            "phase_age": _int(d["phase_age"], "phase_age", 0, 2**31),
             "target": decode_array(d["target"], "target", (2,)),
             "goal": decode_array(d["goal"], "goal", (2,)),
             "status": _str(d["status"], "status"),
@@ -549,6 +553,7 @@ class Digest(Message):
     priority: list[int] = field(compare=False)
     rank: list[int] = field(compare=False)
     phase: list[int] = field(compare=False)
+    phase_age: list[int] = field(compare=False)
     """Per robot, (n,) each: as in :class:`Plan`."""
     footprint: NDArray[np.float64] = field(compare=False)
     """Footprint radii r_i, (n,) [m]."""
@@ -566,7 +571,8 @@ class Digest(Message):
         return cls(
             robot=sender, step=step, Ts=Ts, ids=[p.robot for p in plans], steps=[p.step for p in plans],
             priority=[p.priority for p in plans], rank=[p.rank for p in plans],
-            phase=[p.phase for p in plans], footprint=np.array([p.footprint for p in plans], float),
+            phase=[p.phase for p in plans], phase_age=[p.phase_age for p in plans],
+            footprint=np.array([p.footprint for p in plans], float),
             committed=np.array([p.committed for p in plans], float).reshape(n, horizon, 2),
             target=np.array([p.target for p in plans], float).reshape(n, 2),
             goal=np.array([p.goal for p in plans], float).reshape(n, 2),
@@ -582,7 +588,8 @@ class Digest(Message):
             plan = _checked(
                 Plan, robot=rid, step=k, t0=(k + 1) * Ts, Ts=Ts, committed=self.committed[i], nominal=empty,
                 footprint=fp[i], priority=self.priority[i], rank=self.rank[i], phase=self.phase[i],
-                target=self.target[i], goal=self.goal[i], status="relayed", solve_time=0.0, tube_ok=True,
+                phase_age=self.phase_age[i], target=self.target[i], goal=self.goal[i], status="relayed",
+                solve_time=0.0, tube_ok=True,
             )  # fmt: skip
             out.append(plan)
         return out
@@ -602,7 +609,8 @@ class Digest(Message):
         step = _int(d["step"], "step")
         cols: dict[str, list[int]] = {}
         for name, lo, hi in (
-            ("steps", 0, step), ("priority", -(2**31), 2**31), ("rank", 0, 2**31), ("phase", 0, 2)
+            ("steps", 0, step), ("priority", -(2**31), 2**31), ("rank", 0, 2**31), ("phase", 0, 2),
+            ("phase_age", 0, 2**31),
         ):  # fmt: skip
             col = d[name]
             if type(col) is not list or len(col) != n:

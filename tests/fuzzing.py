@@ -72,7 +72,13 @@ INTS: dict[str, dict[str, tuple[int, int]]] = {
     "pose": {"seq": _SEQ},
     "truth": {"seq": _SEQ},
     "odom": {"seq": _SEQ},
-    "plan": {"step": _SEQ, "priority": (-(2**31), 2**31), "rank": (0, 2**31), "phase": (0, 2)},
+    "plan": {
+        "step": _SEQ,
+        "priority": (-(2**31), 2**31),
+        "rank": (0, 2**31),
+        "phase": (0, 2),
+        "phase_age": (0, 2**31),
+    },
     "cmd": {"step": _SEQ},
     "goal": {},
     "script": {"step": (-1, 2**62)},
@@ -108,6 +114,7 @@ LISTS: dict[str, dict[str, tuple[int, int] | None]] = {
         "priority": (-(2**31), 2**31),
         "rank": (0, 2**31),
         "phase": (0, 2),
+        "phase_age": (0, 2**31),
     },
 }
 """List fields, one entry per relayed robot: robot ids (None), or integers in a closed range
@@ -236,8 +243,8 @@ def realistic(name: str, robot: str, rng: np.random.Generator) -> Message:
     return Plan(
         robot=robot, step=k, t0=t + 0.1, Ts=0.1, committed=path[1:], nominal=path, footprint=0.134,
         priority=int(rng.integers(0, 3)), rank=int(rng.integers(0, 3)), phase=int(rng.integers(0, 3)),
-        target=path[-1].copy(), goal=rng.uniform(-0.7, 0.7, 2), status="PROXQP_SOLVED",
-        solve_time=u(1e-4, 2e-3), tube_ok=True,
+        phase_age=int(rng.integers(0, 500)), target=path[-1].copy(), goal=rng.uniform(-0.7, 0.7, 2),
+        status="PROXQP_SOLVED", solve_time=u(1e-4, 2e-3), tube_ok=True,
     )  # fmt: skip
 
 
@@ -598,7 +605,7 @@ class Generator:
             m = MAX_RELAYED + 1 + int(self.rng.integers(0, 8))
             reps = [j % n for j in range(m)]
             d["ids"] = [f"r{j + 1}" for j in range(m)]
-            for name in ("steps", "priority", "rank", "phase"):
+            for name in ("steps", "priority", "rank", "phase", "phase_age"):
                 d[name] = [d[name][j] for j in reps]
             for name in ("footprint", "committed", "target", "goal"):
                 a = np.frombuffer(d[name]["data"]).reshape(d[name]["shape"])

@@ -9,6 +9,7 @@ import pytest
 
 from agent.coordination import (
     PARKED,
+    RETURNING,
     UNDER_WAY,
     NeighbourInfo,
     obstacle_halfplanes,
@@ -130,3 +131,58 @@ def test_lower_robot_in_the_corridor_yields_and_parked_robots_yield_to_all():
         "c", np.array([-0.35, 0.0]), 0.134, rank=9, phase=UNDER_WAY, target=np.array([0.3, 0.0])
     )
     assert nav3.target(me, me, [mover])[1] == "yield"
+
+
+def test_a_robot_displaced_by_a_returning_one_keeps_yielding_to_it_until_it_has_parked():
+    """The cycle that stalled goals packed around obstacles: a parked robot a (rank 0) steps
+    aside for a returning robot b (rank 5), becomes returning itself, and used to outrank b
+    by rank, so b yielded back, a parked again in b's way, and so on for ever.  Among
+    returning robots the one displaced first goes first (``precedence``): a, returning for
+    fewer steps than b, keeps yielding to b, and b does not yield to a."""
+    arena = (-1.0, 1.0, -1.0, 1.0)
+    a_goal, b_goal = np.array([0.0, 0.0]), np.array([0.0, 0.9])
+    # b returns along y = 0 from the left, towards the carrot at (0.3, 0): a's goal is in its corridor.
+    b = NeighbourInfo("b", np.array([-0.35, 0.0]), 0.134, rank=5, target=np.array([0.3, 0.0]),
+                      goal=b_goal, phase=RETURNING, phase_age=40)  # fmt: skip
+    nav_a = Navigator(footprint=0.134, arena=arena, rank=0)
+    nav_a.phase = PARKED
+    assert nav_a.target(a_goal, a_goal, [b])[1] == "yield"
+    # Displaced 6 cm, a is returning now, for fewer steps than b: it still yields to b.
+    here = np.array([0.0, -0.06])
+    nav_a.phase, nav_a.phase_age = RETURNING, 3
+    assert nav_a.target(here, a_goal, [b])[1] == "yield"
+    # b, in a's corridor (a heads back to its goal through b's path), does not yield to a.
+    nav_b = Navigator(footprint=0.134, arena=arena, rank=5)
+    nav_b.phase, nav_b.phase_age = RETURNING, 40
+    a = NeighbourInfo("a", here, 0.134, rank=0, target=np.array([-0.4, 0.0]), goal=a_goal,
+                      phase=RETURNING, phase_age=3)  # fmt: skip
+    assert nav_b.target(np.array([-0.35, 0.0]), b_goal, [a])[1] != "yield"
+    # Had a been displaced first, it would go first, and b would yield to it.
+    a_first = NeighbourInfo(**{**a.__dict__, "phase_age": 41})
+    assert nav_b.target(np.array([-0.35, 0.0]), b_goal, [a_first])[1] == "yield"
+
+
+def test_the_phase_age_counts_the_steps_in_a_phase_and_starts_again_when_displaced():
+    """What the plan says of the age (``TubeMPC.phase_age`` → ``Plan.phase_age``): steps in the
+    current phase, counted after each step, 0 at the step the phase changes."""
+    from agent.controller import TubeMPC
+    from agent.messages import plan_message
+    from agent.tube import require_admissible, synthesize
+    from ground.params import preset
+
+    arena = (-1.0, 1.0, -1.0, 1.0)
+    design = require_admissible(synthesize(preset("epuck"), arena))
+    home = np.array([0.0, 0.0])
+    ctrl = TubeMPC(design, home, home, arena)
+    x = np.zeros(4)
+    for k in range(5):
+        out = ctrl.step(x, [])
+        assert (ctrl.phase, ctrl.phase_age) == (PARKED, k)
+    assert plan_message("r1", 4, ctrl, out).phase_age == 4
+    # Pushed 0.2 m off its goal: returning, from 0 again.
+    away = np.array([0.2, 0.0])
+    ctrl.reset(away, design.E @ away)
+    x = design.E @ away
+    for k in range(3):
+        ctrl.step(x, [])
+        assert (ctrl.phase, ctrl.phase_age) == (RETURNING, k)

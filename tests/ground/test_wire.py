@@ -238,7 +238,10 @@ def test_a_digest_relays_what_neighbours_use_of_each_plan():
     """Relayed plans keep the committed reference, footprint, precedence, target and goal
     bit for bit; one message of n plans instead of n."""
     plans = [_plan("r1"), _plan("r2", n=20), _plan("r3")]
-    plans[1] = Plan(**{**plans[1].__dict__, "committed": plans[1].committed + 0.5, "priority": 4, "rank": 1})
+    plans[1] = Plan(**{
+        **plans[1].__dict__, "committed": plans[1].committed + 0.5, "priority": 4, "rank": 1, "phase": 1,
+        "phase_age": 37,
+    })  # fmt: skip
     plans[2] = Plan(**{**plans[2].__dict__, "step": 5, "t0": 0.6})  # late: relayed again in a later digest
     d = decode(Digest.of("tracker", 7, 0.1, 20, plans).encode(), Digest)
     assert d.ids == ["r1", "r2", "r3"] and d.steps == [7, 7, 5] and d.committed.shape == (3, 20, 2)
@@ -246,8 +249,8 @@ def test_a_digest_relays_what_neighbours_use_of_each_plan():
         assert got.robot == sent.robot and got.step == sent.step
         for f in ("committed", "target", "goal"):
             assert np.array_equal(getattr(got, f), getattr(sent, f)), f
-        assert (got.footprint, got.priority, got.rank, got.phase) == (
-            sent.footprint, sent.priority, sent.rank, sent.phase)  # fmt: skip
+        assert (got.footprint, got.priority, got.rank, got.phase, got.phase_age) == (
+            sent.footprint, sent.priority, sent.rank, sent.phase, sent.phase_age)  # fmt: skip
         assert got.t0 == pytest.approx(sent.t0) and got.status == "relayed"
         # Made without the dataclass __init__ (ground.wire._checked), yet a whole Plan: with
         # a nominal plan (a relayed one has none) it passes the receiving checks as it is.

@@ -1,8 +1,8 @@
-"""Every robot gets home and stays: the scenes that used to stall at close goals.
+"""Every robot gets home and stays: the scenes that used to stall.
 
 Each scene runs in `fleet simulate` and must end with every robot arrived (within the goal
 tolerance for the settle time, ``ground.scenario.settled_since``) and no collision.  The
-precedence that makes this so is ``agent.navigator.precedence`` (docs/method.md §7, "Why
+order that makes this so is ``agent.coordination.precedence`` (docs/method.md §7, "Why
 robots get home").  The breadth — 100+ generated scenes — is ``fleet bench --liveness``.
 """
 
@@ -17,6 +17,7 @@ from fleet.scenes import (
     MIN_GOAL_SPACING,
     antipodal_swap,
     corridor_swap,
+    hard_scene,
     mirrored_grid,
     random_scene,
     ring,
@@ -52,21 +53,17 @@ SCENES = {
     # Six robots passing head-on in a corridor barely two wide: the columns cross, then the
     # three robots of a column park 0.331 m apart (docs/method.md §7, "Close goals").
     "corridor_6": lambda: corridor_swap(6, duration=300.0),
+    # Dense random scenes at the closest spacing: two robots under way trade places through a
+    # gap between two parked ones that opens and closes.
+    "dense_14": lambda: random_scene(0, n=14, min_separation=MIN_GOAL_SPACING, duration=300.0, margin=0.15),
+    "dense_16": lambda: hard_scene(7),
+    # Goals packed around obstacles: parked robots displaced by a returning one, which then
+    # went first by rank and displaced it in turn (docs/method.md §7, the progress argument).
+    "obstacle_goals_9": lambda: hard_scene(41),
 }
-KNOWN_GAPS = {
-    "dense_14": (
-        lambda: random_scene(0, n=14, min_separation=MIN_GOAL_SPACING, duration=300.0, margin=0.15),
-        "in dense random scenes at the closest spacing a few robots still stall",
-    ),
-}
-SCENES.update({name: build for name, (build, _) in KNOWN_GAPS.items()})
 
 
-@pytest.mark.parametrize(
-    "name",
-    [n for n in SCENES if n not in KNOWN_GAPS]
-    + [pytest.param(n, marks=pytest.mark.xfail(strict=True, reason=w)) for n, (_, w) in KNOWN_GAPS.items()],
-)
+@pytest.mark.parametrize("name", list(SCENES))
 def test_every_robot_arrives_and_stays(name):
     scn = parse_scenario(SCENES[name]())
     res = run(scn)
