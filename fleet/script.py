@@ -37,6 +37,9 @@ RUN_OPTIONS = ("exchange", "topology", "lease", "viewer", "faults", "hub", "ros2
 """``Fleet.launch`` options a process fleet takes (``fleet run``'s)."""
 SAMPLE_TIMEOUT = 60.0
 """How long the next sample may take before the fleet counts as gone [s, wall time]."""
+PLAN_GRACE = 10.0
+"""On a held clock, how long a live agent's plan may trail the samples before it counts as
+stale [s, wall time] (:meth:`ProcessFleet._collect_events`)."""
 LOG = "fleet.log"
 """The file in the run's directory that a launched fleet's processes write their log lines to."""
 
@@ -281,8 +284,15 @@ class ProcessFleet:
         (tick k says so), agents gone, and the plans' fallbacks.  A plan not in yet is looked for
         again one step later, and only then counts as stale: in lockstep the tracker has every
         plan of step k before it publishes sample k + 1, but this session may get the sample
-        before the plan."""
+        before the plan.  On a held clock a live agent's plan is waited for, up to
+        :data:`PLAN_GRACE`, before it counts as stale."""
         inbox, out = self.inbox, []
+        if self.hold:
+            # Lockstep: no agent could step past a plan its neighbours wait for, so a live
+            # agent's plan of an earlier step is on its way.  It comes on that agent's own link,
+            # which this session may serve after the tracker's: wait for it, bounded, rather
+            # than judge the order in which two links were served.
+            inbox.wait(lambda: self._plans_in(k), PLAN_GRACE)
         with inbox.cond:
             live = set(inbox.live)
             self._unseen[k] = set(self.ids)
@@ -314,6 +324,16 @@ class ProcessFleet:
             inbox.prune(k - 2)
         with self._lock:
             self._events += out
+
+    def _plans_in(self, k: int) -> bool:
+        """Every live agent's plan of each step before k not yet seen has come (inbox.cond held)."""
+        inbox = self.inbox
+        return all(
+            inbox.get(Plan, rid, step) is not None or rid not in inbox.live
+            for step, rids in self._unseen.items()
+            if step < k
+            for rid in rids
+        )
 
 
 def _pose(m: Pose) -> Array:

@@ -285,3 +285,52 @@ def test_a_realtime_fleet_runs_on_the_wall_clock_and_ends_with_the_script(tmp_pa
         pids = list(fleet.processes.values())
     assert _gone(pids, timeout=1.0) == []
     assert fleet.summary is not None and fleet.summary["all_goals_reached"] and fleet.verdict is None
+
+
+@pytest.mark.parametrize("hold", [True, False])
+def test_a_plan_that_trails_the_samples_is_stale_only_where_the_clock_runs_on(hold):
+    """A live agent's plan comes on that agent's own link, which a script's session may serve
+    after the tracker's.  On a held lockstep clock the plan cannot be missing, only late, so
+    the script waits for it (bounded) and reports no stale neighbour; on a running clock a
+    plan not in a step later is reported, as before."""
+    import threading
+
+    import zenoh
+
+    from fleet.script import ProcessFleet
+    from ground.net import NetConfig
+    from ground.scenario import load_scenario
+    from ground.wire import Keys, Plan
+
+    scn = load_scenario(TWO)
+    keys = Keys("trail")
+    session = zenoh.open(NetConfig(listen=[loopback(free_port())]).zenoh())
+    pf = ProcessFleet(scn, session, keys, hold=hold)
+    try:
+        z = np.zeros((20, 2))
+        plan = {
+            rid: Plan(
+                robot=rid, step=0, t0=0.1, Ts=0.1, committed=z, nominal=np.zeros((21, 2)), footprint=0.134,
+                priority=0, rank=i, phase=0, target=z[0], goal=z[0], status="solved", solve_time=0.0,
+                tube_ok=True,
+            )
+            for i, rid in enumerate(pf.ids)
+        }  # fmt: skip
+
+        def deliver(rid: str) -> None:
+            pf.inbox._accept(keys.plan(rid), plan[rid].encode(), Plan, True, time.monotonic())
+
+        with pf.inbox.cond:
+            pf.inbox.live |= set(pf.ids)
+        deliver("r1")
+        pf._collect_events(0)  # r2's plan of step 0 is not in yet: looked for again at step 1
+        late = threading.Timer(0.3, deliver, ("r2",))
+        late.start()
+        try:
+            pf._collect_events(1)
+        finally:
+            late.join(5.0)
+        stale = [(e.step, e.robot) for e in pf._events if e.kind == "stale_neighbour"]
+        assert stale == ([] if hold else [(0, "r2")])
+    finally:
+        pf.close()  # and the session
