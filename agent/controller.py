@@ -43,7 +43,7 @@ from agent.qp import StepData, TubeQP
 from agent.sets import Array
 from agent.tube import TubeDesign
 from ground.scenario import AT_GOAL
-from ground.wire import BLIND
+from ground.wire import BLIND, MAX_AGE
 
 TUBE_TOL = 2e-5
 """Tolerance of the tube check x − x̂ ∈ Z [m, m/s]: twice ProxSuite's eps_abs,
@@ -208,7 +208,7 @@ class TubeMPC:
     def _age_phase(self) -> None:
         """Count the steps spent in the current phase (after each step)."""
         phase = self.phase
-        self.phase_age = self.phase_age + 1 if phase == self._aged_phase else 0
+        self.phase_age = min(self.phase_age + 1, MAX_AGE) if phase == self._aged_phase else 0
         self._aged_phase = phase
 
     def set_goal(self, goal: Array) -> None:

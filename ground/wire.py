@@ -47,7 +47,10 @@ SCHEMA_VERSION = 5
 2: :class:`Command` carries the shifted candidate and :class:`Tick` what the robot side applied;
 3: :class:`Command` carries the ancillary gain K, so the robot side needs no tube design;
 4: :class:`Goal` carries the goals given together with it (``batch``), checked in their place,
-and :class:`Script` lets a script hold the lockstep clock and end the run."""
+and :class:`Script` lets a script hold the lockstep clock and end the run;
+5: :class:`Plan` and :class:`Digest` carry the age of each robot's precedence phase (``phase_age``)."""
+MAX_AGE = 2**31
+"""Largest ``phase_age`` a plan carries [steps] (an agent's count stops there)."""
 MAX_PAYLOAD = 64 * 1024
 """Largest accepted message [bytes]."""
 MAX_HORIZON = 200
@@ -340,7 +343,7 @@ class Plan(Message):
             "priority": _int(d["priority"], "priority", -(2**31), 2**31),
             "rank": _int(d["rank"], "rank", 0, 2**31),
             "phase": _int(d["phase"], "phase", 0, 2),
-            "phase_age": _int(d["phase_age"], "phase_age", 0, 2**31),
+            "phase_age": _int(d["phase_age"], "phase_age", 0, MAX_AGE),
             "target": decode_array(d["target"], "target", (2,)),
             "goal": decode_array(d["goal"], "goal", (2,)),
             "status": _str(d["status"], "status"),
@@ -610,7 +613,7 @@ class Digest(Message):
         cols: dict[str, list[int]] = {}
         for name, lo, hi in (
             ("steps", 0, step), ("priority", -(2**31), 2**31), ("rank", 0, 2**31), ("phase", 0, 2),
-            ("phase_age", 0, 2**31),
+            ("phase_age", 0, MAX_AGE),
         ):  # fmt: skip
             col = d[name]
             if type(col) is not list or len(col) != n:
