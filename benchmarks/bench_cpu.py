@@ -169,6 +169,52 @@ def _steps(out: Path) -> int:
     return int(json.loads((out / "summary.json").read_text())["steps"])
 
 
+def marginal(
+    short: tuple[float, dict[str, float], dict[str, float]],
+    long: tuple[float, dict[str, float], dict[str, float]],
+    units: float,
+) -> dict[str, Any]:
+    """The marginal CPU per unit of work [ms] between two measured runs, each (exact CPU s of
+    the tree, sampled CPU s by role, by thread kind), that differ by ``units`` (robot-steps):
+    the whole, and its split by role and by thread kind.  Start-up and shut-down, the same in
+    both runs, cancel."""
+    if units <= 0:
+        raise ValueError(f"the longer run did no more work ({units} units)")
+    (c0, r0, k0), (c1, r1, k1) = short, long
+    return {
+        "ms_per_robot_step": 1e3 * (c1 - c0) / units,
+        "by_role_ms": {k: 1e3 * (r1.get(k, 0.0) - r0.get(k, 0.0)) / units for k in r1},
+        "by_thread_ms": {k: 1e3 * (k1.get(k, 0.0) - k0.get(k, 0.0)) / units for k in k1},
+    }
+
+
+def marginal_rows(
+    n: int, lengths: tuple[float, float], seed: int, runs: dict[str, list[str]]
+) -> list[dict[str, Any]]:
+    """One row per entry of ``runs`` (label → ``fleet`` subcommand and flags): the swap of ``n``
+    robots run at both ``lengths`` [simulated s], and the marginal CPU per robot-step between
+    them (:func:`marginal`)."""
+    rows: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory() as tmpdir:
+        tmp = Path(tmpdir)
+        scenes = {s: _scene(n, s, tmp) for s in lengths}
+        for label, extra in runs.items():
+            got = {}
+            for s, scn in scenes.items():
+                d = tmp / f"{len(rows)}_{s:g}"
+                cmd = [sys.executable, "-m", "fleet.cli", extra[0], str(scn), "--out", str(d),
+                       "--seed", str(seed), *extra[1:]]  # fmt: skip
+                got[s] = (*_measure(cmd, d), _steps(d))
+            (c0, r0, k0, w0, s0), (c1, r1, k1, w1, s1) = got[lengths[0]], got[lengths[1]]
+            try:
+                m = marginal((c0, r0, k0), (c1, r1, k1), (s1 - s0) * n)
+            except ValueError:
+                raise RuntimeError(f"{label}: the longer run took no more steps ({s0}, {s1})") from None
+            rows.append({"config": label, "steps": [s0, s1], "cpu_s": [c0, c1], "wall_s": [w0, w1], **m})
+            print(f"  {label}: {m['ms_per_robot_step']:.2f} ms per robot-step", flush=True)
+    return rows
+
+
 def ros2_share(rows: list[dict[str, Any]]) -> dict[str, float] | None:
     """What the ROS 2 face costs, from the rows of one run: its role's CPU per robot-step, that
     over the whole fleet's (exact total) and over the agents' in the same run, and the agents'
@@ -207,33 +253,11 @@ def run(args: argparse.Namespace) -> int:
     print(f"fleet bench --cpu {n}: {SCENES[n]}, lockstep, seed {args.seed}, {short:g} s and {long:g} s")
     print(f"machine: nproc {os.cpu_count()}, {platform.processor() or platform.machine()}; "
           f"python {platform.python_version()}; load average {os.getloadavg()}", flush=True)  # fmt: skip
-    rows: list[dict[str, Any]] = []
-    with tempfile.TemporaryDirectory() as tmpdir:
-        tmp = Path(tmpdir)
-        scenes = {s: _scene(n, s, tmp) for s in (short, long)}
-        runs = {"fleet simulate": ["simulate"], **{k: ["run", *v] for k, v in CONFIGS.items()}}
-        if importlib.util.find_spec("rosbags") is None:
-            del runs[ROS2[0]]
-            print(f"  {ROS2[0]}: skipped (needs rosbags: pip install 'epuck-fleet[ros2]')", flush=True)
-        for label, extra in runs.items():
-            got = {}
-            for s, scn in scenes.items():
-                d = tmp / f"{len(rows)}_{s:g}"
-                cmd = [sys.executable, "-m", "fleet.cli", extra[0], str(scn), "--out", str(d),
-                       "--seed", str(args.seed), *extra[1:]]  # fmt: skip
-                got[s] = (*_measure(cmd, d), _steps(d))
-            (c0, r0, k0, w0, s0), (c1, r1, k1, w1, s1) = got[short], got[long]
-            robot_steps = (s1 - s0) * n
-            if robot_steps <= 0:
-                raise RuntimeError(f"{label}: the longer run took no more steps ({s0}, {s1})")
-            row = {
-                "config": label, "steps": [s0, s1], "cpu_s": [c0, c1], "wall_s": [w0, w1],
-                "ms_per_robot_step": 1e3 * (c1 - c0) / robot_steps,
-                "by_role_ms": {k: 1e3 * (r1.get(k, 0.0) - r0.get(k, 0.0)) / robot_steps for k in r1},
-                "by_thread_ms": {k: 1e3 * (k1.get(k, 0.0) - k0.get(k, 0.0)) / robot_steps for k in k1},
-            }  # fmt: skip
-            rows.append(row)
-            print(f"  {label}: {row['ms_per_robot_step']:.2f} ms per robot-step", flush=True)
+    runs = {"fleet simulate": ["simulate"], **{k: ["run", *v] for k, v in CONFIGS.items()}}
+    if importlib.util.find_spec("rosbags") is None:
+        del runs[ROS2[0]]
+        print(f"  {ROS2[0]}: skipped (needs rosbags: pip install 'epuck-fleet[ros2]')", flush=True)
+    rows = marginal_rows(n, (short, long), args.seed, runs)
     base = rows[0]["ms_per_robot_step"]
     lines = [f"{'how it ran':<46} {'ms/robot-step':>13} {'× simulate':>10}"]
     for r in rows:
