@@ -100,7 +100,7 @@ NEIGHBOURS = (1, 8, 32)
 GRID_ARENA = (-1.5, 1.5, -1.5, 1.5)
 """Arena of the step grid [m]: 3 m, so that 32 lattice neighbours (three rings) fit round the robot."""
 
-SCENES = {3: "paper_three_robots", 8: "swap_8", 16: "swap_16", 32: "swap_32"}
+SCENES = {3: "paper_three_robots", 8: "swap_8", 16: "swap_16", 32: "swap_32", 48: "swap_48"}
 """Shipped scenario per fleet size for the fleet runs."""
 
 GOAL_MISS_RATE_32 = 1e-3
@@ -929,11 +929,12 @@ def capped_scenario(name: str, sim_s: float, tmp: Path, Ts: float | None = None)
 
 def fleet_run(
     robots: int, clock: str, sim_s: float, out: Path, tmp: Path, log: Callable[[str], None],
-    exchange: str = "relay", topology: str = "star", Ts: float | None = None,
+    exchange: str | None = "relay", topology: str | None = "star", Ts: float | None = None,
 ) -> dict[str, Any]:  # fmt: skip
     """One ``fleet run`` of the shipped scene for ``robots`` robots, ``sim_s`` simulated seconds,
     plans travelling by ``exchange`` (mesh or relay), the processes linked by ``topology``
-    (mesh or star), at the scene's sampling period or at ``Ts`` [s]."""
+    (mesh or star), at the scene's sampling period or at ``Ts`` [s].  ``exchange`` or
+    ``topology`` None: the flag is left out, so ``fleet run`` uses its default."""
     from ground.net import free_port, loopback
 
     name = SCENES[robots]
@@ -947,7 +948,8 @@ def fleet_run(
     load_before = loadavg()
     cmd = [
         sys.executable, "-m", "fleet.cli", "run", str(scn_path), "--out", str(run_dir), "--clock", clock,
-        "--listen", loopback(port), "--exchange", exchange, "--topology", topology,
+        "--listen", loopback(port),
+        *(["--exchange", exchange] if exchange else []), *(["--topology", topology] if topology else []),
     ]  # fmt: skip
     t_launch = time.monotonic()
     err_path = run_dir / "fleet.stderr"
@@ -978,8 +980,8 @@ def fleet_run(
         "scenario": name,
         "robots": robots,
         "clock": clock,
-        "exchange": exchange,
-        "topology": topology,
+        "exchange": exchange or "default",
+        "topology": topology or "default",
         "sim_s_requested": sim_s,
         "exit_code": rc,
         "verdict": verdict or (stderr_lines[-1] if stderr_lines else f"exit {rc}"),
@@ -1024,6 +1026,9 @@ def fleet_run(
     t1 = lat["last_tick"] if lat and math.isfinite(lat["last_tick"]) else time.monotonic()
     window = max(1e-9, t1 - t0)
     if lat is not None and math.isfinite(lat["first_tick"]):
+        # Ready: from typing the command to the fleet's first step (every process started,
+        # its design done, its subscriptions declared, and the tracker's tick 0 out).
+        row["ready_s"] = lat["first_tick"] - t_launch
         # Wall time of the stepping as the observer saw it (first to last tick): the
         # supervisor's figure is from its own arrivals, and it may fall behind.
         row["wall_s"] = window
@@ -1125,7 +1130,8 @@ def print_run(r: dict[str, Any], log: Callable[[str], None]) -> None:
         f"{p2c['p50']:>7.1f}{p2c['p99']:>7.1f}{t2c['p99']:>7.1f}{t2c['max']:>7.1f}"
         f"{rss['agent_p50']:>7.0f}{rss['agent_max']:>6.0f}"
         f"{cpu['cores_used']:>6.2f}{cpu['agents_cores']:>6.2f}{cpu['tracker_cores']:>5.2f}{cpu['supervisor_cores']:>5.2f}"
-        f"{cpu['agent_ms_per_step']:>7.2f}{cpu['other_cores']:>6.2f}  {r['loadavg_before'][0]:.1f}"
+        f"{cpu['agent_ms_per_step']:>7.2f}{cpu['other_cores']:>6.2f}{r.get('ready_s', math.nan):>6.1f}"
+        f"  {r['loadavg_before'][0]:.1f}"
     )
     a = r["agents"]
     notes = []
@@ -1148,14 +1154,15 @@ RUN_HEADER = (
     f"  {'clock':<9}{'n':>4}{'steps':>6}{'sim s':>7}{'wall s':>7}{'RTF':>6}{'misses':>7}{'miss %':>7}"
     f"{'coll':>5}"
     f"{'p→c50':>7}{'p→c99':>7}{'t→c99':>7}{'t→cmax':>7}{'RSS50':>7}{'RSSmx':>6}"
-    f"{'cores':>6}{'agts':>6}{'trk':>5}{'sup':>5}{'ms/stp':>7}{'other':>6}  load"
+    f"{'cores':>6}{'agts':>6}{'trk':>5}{'sup':>5}{'ms/stp':>7}{'other':>6}{'ready':>6}  load"
 )
 RUN_LEGEND = (
     "  p→c pose → command, t→c tick → command latency [ms] (observer arrival times); RSS per agent MB "
     "(VmRSS while stepping, p50 and max over agents); cores: CPU of all fleet processes / stepping wall "
     "time, split agents / tracker / "
     "supervisor; ms/stp: CPU per agent per step; other: CPU cores used by everything else on the machine "
-    "meanwhile (/proc/stat); load: 1-min load average before the run"
+    "meanwhile (/proc/stat); ready: s from launching fleet run to its first tick; load: 1-min load "
+    "average before the run"
 )
 
 

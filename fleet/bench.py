@@ -27,6 +27,8 @@ LIVENESS = HARNESS.with_name("bench_liveness.py")
 """The liveness harness (``--liveness N``), beside it."""
 CPU = HARNESS.with_name("bench_cpu.py")
 """The CPU harness (``--cpu N``): fleet run against fleet simulate, by process and thread."""
+TARGETS = HARNESS.with_name("bench_targets.py")
+"""The runtime targets (``--targets``): CPU ratio, realtime misses, latency, start-up."""
 
 
 class HarnessMissing(RuntimeError):
@@ -104,6 +106,12 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
         "(agents, tracker, supervisor, the ROS 2 face) and thread",
     )  # fmt: skip
     ap.add_argument(
+        "--targets", action="store_true",
+        help="instead: the runtime targets of fleet run with its default flags: CPU per robot-step "
+        "against fleet simulate (16 robots), realtime deadline misses (32, and 48), pose-to-command "
+        "p99 (16) and the time to the first tick (16), with goal, figure and verdict each",
+    )  # fmt: skip
+    ap.add_argument(
         "--cpu-s", default="6,46", metavar="S,S",
         help="--cpu: the two run lengths [simulated s] whose difference is measured (default 6,46)",
     )  # fmt: skip
@@ -116,11 +124,16 @@ def run(args: argparse.Namespace) -> int:
         if value is not None and value < 1:
             print(f"fleet: error: --{name}: must be at least 1, got {value}", file=sys.stderr)
             return 2
-    if args.cpu is not None and args.liveness is not None:
-        print("fleet: error: --cpu: not with --liveness (one harness a run)", file=sys.stderr)
+    chosen = [f for f, on in (("--liveness", args.liveness is not None), ("--cpu", args.cpu is not None),
+                              ("--targets", args.targets)) if on]  # fmt: skip
+    if len(chosen) > 1:
+        print(f"fleet: error: {chosen[1]}: not with {chosen[0]} (one harness a run)", file=sys.stderr)
         return 2
+    path = {"--liveness": LIVENESS, "--cpu": CPU, "--targets": TARGETS}.get(
+        chosen[0] if chosen else "", HARNESS
+    )
     try:
-        mod = _harness(LIVENESS if args.liveness is not None else CPU if args.cpu is not None else HARNESS)
+        mod = _harness(path)
     except HarnessMissing as e:
         print(f"fleet: error: {e}", file=sys.stderr)
         return 2

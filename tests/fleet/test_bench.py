@@ -168,6 +168,8 @@ def test_quick_fleet_runs(quick: tuple[subprocess.CompletedProcess[str], dict[st
             positive(r["cpu"][k], f"{what}.cpu.{k}")
         percentiles(r["latency"]["pose_to_command_ms"], f"{what} pose→command")
         percentiles(r["latency"]["tick_to_command_ms"], f"{what} tick→command")
+        positive(r["ready_s"], f"{what}.ready_s")  # launch to first tick: inside the whole run
+        assert r["ready_s"] < r["total_s"] - r["wall_s"] + 1e-6, what
     positive(d["lockstep_rtf"]["3"], "lockstep_rtf[3]")
     positive(d["rss_mb_per_agent"]["p50"], "rss_mb_per_agent.p50")
     assert d["latency"], "no latency figures"
@@ -217,12 +219,13 @@ def test_hex_lattice_neighbours_keep_their_distance() -> None:
     assert d[~np.eye(32, dtype=bool)].min() == pytest.approx(1.0)
 
 
-def test_swap_32_file_matches_generator() -> None:
+@pytest.mark.parametrize(("n", "radius", "half"), [(32, 1.55, 1.8), (48, 2.31, 2.56)])
+def test_large_swap_files_match_generator(n: int, radius: float, half: float) -> None:
     from fleet.scenes import COMPACT_CONTROLLER, antipodal_swap
     from ground.scenario import load_scenario, parse_scenario
 
-    from_file = load_scenario(ROOT / "scenarios" / "swap_32.toml")
-    data = antipodal_swap(32, radius=1.55, arena=(-1.8, 1.8, -1.8, 1.8), duration=300.0)
+    from_file = load_scenario(ROOT / "scenarios" / f"swap_{n}.toml")
+    data = antipodal_swap(n, radius=radius, arena=(-half, half, -half, half), duration=300.0)
     data["controller"] = dict(COMPACT_CONTROLLER)
     generated = parse_scenario(data)
     assert dataclasses.replace(from_file, source="") == dataclasses.replace(generated, source="")
@@ -349,4 +352,102 @@ def test_cpu_harness_refuses_bad_lengths_in_one_line(tmp_path):
     )  # fmt: skip
     assert res.returncode == 2 and res.stderr.strip().splitlines() == [
         "fleet: error: --cpu-s: two lengths 0 < S1 < S2 <= 3600 [s], got '6,2'"
+    ], res.stderr
+
+
+BURN_CHILD = """
+import sys, threading, time
+seconds = float(sys.argv[-1])
+def spin():
+    while time.thread_time() < seconds:
+        pass
+threads = [threading.Thread(target=spin) for _ in range(2)]
+for t in threads:
+    t.start()
+for t in threads:
+    t.join()
+time.sleep(0.25)  # several samples of the finished threads before the process goes
+"""
+BURN_PARENT = """
+import json, subprocess, sys
+from pathlib import Path
+code, seconds, out = sys.argv[1], sys.argv[2], Path(sys.argv[3])
+kids = [subprocess.Popen([sys.executable, "-c", code, "-m", "agent", seconds]) for _ in range(2)]
+assert all(k.wait(timeout=60) == 0 for k in kids)
+out.mkdir(parents=True, exist_ok=True)
+(out / "summary.json").write_text(json.dumps({"steps": 1}))
+"""
+
+
+def test_cpu_ratio_counts_each_cpu_second_once(tmp_path):
+    """The measurement behind the CPU ratio (``fleet bench --cpu``, target: fleet run against
+    fleet simulate) is checked on a workload whose CPU is known by construction: two processes
+    that look like agents to the harness (``-m agent`` on their command line), each with two
+    threads that spin until each has used exactly ``T`` s of CPU (``time.thread_time``).  Run at
+    T = 0.2 s and T = 0.8 s, the marginal CPU between the runs is 2 × 2 × 0.6 = 2.4 s, so the
+    harness must report 1 CPU second per thread-second, in its exact total and in its sampled
+    split by process role and by thread.  Counting a process's threads twice, adding a run's
+    CPU to the one before it (RUSAGE_CHILDREN is cumulative), or summing the short run into the
+    long one all double a term, which these bounds reject."""
+    from fleet.bench import CPU, _harness
+
+    h = _harness(CPU)
+    measured = []
+    for T in (0.2, 0.8):
+        out = tmp_path / f"burn_{T}"
+        cmd = [sys.executable, "-c", BURN_PARENT, BURN_CHILD, str(T), str(out)]
+        total, roles, kinds, wall = h._measure(cmd, out)
+        assert wall > 0 and total >= 2 * 2 * T, (T, total)  # at least the spinning itself
+        measured.append((total, roles, kinds))
+    thread_seconds = 2 * 2 * (0.8 - 0.2)
+    m = h.marginal(measured[0], measured[1], thread_seconds)
+    per_unit = m["ms_per_robot_step"] / 1e3  # CPU s per thread-second spun
+    assert 0.9 < per_unit < 1.15, m
+    assert 0.8 < m["by_role_ms"]["agents"] / 1e3 < 1.15, m  # the sampled split, role by role
+    assert sum(m["by_role_ms"].values()) == pytest.approx(sum(m["by_thread_ms"].values()), rel=1e-9)
+    assert m["by_thread_ms"].get("callbacks (python)", 0.0) / 1e3 > 0.8 * per_unit, m  # spun off-main
+    with pytest.raises(ValueError, match="no more work"):
+        h.marginal(measured[1], measured[0], 0)
+
+
+def test_targets_quick_prints_and_writes_every_target(tmp_path):
+    """``fleet bench --targets``: the four runtime targets of ``fleet run`` with its default flags,
+    each with its goal, its figure and its verdict, in the printout and the JSON.  ``--quick``
+    measures them on three robots: the plumbing, not the figures.  The verdicts must follow from
+    the figures they print (no figure is checked against the machine's speed)."""
+    out = tmp_path / "targets.json"
+    res = subprocess.run(
+        [sys.executable, *_command(), "--targets", "--quick", "--out", str(tmp_path), "--json", str(out)],
+        cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
+    d = json.loads(out.read_text(), parse_constant=_reject_constant)
+    assert d["schema"] == "fleet-bench-targets/1" and d["quick"] is True
+    t = {x["target"]: x for x in d["targets"]}
+    assert sorted(t) == [1, 2, 3, 4]
+    sim, run = d["cpu_rows"]
+    assert (sim["config"], run["config"]) == ("fleet simulate", "fleet run (defaults)")
+    assert t[1]["measured"] == pytest.approx(run["ms_per_robot_step"] / sim["ms_per_robot_step"])
+    assert t[1]["met"] == (t[1]["measured"] <= 2.0) and t[1]["measured"] > 1.0  # processes cost more
+    r3 = d["realtime_runs"]["3"]
+    assert (r3["exchange"], r3["topology"], r3["clock"]) == ("default", "default", "realtime")
+    assert t[2]["measured"] == pytest.approx(r3["miss_rate"]) and r3["collisions"] == 0
+    assert t[2]["met"] == (r3["miss_rate"] < 1e-3 and r3["supervisor_complete"])
+    assert t[3]["measured"] == r3["latency"]["pose_to_command_ms"]["p99"]
+    assert t[3]["met"] == (t[3]["measured"] <= 5.0)
+    positive(t[4]["measured"], "ready_s")
+    assert t[4]["measured"] == r3["ready_s"] and t[4]["met"] == (r3["ready_s"] <= 5.0)
+    for k in ("agent_p50", "tracker", "supervisor"):
+        positive(t[4]["detail"]["rss_mb"][k], f"rss_mb.{k}")
+    for x in d["targets"]:
+        assert f"  {x['target']}     {x['goal']}" in res.stdout and isinstance(x["met"], bool)
+
+
+def test_bench_harnesses_are_one_a_run(tmp_path):
+    res = subprocess.run(
+        [sys.executable, *_command(), "--cpu", "3", "--targets", "--out", str(tmp_path)],
+        cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert res.returncode == 2 and res.stderr.strip().splitlines() == [
+        "fleet: error: --targets: not with --cpu (one harness a run)"
     ], res.stderr

@@ -1,0 +1,146 @@
+"""The runtime targets of a fleet of processes, measured in one run: ``fleet bench --targets``.
+
+Every figure comes from ``fleet run`` with its default flags (no ``--exchange``, no
+``--topology``), as a user types it:
+
+1. **CPU.** The marginal CPU per robot-step of ``fleet run`` over ``fleet simulate``'s on the
+   same scene, the 16-robot swap on the lockstep clock (``bench_cpu.py``: two run lengths, the
+   difference), with the split by process.  Goal: at most 2×.
+2. **Realtime.** 32 robots on the realtime clock at Ts = 0.1 s for ``--realtime-s`` (60 s):
+   fewer than 0.1 % of the robot-steps miss their deadline, with 0 collisions, every step
+   judged.  48 robots are reported beside it, with no goal.
+3. **Latency.** Pose → command p99 at 16 robots in the same kind of run: at most 5 ms.
+4. **Start-up.** A 16-robot fleet ready in at most 5 s of wall time, from launching ``fleet
+   run`` to its first tick (the observer's arrival time); the resident memory of each kind of
+   process beside it.
+
+``--quick`` runs every target at 3 robots for a few seconds: the plumbing, not the figures.
+The JSON (schema ``fleet-bench-targets/1``) holds one entry per target (goal, measured, met)
+and the rows it came from.  What the figures mean: docs/performance.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+SCHEMA = "fleet-bench-targets/1"
+CPU_RATIO = 2.0
+"""Target 1: fleet run's marginal CPU per robot-step over fleet simulate's, at most."""
+MISS_RATE = 1e-3
+"""Target 2: the share of robot-steps that miss their deadline, below."""
+P99_MS = 5.0
+"""Target 3: pose → command p99 [ms], at most."""
+READY_S = 5.0
+"""Target 4: launch to first tick [s], at most."""
+
+
+def _harnesses() -> tuple[Any, Any]:
+    from fleet.bench import CPU, HARNESS, _harness
+
+    return _harness(HARNESS), _harness(CPU)
+
+
+def targets(
+    cpu_rows: list[dict[str, Any]], rt: dict[int, dict[str, Any]], sizes: dict[str, int]
+) -> list[dict[str, Any]]:
+    """The four targets from the measured rows: ``cpu_rows`` (fleet simulate first, then fleet
+    run's defaults), ``rt`` the realtime runs by fleet size, ``sizes`` which size each target
+    is judged at ("cpu", "realtime", "latency", "ready")."""
+    out: list[dict[str, Any]] = []
+    sim, run = cpu_rows[0], cpu_rows[1]
+    ratio = run["ms_per_robot_step"] / sim["ms_per_robot_step"]
+    out.append({
+        "target": 1,
+        "what": f"marginal CPU per robot-step, fleet run (defaults) / fleet simulate, {sizes['cpu']} robots",
+        "goal": f"<= {CPU_RATIO:g}", "measured": ratio, "met": ratio <= CPU_RATIO,
+        "detail": {"simulate_ms": sim["ms_per_robot_step"], "run_ms": run["ms_per_robot_step"],
+                   "by_role_ms": run["by_role_ms"], "by_thread_ms": run["by_thread_ms"]},
+    })  # fmt: skip
+    n = sizes["realtime"]
+    r = rt.get(n, {})
+    if "steps" in r:
+        ok = r["miss_rate"] < MISS_RATE and r["collisions"] == 0 and r["supervisor_complete"]
+        measured: float = r["miss_rate"]
+        detail = {k: r[k] for k in ("deadline_misses", "steps", "collisions", "supervisor_complete")}
+    else:
+        ok, measured, detail = False, math.nan, {"error": r.get("verdict", "not run")}
+    others = {str(m): {k: x.get(k) for k in ("miss_rate", "deadline_misses", "steps", "collisions")}
+              for m, x in rt.items() if m not in (n, sizes["latency"])}  # fmt: skip
+    out.append({
+        "target": 2, "what": f"realtime, {n} robots: share of robot-steps that missed the deadline",
+        "goal": f"< {MISS_RATE:g}, 0 collisions", "measured": measured, "met": ok,
+        "detail": {**detail, "also": others},
+    })  # fmt: skip
+    r = rt.get(sizes["latency"], {})
+    p99 = r.get("latency", {}).get("pose_to_command_ms", {}).get("p99", math.nan)
+    out.append({
+        "target": 3, "what": f"pose -> command p99 [ms], realtime, {sizes['latency']} robots",
+        "goal": f"<= {P99_MS:g}", "measured": p99, "met": bool(p99 <= P99_MS),
+        "detail": r.get("latency", {}),
+    })  # fmt: skip
+    r = rt.get(sizes["ready"], {})
+    ready = r.get("ready_s", math.nan)
+    out.append({
+        "target": 4, "what": f"launch to first tick [s], {sizes['ready']} robots",
+        "goal": f"<= {READY_S:g}", "measured": ready, "met": bool(ready <= READY_S),
+        "detail": {"rss_mb": r.get("rss_mb", {})},
+    })  # fmt: skip
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    scale, cpu = _harnesses()
+    quick = bool(args.quick)
+    small = 3 if quick else None
+    sizes = {"cpu": small or 16, "realtime": small or 32, "latency": small or 16, "ready": small or 16}
+    rt_sizes = [small] if small else [16, 32, 48]
+    rt_s = args.realtime_s if args.realtime_s is not None else (3.0 if quick else 60.0)
+    lengths = (2.0, 12.0) if quick else (6.0, 46.0)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    json_path = Path(args.json) if args.json else out / "targets.json"
+    t_start = time.monotonic()
+    info = {"nproc": os.cpu_count(), "cpu": platform.processor() or platform.machine(),
+            "python": platform.python_version(), "loadavg_at_start": list(os.getloadavg())}  # fmt: skip
+    print("fleet bench --targets: fleet run with its default flags" + (" (--quick)" if quick else ""))
+    print(f"machine: nproc {info['nproc']}, {info['cpu']}; python {info['python']}; "
+          f"load average {info['loadavg_at_start']}", flush=True)  # fmt: skip
+    print(
+        f"[1] CPU: swap of {sizes['cpu']} robots, lockstep, {lengths[0]:g} s and {lengths[1]:g} s", flush=True
+    )
+    cpu_rows = cpu.marginal_rows(
+        sizes["cpu"], lengths, args.seed, {"fleet simulate": ["simulate"], "fleet run (defaults)": ["run"]}
+    )
+    rt: dict[int, dict[str, Any]] = {}
+    with tempfile.TemporaryDirectory(prefix="fleet-targets-") as tmp_s:
+        print(f"[2]-[4] realtime runs, {rt_s:g} s each: {', '.join(map(str, rt_sizes))} robots", flush=True)
+        print(scale.RUN_HEADER, flush=True)
+        for n in rt_sizes:
+            rt[n] = scale.fleet_run(
+                n, "realtime", rt_s, out, Path(tmp_s), print, exchange=None, topology=None
+            )
+            scale.print_run(rt[n], print)
+    result = targets(cpu_rows, rt, sizes)
+    print("\ntarget  goal                      measured   met   what")
+    for t in result:
+        met = "yes" if t["met"] else "NO"
+        print(f"  {t['target']}     {t['goal']:<25} {t['measured']:>9.4g}   {met:<4}  {t['what']}")
+    rss = result[3]["detail"]["rss_mb"]
+    if rss:
+        print(f"  resident memory [MB]: agent p50 {rss['agent_p50']:.0f}, max {rss['agent_max']:.0f}; "
+              f"tracker {rss['tracker']:.0f}; supervisor {rss['supervisor']:.0f}")  # fmt: skip
+    info["loadavg_at_end"] = list(os.getloadavg())
+    doc = {"schema": SCHEMA, "quick": quick, "seed": args.seed, "machine": info, "targets": result,
+           "cpu_rows": cpu_rows, "realtime_runs": {str(n): r for n, r in rt.items()},
+           "total_wall_s": time.monotonic() - t_start}  # fmt: skip
+    json_path.write_text(json.dumps(scale._finite(doc), indent=1) + "\n")
+    print(f"total {doc['total_wall_s']:.0f} s; figures: {json_path}", flush=True)
+    return 0
