@@ -366,7 +366,6 @@ for t in threads:
     t.start()
 for t in threads:
     t.join()
-time.sleep(0.25)  # several samples of the finished threads before the process goes
 """
 BURN_PARENT = """
 import json, subprocess, sys
@@ -403,7 +402,9 @@ def test_cpu_ratio_counts_each_cpu_second_once(tmp_path):
     m = h.marginal(measured[0], measured[1], thread_seconds)
     per_unit = m["ms_per_robot_step"] / 1e3  # CPU s per thread-second spun
     assert 0.9 < per_unit < 1.15, m
-    assert 0.8 < m["by_role_ms"]["agents"] / 1e3 < 1.15, m  # the sampled split, role by role
+    # The sampled split, role by role: a thread's last poll period (50 ms) before its process
+    # exits is missed, up to 0.2 s of the 2.4 s here, in either run.
+    assert 0.8 < m["by_role_ms"]["agents"] / 1e3 < 1.15, m
     assert sum(m["by_role_ms"].values()) == pytest.approx(sum(m["by_thread_ms"].values()), rel=1e-9)
     assert m["by_thread_ms"].get("callbacks (python)", 0.0) / 1e3 > 0.8 * per_unit, m  # spun off-main
     with pytest.raises(ValueError, match="no more work"):
