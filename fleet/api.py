@@ -140,7 +140,7 @@ class Fleet:
         lockstep both give the same trajectories for the same script and ``seed``.  ``out``: the
         run's directory (summary.json; default out/<scenario name>).  ``run_options`` go to
         ``fleet run`` (``exchange``, ``topology``, ``lease``, ``viewer``, ``faults``, ``timeout``,
-        ``ros2``, ``ros_domain``, ``ros_listen``).
+        ``ros2``, ``ros_domain``, ``ros_listen``, ``fork``).
         Bad input raises :class:`ground.scenario.ConfigError` naming the field."""
         from ground.scenario import ConfigError
 

@@ -6,7 +6,8 @@
   one process (:mod:`fleet.simulate`), writes ``DIR/summary.json`` and exits 0 only if
   the run completed with zero collisions and every robot reached its goal.
 * ``fleet run SCENARIO.toml [--out DIR] [--clock C] [--exchange E] [--seed N] [--viewer]
-  [--listen ENDPOINT] [--lease S] [--topology T] [--ros2 [--ros-domain N] [--ros-listen E]]``
+  [--listen ENDPOINT] [--lease S] [--topology T] [--start-agents fork|spawn]
+  [--ros2 [--ros-domain N] [--ros-listen E]]``
   runs the fleet as processes over Zenoh (with ``--ros2``, ROS 2 sees it too: docs/ros2.md).
 * ``fleet goal SCENARIO.toml --robot ID X Y --connect ENDPOINT`` gives a
   running agent a new goal.
@@ -214,7 +215,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             str(Path(args.scenario).resolve()), processes=True, seed=args.seed, out=out.resolve(),
             clock=clock, viewer=args.viewer, hub=args.listen, faults=args.faults, exchange=args.exchange,
             lease=args.lease, topology=args.topology, ros2=ros2, ros_domain=args.ros_domain,
-            ros_listen=args.ros_listen,
+            ros_listen=args.ros_listen, fork=args.start_agents == "fork",
         )  # fmt: skip
         code, verdict = (1, why) if why else (0, "ok")
     else:
@@ -222,7 +223,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             str(Path(args.scenario).resolve()), [r.id for r in scn.robots], out.resolve(), args.seed,
             viewer=args.viewer, clock=clock, hub=args.listen, links=links, faults=args.faults,
             exchange=args.exchange, lease=args.lease, topology=args.topology, ros2=ros2,
-            ros_domain=args.ros_domain, ros_listen=args.ros_listen,
+            ros_domain=args.ros_domain, ros_listen=args.ros_listen, fork=args.start_agents == "fork",
         )  # fmt: skip
     if summary is not None:
         print(
@@ -422,6 +423,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="how the processes link: mesh (every one a Zenoh peer, default) or star (the tracker a "
         "router, the others its clients: one link each, and a 1 s lease; with --exchange relay, the "
         "lightest for large realtime fleets; docs/design.md, \"Topology\")",
+    )  # fmt: skip
+    r.add_argument(
+        "--start-agents", choices=["fork", "spawn"], default="fork" if sys.platform == "linux" else "spawn",
+        help="fork (default on Linux): fork every agent from one process that imported the agent's code "
+        "once, which saves each its imports; spawn: start each agent as its own interpreter "
+        "(docs/performance.md, \"Start-up\")",
     )  # fmt: skip
     r.add_argument(
         "--ros2", action="store_true",

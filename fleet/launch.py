@@ -1,7 +1,9 @@
 """``fleet run``: start the fleet as separate OS processes and judge the run.
 
 Processes are started with ``subprocess`` (fork + exec, so no parent state is
-inherited; never a bare fork after Zenoh is open): the tracker listens on a
+inherited; never a bare fork after Zenoh is open), except the agents: on Linux they are forked
+by a fork server (:mod:`fleet.forkserver`) that imported their code once, before any thread or
+session existed, which saves each agent its 0.45 s of imports.  The tracker listens on a
 free loopback port, the supervisor and one agent per robot connect to it.  In
 the mesh topology every process is a Zenoh peer and the peers link to each
 other; in the star topology the tracker's session is a router and every other
@@ -17,10 +19,12 @@ then stopped by pid (SIGTERM, then SIGKILL).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import queue
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -28,7 +32,7 @@ import time
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, Protocol
 
 from ground.net import NetConfig, free_port, loopback
 from ground.scenario import load_scenario
@@ -42,10 +46,29 @@ mesh keeps 10 s: there a 1 s lease's keep-alives cost CPU in proportion to the n
 while the star's n links make it cheap (docs/design.md, "Liveliness lease")."""
 
 
+class Child(Protocol):
+    """What the launcher needs of a process it started: :class:`subprocess.Popen`'s, or a
+    :class:`Forked` agent's."""
+
+    @property
+    def pid(self) -> int: ...
+
+    @property
+    def returncode(self) -> int | None: ...
+
+    def poll(self) -> int | None: ...
+
+    def wait(self, timeout: float | None = None) -> int: ...
+
+    def send_signal(self, sig: int) -> None: ...
+
+    def kill(self) -> None: ...
+
+
 @dataclass
 class Proc:
     role: str
-    popen: subprocess.Popen[str]
+    popen: Child
     lines: queue.Queue[str] = field(default_factory=queue.Queue)
     ready: dict[str, Any] = field(default_factory=dict)
     """The process's readiness line, once seen."""
@@ -75,6 +98,154 @@ def _start(
     assert popen.stdout is not None
     threading.Thread(target=_pump, args=(popen.stdout, proc.lines), daemon=True).start()
     return proc
+
+
+class Forked:
+    """A process the fork server started: :class:`subprocess.Popen`'s interface, with the exit
+    status reported by the fork server (its parent) instead of waited for here."""
+
+    def __init__(self, server: ForkServer, pid: int):
+        self._server, self.pid = server, pid
+
+    @property
+    def returncode(self) -> int | None:
+        return self._server.exit_code(self.pid)
+
+    def poll(self) -> int | None:
+        return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        code = self._server.wait_exit(self.pid, timeout)
+        if code is None:
+            raise subprocess.TimeoutExpired(f"pid {self.pid}", timeout or 0.0)
+        return code
+
+    def send_signal(self, sig: int) -> None:
+        if self.returncode is None:
+            try:
+                os.kill(self.pid, sig)
+            except ProcessLookupError:
+                pass
+
+    def kill(self) -> None:
+        self.send_signal(signal.SIGKILL)
+
+
+class ForkServer:
+    """The launcher's end of :mod:`fleet.forkserver`: start it, ask it for children, learn their
+    exit codes, and close it (which ends it, and any child still running)."""
+
+    UNKNOWN = 255
+    """Exit code of a child whose fork server died before reporting it."""
+
+    def __init__(self, preload: list[str], env: dict[str, str], stderr: int | IO[str] | None):
+        self._sock, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        with theirs:
+            preloads = [a for m in preload for a in ("--preload", m)]
+            cmd = ["fleet.forkserver", "--socket-fd", str(theirs.fileno()), *preloads]
+            self.popen = subprocess.Popen(
+                [sys.executable, "-m", *cmd], stdout=subprocess.PIPE, stdin=subprocess.DEVNULL,
+                stderr=stderr, text=True, env=env, pass_fds=[theirs.fileno()],
+            )  # fmt: skip
+        self.proc = Proc("forkserver", self.popen)
+        assert self.popen.stdout is not None
+        threading.Thread(target=_pump, args=(self.popen.stdout, self.proc.lines), daemon=True).start()
+        self._replies: queue.Queue[dict[str, Any]] = queue.Queue()
+        self._codes: dict[int, int] = {}
+        self._gone = False
+        self._cond = threading.Condition()
+        self._lock = threading.Lock()
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        while True:
+            try:
+                data = self._sock.recv(1 << 16)
+            except OSError:
+                data = b""
+            if not data:
+                break
+            msg = json.loads(data)
+            if "exit" in msg:
+                with self._cond:
+                    self._codes[int(msg["exit"])] = int(msg["code"])
+                    self._cond.notify_all()
+            else:
+                self._replies.put(msg)
+        with self._cond:
+            self._gone = True
+            self._cond.notify_all()
+        self._replies.put({"error": f"fork server ended (exit {self.popen.wait()})"})
+
+    def start(self, role: str, module: str, args: list[str], title: str = "", timeout: float = 30.0) -> Proc:
+        """Fork ``module.main(args)`` (a module the server preloaded) as ``role``, its command
+        line shown as ``title``."""
+        r, w = os.pipe()
+        request = json.dumps({"module": module, "argv": args, "title": title}).encode()
+        try:
+            with self._lock:
+                socket.send_fds(self._sock, [request], [w])
+                reply = self._replies.get(timeout=timeout)
+        except (OSError, queue.Empty) as e:
+            os.close(r)
+            raise LaunchError(f"{role}: the fork server did not answer ({e or 'timeout'})") from None
+        finally:
+            os.close(w)
+        if "pid" not in reply:
+            os.close(r)
+            raise LaunchError(f"{role}: {reply.get('error', reply)}")
+        proc = Proc(role, Forked(self, int(reply["pid"])))
+        stream = open(r, encoding="utf-8", errors="replace")  # the pump thread reads it to its end
+        threading.Thread(target=_pump, args=(stream, proc.lines), daemon=True).start()
+        return proc
+
+    def exit_code(self, pid: int) -> int | None:
+        with self._cond:
+            return self._known(pid)
+
+    def wait_exit(self, pid: int, timeout: float | None) -> int | None:
+        """``pid``'s exit code, waiting up to ``timeout`` [s] (None: for good); None on timeout.
+        Once the server is gone its orphans are polled, every 0.1 s, until they are gone too."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._cond:
+            while (code := self._known(pid)) is None:
+                left = None if deadline is None else deadline - time.monotonic()
+                if left is not None and left <= 0:
+                    return None
+                self._cond.wait(min(0.1, left or 0.1) if self._gone else left)
+            return code
+
+    def _known(self, pid: int) -> int | None:
+        if pid in self._codes:
+            return self._codes[pid]
+        if self._gone and not _alive(pid):
+            return self.UNKNOWN
+        return None
+
+    def close(self, grace: float = 10.0) -> None:
+        """Stop asking: the server ends its children still running, reports their exits and
+        exits; then close the socket.  ``grace`` [s]: how long the server gets (its children get
+        SIGTERM, and SIGKILL after :data:`fleet.forkserver.GRACE`) before it is killed."""
+        with contextlib.suppress(OSError):
+            self._sock.shutdown(socket.SHUT_WR)
+        try:
+            self.popen.wait(timeout=grace)
+        except subprocess.TimeoutExpired:
+            self.popen.kill()
+            self.popen.wait(timeout=5)
+        self._reader.join(timeout=5)  # the server's end is closed: the reader is at its EOF
+        self._sock.close()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def _wait_ready(procs: list[Proc], timeout: float) -> list[str]:
@@ -138,6 +309,8 @@ class Launched:
     """The run's directory: ``summary.json``, ``trace.npz``, ``recording.rrd``."""
     network: dict[str, Any]
     """``topology``, ``exchange`` and ``lease_s`` [s], for the summary."""
+    forkserver: ForkServer | None = None
+    """The agents' fork server, closed once they are stopped (None: the agents were spawned)."""
 
     @property
     def tracker(self) -> Proc:
@@ -176,6 +349,8 @@ class Launched:
     def stop(self) -> None:
         """End every process still running, by pid: SIGTERM, then SIGKILL (:func:`_stop`)."""
         _stop(self.procs, robots=tuple(self.emulators))
+        if self.forkserver is not None:
+            self.forkserver.close()
 
     def _judged(self) -> tuple[int, str, dict[str, Any] | None]:
         """The run's verdict once every process has ended; the summary gets the processes,
@@ -217,6 +392,7 @@ def start_fleet(
     ros2: bool | None = None,
     ros_domain: int | None = None,
     ros_listen: str | None = None,
+    fork: bool | None = None,
 ) -> Launched:
     """Start the fleet of ``scenario`` (its robots ``robots``), writing to ``out``, and return
     once every process is ready.  Raises :class:`LaunchError` if one does not start, once the
@@ -248,7 +424,8 @@ def start_fleet(
     scenario's ``[ros2] enabled`` says.  ``ros_listen``: the endpoint the ROS face listens on for
     ROS 2 tools in the mesh (default a free loopback port); a ROS 2 session must link to the face
     itself, since peers do not forward each other's data.  In the star, ROS 2 tools connect to the
-    hub, the router."""
+    hub, the router.  ``fork``: fork the agents from a fork server that imported their code once
+    (:mod:`fleet.forkserver`) rather than start each as a new interpreter; None: on Linux."""
     if ros_listen is not None and topology == "star":
         raise ValueError("ros_listen: in the star topology ROS 2 tools connect to the hub (the router)")
     if topology not in TOPOLOGIES:
@@ -279,12 +456,15 @@ def start_fleet(
     start = partial(_start, env=env, stderr=stderr)
     procs: list[Proc] = []
     emulators: list[Proc] = []
+    server: ForkServer | None = None
     started = False
     try:
         source = ["--source", "emulator"] if emulated else []
         procs.append(
             start("tracker", "tracker", [*common, *hub_mode, "--listen", hub, *seed_args, *source, *script])
         )
+        if sys.platform == "linux" if fork is None else fork:
+            server = ForkServer(["agent.node"], env, stderr)  # imports while the tracker starts
         if _wait_ready(procs, 60.0):
             raise LaunchError("tracker did not start")
         # The robot side: one emulator and one epuck_link per emulated robot.
@@ -318,11 +498,19 @@ def start_fleet(
                 listen = ["--listen", ros_endpoint]
             print(f"fleet: ROS 2 tools connect to {ros_endpoint} (docs/ros2.md)", file=sys.stderr, flush=True)
             observers.append(start("ros2", "ros2_link", [*spoke, "--connect", hub, *listen, *domain]))
-        agents = [
-            start(f"agent {rid}", "agent", [*spoke, "--connect", hub, "--robot", rid, *agent_args])
-            for rid in robots
-        ]
-        procs += [*observers, *agents]
+        procs += observers
+        if server is not None and _wait_ready([server.proc], 60.0):
+            raise LaunchError("the agents' fork server did not start")
+        agents = []
+        for rid in robots:
+            args = [*spoke, "--connect", hub, "--robot", rid, *agent_args]
+            role = f"agent {rid}"
+            if server is not None:
+                title = " ".join([sys.executable, "-m", "agent", *args])
+                agents.append(server.start(role, "agent.node", args, title))
+            else:
+                agents.append(start(role, "agent", args))
+            procs.append(agents[-1])
         late = _wait_ready([*observers, *agents], 120.0)
         if late:
             raise LaunchError(f"not ready: {', '.join(late)}")
@@ -330,11 +518,13 @@ def start_fleet(
     finally:
         if not started:
             _stop(procs, robots=tuple(emulators))
+            if server is not None:
+                server.close()
     lease_s = NetConfig.lease if lease is None else lease
     network: dict[str, Any] = {"topology": topology, "exchange": exchange, "lease_s": lease_s}
     if ros2:
         network["ros_endpoint"] = ros_endpoint
-    return Launched(procs, emulators, hub, out, network)
+    return Launched(procs, emulators, hub, out, network, server)
 
 
 def run_fleet(

@@ -33,7 +33,9 @@ from ground.scenario import ConfigError, Scenario
 from ground.wire import SCRIPT, Goal, Keys, Plan, Pose, Script, Tick, Truth
 from supervisor.judge import SOLVED
 
-RUN_OPTIONS = ("exchange", "topology", "lease", "viewer", "faults", "hub", "ros2", "ros_domain", "ros_listen")
+RUN_OPTIONS = (
+    "exchange", "topology", "lease", "viewer", "faults", "hub", "ros2", "ros_domain", "ros_listen", "fork",
+)  # fmt: skip
 """``Fleet.launch`` options a process fleet takes (``fleet run``'s)."""
 SAMPLE_TIMEOUT = 60.0
 """How long the next sample may take before the fleet counts as gone [s, wall time]."""

@@ -14,6 +14,12 @@ def stat(pid: int) -> list[str] | None:
         return None
 
 
+def ppid(pid: int) -> int | None:
+    """The parent of ``pid``, None if it is gone."""
+    s = stat(pid)
+    return None if s is None else int(s[1])
+
+
 def _pids() -> list[int]:
     return [int(d.name) for d in Path("/proc").iterdir() if d.name.isdigit()]
 
@@ -21,6 +27,52 @@ def _pids() -> list[int]:
 def children(pid: int) -> list[int]:
     """Direct children of ``pid``."""
     return [c for c in _pids() if (s := stat(c)) is not None and int(s[1]) == pid]
+
+
+def descendants(pid: int) -> list[int]:
+    """Children of ``pid``, their children and so on: ``fleet run``'s agents are the children of
+    its fork server (fleet/forkserver.py)."""
+    parent = {c: int(s[1]) for c in _pids() if (s := stat(c)) is not None}
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        kids = [c for c, pp in parent.items() if pp == p]
+        out += kids
+        todo += kids
+    return out
+
+
+def argv(pid: int) -> list[str]:
+    """The words of ``pid``'s command line, [] if it is gone.  A spawned process's arguments are
+    separated by NULs; a forked agent shows its command line as one string (setproctitle), its
+    arguments separated by spaces: both split the same here."""
+    try:
+        raw = (Path("/proc") / str(pid) / "cmdline").read_bytes()
+    except OSError:
+        return []
+    return raw.replace(b"\0", b" ").decode(errors="replace").split()
+
+
+def role(words: list[str]) -> str | None:
+    """The fleet role a command line runs: the module after ``-m`` (``tracker``,
+    ``supervisor``, ``fleet.forkserver`` ...), ``agent ID`` for an agent; None if not ``-m``."""
+    if "-m" not in words or words.index("-m") + 1 >= len(words):
+        return None
+    module = words[words.index("-m") + 1]
+    if module == "agent" and "--robot" in words[:-1]:
+        return f"agent {words[words.index('--robot') + 1]}"
+    return module
+
+
+def fleet_processes(launcher: int) -> dict[str, int]:
+    """Pid of every process of the fleet that ``launcher`` (``fleet run``) started, by
+    :func:`role`; its fork server is not one of them."""
+    out = {}
+    for p in descendants(launcher):
+        r = role(argv(p))
+        if r is not None and r != "fleet.forkserver":
+            out[r] = p
+    return out
 
 
 def alive(pid: int) -> bool:

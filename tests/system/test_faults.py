@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from procfs import children
+from procfs import argv, descendants
 
 from agent.controller import TubeMPC
 from agent.coordination import Hazard, NeighbourInfo, hazard_halfplanes
@@ -469,15 +469,8 @@ def _collected(lines: queue.Queue[str], log: list[str], out: Path) -> tuple[str,
 
 
 def _child_pid(launcher_pid: int, *words: str) -> int:
-    """The launcher's child process whose command line has each of ``words``."""
-
-    def cmd(pid: int) -> list[str]:
-        try:
-            return (Path("/proc") / str(pid) / "cmdline").read_bytes().decode().split("\0")
-        except OSError:
-            return []
-
-    return next(c for c in children(launcher_pid) if set(words) <= set(cmd(c)))
+    """The process of the launcher's fleet whose command line has each of ``words``."""
+    return next(c for c in descendants(launcher_pid) if set(words) <= set(argv(c)))
 
 
 def _agent_pid(launcher_pid: int, rid: str) -> int:

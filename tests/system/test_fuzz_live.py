@@ -49,7 +49,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from fuzzing import NAMES, TYPES, Generator, Payload, field_names, table_names
-from procfs import alive, children, group_alive, stat
+from procfs import alive, fleet_processes, group_alive, stat
 
 from ground.net import NetConfig, free_port, loopback
 from ground.wire import MAX_PAYLOAD, Keys, Message, Odom, WireError, decode
@@ -361,23 +361,6 @@ def final_count(text: str, role: str) -> int | None:
     return int(found[-1]) if found else None
 
 
-def _cmdline(pid: int) -> list[str]:
-    try:
-        return (Path("/proc") / str(pid) / "cmdline").read_bytes().decode().split("\0")
-    except OSError:
-        return []
-
-
-def _role_of(pid: int) -> str | None:
-    argv = _cmdline(pid)
-    if "-m" not in argv or argv.index("-m") + 1 >= len(argv):
-        return None
-    module = argv[argv.index("-m") + 1]
-    if module == "agent" and "--robot" in argv:
-        return f"agent {argv[argv.index('--robot') + 1]}"
-    return module
-
-
 def _listening(port: int) -> bool:
     """Something listens on 127.0.0.1:``port`` (this network namespace's /proc/net/tcp)."""
     want = f"0100007F:{port:04X}"
@@ -478,10 +461,7 @@ def test_live_fleet_rejects_fuzzed_payloads_on_every_key(tmp_path, exchange):
                 cond.wait(1.0)
         assert everyone <= live, f"alive: {sorted(live)}\n" + "\n".join(err.snapshot()[-20:])
         timing["fleet_alive_s"] = time.monotonic() - t_launch
-        for c in children(launcher.pid):
-            role = _role_of(c)
-            if role is not None:
-                pids[role] = c
+        pids.update(fleet_processes(launcher.pid))
         assert set(pids) == set(roles), pids
 
         pubs = {

@@ -13,8 +13,9 @@ import threading
 import time
 from pathlib import Path
 
+import procfs
 import pytest
-from procfs import alive, children, tcp_sockets
+from procfs import alive, argv, descendants, fleet_processes, ppid, tcp_sockets
 
 from ground.net import free_port, loopback
 
@@ -28,13 +29,6 @@ def _fleet(*args, timeout=300):
         [sys.executable, "-m", "fleet.cli", *args], cwd=ROOT, env=ENV, capture_output=True, text=True,
         timeout=timeout,
     )  # fmt: skip
-
-
-def _cmdline(pid: int) -> list[str]:
-    try:
-        return (Path("/proc") / str(pid) / "cmdline").read_bytes().decode().split("\0")
-    except OSError:
-        return []
 
 
 def _listening(pid: int) -> list[str]:
@@ -150,10 +144,14 @@ def test_lockstep_run_and_simulate_give_identical_safety_figures(three, tmp_path
     assert (a.footprint, a.robot_radius, a.ids) == (b.footprint, b.robot_radius, b.ids)
 
 
-def test_lockstep_runs_are_deterministic(three, tmp_path):
+def test_lockstep_runs_are_deterministic_with_agents_forked_or_spawned(three, tmp_path):
+    """A second lockstep run, its agents each a new interpreter (``--start-agents spawn``) where
+    the first forked them from the fork server (the default), is the same run to the last bit."""
     _, out = three
     first = json.loads((out / "summary.json").read_text())
-    again = _fleet("run", str(SCENARIOS / "paper_three_robots.toml"), "--out", str(tmp_path))
+    again = _fleet(
+        "run", str(SCENARIOS / "paper_three_robots.toml"), "--out", str(tmp_path), "--start-agents", "spawn"
+    )
     assert again.returncode == 0, again.stderr[-2000:]
     second = json.loads((tmp_path / "summary.json").read_text())
     timing = {
@@ -223,12 +221,9 @@ def test_star_topology_links_every_process_to_the_tracker_only_and_gives_the_sam
         try:
             deadline = time.monotonic() + 120
             while launcher.poll() is None and time.monotonic() < deadline:
-                kids = {c: _cmdline(c) for c in children(launcher.pid)}
+                kids = fleet_processes(launcher.pid)
                 if len(kids) == 5:  # tracker, supervisor, 3 agents
-                    for c, cmd in kids.items():
-                        if len(cmd) < 3:  # exited meanwhile
-                            continue
-                        role = cmd[2] + (f" {cmd[cmd.index('--robot') + 1]}" if "--robot" in cmd else "")
+                    for role, c in kids.items():
                         listens, remotes = _links(c)
                         if remotes and (role not in seen or len(remotes) > len(seen[role][1])):
                             seen[role] = (listens, remotes)  # the most linked sample of each role
@@ -292,7 +287,7 @@ def test_killed_agent_fails_the_run_and_names_the_robot(tmp_path):
                 break
         else:
             raise AssertionError("no progress line within 120 s")
-        victim = next(c for c in children(launcher.pid) if {"agent", "r2"} <= set(_cmdline(c)))
+        victim = fleet_processes(launcher.pid)["agent r2"]
         os.kill(victim, signal.SIGKILL)
         launcher.wait(timeout=180)
         reader.join(timeout=30)  # the pipe closes when the launcher exits
@@ -323,7 +318,7 @@ def test_nothing_listens_beyond_loopback(tmp_path):
     try:
         deadline = time.monotonic() + 120
         while launcher.poll() is None and time.monotonic() < deadline:
-            for child in children(launcher.pid):
+            for child in descendants(launcher.pid):
                 addrs = _listening(child)
                 if addrs:
                     seen[child] = addrs
@@ -495,16 +490,20 @@ def test_sigterm_to_fleet_run_stops_every_process(tmp_path):
     launcher = subprocess.Popen(
         cmd, cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
     )
+    fleet: dict[str, int] = {}
     kids: list[int] = []
     try:
         deadline = time.monotonic() + 120
-        while len(kids) < 5 and launcher.poll() is None and time.monotonic() < deadline:
-            kids = children(launcher.pid)
+        while len(fleet) < 5 and launcher.poll() is None and time.monotonic() < deadline:
+            fleet = fleet_processes(launcher.pid)
             try:  # pace the sampling by waiting on the launcher itself
                 launcher.wait(timeout=0.05)
             except subprocess.TimeoutExpired:
                 pass
-        assert len(kids) == 5, f"the fleet did not start: {kids}"
+        assert len(fleet) == 5, f"the fleet did not start: {fleet}"  # tracker, supervisor, 3 agents
+        kids = descendants(launcher.pid)  # and the agents' fork server, their parent
+        server = [k for k in kids if procfs.role(argv(k)) == "fleet.forkserver"]
+        assert len(server) == 1 and {ppid(fleet[f"agent r{i}"]) for i in (1, 2, 3)} == set(server), kids
         launcher.terminate()
         _, stderr = launcher.communicate(timeout=60)
     finally:
