@@ -727,6 +727,18 @@ def _vm_mb(pid: int) -> tuple[float, float] | None:
     return got["VmRSS"], got["VmHWM"]
 
 
+def _pss_mb(pid: int) -> float | None:
+    """Proportional set size of ``pid`` [MB] (/proc/PID/smaps_rollup): its resident memory with
+    each page shared with other processes (a forked agent's imports) counted as its share."""
+    try:
+        for line in (Path("/proc") / str(pid) / "smaps_rollup").read_text().splitlines():
+            if line.startswith("Pss:"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return None
+
+
 def _machine_busy() -> float | None:
     """Busy CPU seconds of the whole machine since boot (/proc/stat: all but idle and iowait)."""
     try:
@@ -739,7 +751,8 @@ def _machine_busy() -> float | None:
 def _role(pid: int) -> str | None:
     """``agent``, ``tracker`` or ``supervisor`` from the command line, else None."""
     try:
-        argv = (Path("/proc") / str(pid) / "cmdline").read_bytes().split(b"\0")
+        # NUL-separated as exec'd; one string, space-separated, as a forked agent shows it.
+        argv = (Path("/proc") / str(pid) / "cmdline").read_bytes().replace(b"\0", b" ").split()
     except OSError:
         return None
     for i, a in enumerate(argv[:-1]):
@@ -749,7 +762,7 @@ def _role(pid: int) -> str | None:
 
 
 class Sampler:
-    """Samples VmRSS and CPU time of the children of ``parent`` (the ``fleet run``
+    """Samples VmRSS and CPU time of the descendants of ``parent`` (the ``fleet run``
     process: tracker, supervisor, agents) every ``period`` seconds, in a thread."""
 
     def __init__(self, parent: int, period: float = 0.25):
@@ -760,6 +773,8 @@ class Sampler:
         """pid → VmHWM, the peak resident memory [MB]."""
         self.rss: dict[int, list[tuple[float, float]]] = {}
         """pid → [(time.monotonic, VmRSS [MB])]."""
+        self.pss: dict[int, list[tuple[float, float]]] = {}
+        """pid → [(time.monotonic, PSS [MB])], every few samples (smaps_rollup costs more)."""
         self.cpu: dict[int, list[tuple[float, float]]] = {}
         """pid → [(time.monotonic, CPU seconds)]."""
         self.machine: list[tuple[float, float]] = []
@@ -778,12 +793,19 @@ class Sampler:
         self._thread.join(timeout=5)
 
     def _children(self) -> list[int]:
-        out = []
+        """The descendants of :attr:`parent`: the agents are its fork server's children."""
+        parent = {}
         for d in Path("/proc").iterdir():
             if d.name.isdigit():
                 st = _proc_stat(int(d.name))
-                if st is not None and st[0] == self.parent:
-                    out.append(int(d.name))
+                if st is not None:
+                    parent[int(d.name)] = st[0]
+        out, todo = [], [self.parent]
+        while todo:
+            p = todo.pop()
+            kids = [c for c, pp in parent.items() if pp == p]
+            out += kids
+            todo += kids
         return out
 
     def _run(self) -> None:
@@ -811,12 +833,15 @@ class Sampler:
                     continue
                 self.hwm[pid] = max(self.hwm.get(pid, 0.0), vm[1])
                 self.rss.setdefault(pid, []).append((now, vm[0]))
+                if i % (2 * scan_every) == 1 and (pss := _pss_mb(pid)) is not None:
+                    self.pss.setdefault(pid, []).append((now, pss))
                 self.cpu.setdefault(pid, []).append((now, st[1]))
             self._stop.wait(self.period)
 
-    def rss_in(self, pid: int, t0: float, t1: float) -> float:
-        """Median VmRSS of ``pid`` [MB] over the samples between ``t0`` and ``t1`` (all samples if none)."""
-        samples = self.rss.get(pid, [])
+    def rss_in(self, pid: int, t0: float, t1: float, pss: bool = False) -> float:
+        """Median VmRSS of ``pid`` [MB] over the samples between ``t0`` and ``t1`` (all samples if
+        none); ``pss``: its proportional set size instead."""
+        samples = (self.pss if pss else self.rss).get(pid, [])
         inside = [r for t, r in samples if t0 <= t <= t1] or [r for _, r in samples]
         return float(np.median(inside)) if inside else math.nan
 
@@ -930,16 +955,19 @@ def capped_scenario(name: str, sim_s: float, tmp: Path, Ts: float | None = None)
 def fleet_run(
     robots: int, clock: str, sim_s: float, out: Path, tmp: Path, log: Callable[[str], None],
     exchange: str | None = "relay", topology: str | None = "star", Ts: float | None = None,
+    extra: tuple[str, ...] = (), tag: str = "",
 ) -> dict[str, Any]:  # fmt: skip
     """One ``fleet run`` of the shipped scene for ``robots`` robots, ``sim_s`` simulated seconds,
     plans travelling by ``exchange`` (mesh or relay), the processes linked by ``topology``
     (mesh or star), at the scene's sampling period or at ``Ts`` [s].  ``exchange`` or
-    ``topology`` None: the flag is left out, so ``fleet run`` uses its default."""
+    ``topology`` None: the flag is left out, so ``fleet run`` uses its default.  ``extra``: more
+    flags of ``fleet run``; ``tag``: a suffix of the run's directory, to keep apart runs that
+    differ only in those."""
     from ground.net import free_port, loopback
 
     name = SCENES[robots]
     scn_path = capped_scenario(name, sim_s, tmp, Ts)
-    run_dir = out / f"{clock}_{robots}" if Ts is None else out / f"{clock}_{robots}_Ts{Ts:g}"
+    run_dir = out / (tag or (f"{clock}_{robots}" if Ts is None else f"{clock}_{robots}_Ts{Ts:g}"))
     if run_dir.exists():
         shutil.rmtree(run_dir)
     run_dir.mkdir(parents=True)
@@ -950,6 +978,7 @@ def fleet_run(
         sys.executable, "-m", "fleet.cli", "run", str(scn_path), "--out", str(run_dir), "--clock", clock,
         "--listen", loopback(port),
         *(["--exchange", exchange] if exchange else []), *(["--topology", topology] if topology else []),
+        *extra,
     ]  # fmt: skip
     t_launch = time.monotonic()
     err_path = run_dir / "fleet.stderr"
@@ -1038,11 +1067,13 @@ def fleet_run(
         by_role[role].append(pid)
     rss_agents = [sampler.rss_in(p, t0, t1) for p in by_role["agent"] if p in sampler.rss]
     hwm_agents = [sampler.hwm[p] for p in by_role["agent"] if p in sampler.hwm]
+    pss_agents = [sampler.rss_in(p, t0, t1, pss=True) for p in by_role["agent"] if p in sampler.pss]
     row["rss_mb"] = {
         "agent_p50": float(np.median(rss_agents)) if rss_agents else math.nan,
         "agent_max": float(max(rss_agents)) if rss_agents else math.nan,
         "agent_peak_max": float(max(hwm_agents)) if hwm_agents else math.nan,
         "agents_sampled": len(rss_agents),
+        "agent_pss_p50": float(np.median(pss_agents)) if pss_agents else math.nan,
         "tracker": max((sampler.rss_in(p, t0, t1) for p in by_role["tracker"]), default=math.nan),
         "supervisor": max((sampler.rss_in(p, t0, t1) for p in by_role["supervisor"]), default=math.nan),
     }

@@ -12,7 +12,9 @@ Every figure comes from ``fleet run`` with its default flags (no ``--exchange``,
 3. **Latency.** Pose → command p99 at 16 robots in the same kind of run: at most 5 ms.
 4. **Start-up.** A 16-robot fleet ready in at most 5 s of wall time, from launching ``fleet
    run`` to its first tick (the observer's arrival time); the resident memory of each kind of
-   process beside it.
+   process beside it.  Beside it, side by side: short lockstep launches of the same fleet,
+   interleaved, with the agents forked from the fork server (the default) and spawned
+   (``--start-agents spawn``), and the ratio of their medians.
 
 ``--quick`` runs every target at 3 robots for a few seconds: the plumbing, not the figures.
 The JSON (schema ``fleet-bench-targets/1``) holds one entry per target (goal, measured, met)
@@ -24,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import statistics
 import tempfile
 import time
 from pathlib import Path
@@ -44,12 +47,18 @@ def _harnesses() -> tuple[Any, Any]:
     return _harness(HARNESS), _harness(CPU)
 
 
+START_LAUNCHES = 3
+"""Launches of each kind (agents forked, agents spawned) in target 4's side-by-side comparison."""
+
+
 def targets(
-    cpu_rows: list[dict[str, Any]], rt: dict[int, dict[str, Any]], sizes: dict[str, int]
-) -> list[dict[str, Any]]:
+    cpu_rows: list[dict[str, Any]], rt: dict[int, dict[str, Any]], sizes: dict[str, int],
+    starts: dict[str, list[float]] | None = None,
+) -> list[dict[str, Any]]:  # fmt: skip
     """The four targets from the measured rows: ``cpu_rows`` (fleet simulate first, then fleet
     run's defaults), ``rt`` the realtime runs by fleet size, ``sizes`` which size each target
-    is judged at ("cpu", "realtime", "latency", "ready")."""
+    is judged at ("cpu", "realtime", "latency", "ready"), ``starts`` the side-by-side launch
+    times [s] by how the agents were started ("fork", "spawn")."""
     miss_rate = _harnesses()[0].GOAL_MISS_RATE_32  # target 2 is the realtime goal [5] for 32 robots
     out: list[dict[str, Any]] = []
     sim, run = cpu_rows[0], cpu_rows[1]
@@ -88,8 +97,17 @@ def targets(
     out.append({
         "target": 4, "what": f"launch to first tick [s], {sizes['ready']} robots",
         "goal": f"<= {READY_S:g}", "measured": ready, "met": bool(ready <= READY_S),
-        "detail": {"rss_mb": r.get("rss_mb", {})},
+        "detail": {"rss_mb": r.get("rss_mb", {}), "side_by_side": _side_by_side(starts or {})},
     })  # fmt: skip
+    return out
+
+
+def _side_by_side(starts: dict[str, list[float]]) -> dict[str, Any]:
+    """Median launch-to-first-tick [s] of each way of starting the agents, and spawn / fork."""
+    med = {k: float(statistics.median(v)) for k, v in starts.items() if v}
+    out: dict[str, Any] = {"ready_s": starts, "median_s": med}
+    if "fork" in med and "spawn" in med:
+        out["spawn_over_fork"] = med["spawn"] / med["fork"]
     return out
 
 
@@ -124,11 +142,28 @@ def run(args: argparse.Namespace) -> int:
                 n, "realtime", rt_s, out, Path(tmp_s), print, exchange=None, topology=None
             )
             scale.print_run(rt[n], print)
-    result = targets(cpu_rows, rt, sizes)
+        n = sizes["ready"]
+        launches = 1 if quick else START_LAUNCHES
+        print(f"[4] start-up side by side: {n} robots, lockstep, {launches} launches each, interleaved",
+              flush=True)  # fmt: skip
+        starts: dict[str, list[float]] = {"fork": [], "spawn": []}
+        for i in range(launches):
+            for how in starts:
+                row = scale.fleet_run(
+                    n, "lockstep", 1.0, out, Path(tmp_s), print, exchange=None, topology=None,
+                    extra=("--start-agents", how), tag=f"start_{how}_{i}",
+                )  # fmt: skip
+                starts[how].append(row.get("ready_s", math.nan))
+                print(f"  agents {how}: ready in {starts[how][-1]:.2f} s", flush=True)
+    result = targets(cpu_rows, rt, sizes, starts)
     print("\ntarget  goal                      measured   met   what")
     for t in result:
         met = "yes" if t["met"] else "NO"
         print(f"  {t['target']}     {t['goal']:<25} {t['measured']:>9.4g}   {met:<4}  {t['what']}")
+    side = result[3]["detail"]["side_by_side"]
+    if "spawn_over_fork" in side:
+        print(f"  start-up, medians: agents forked {side['median_s']['fork']:.2f} s, spawned "
+              f"{side['median_s']['spawn']:.2f} s: spawn / fork {side['spawn_over_fork']:.2f}")  # fmt: skip
     rss = result[3]["detail"]["rss_mb"]
     if rss:
         print(f"  resident memory [MB]: agent p50 {rss['agent_p50']:.0f}, max {rss['agent_max']:.0f}; "

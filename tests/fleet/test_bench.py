@@ -440,6 +440,12 @@ def test_targets_quick_prints_and_writes_every_target(tmp_path):
     assert t[4]["measured"] == r3["ready_s"] and t[4]["met"] == (r3["ready_s"] <= 5.0)
     for k in ("agent_p50", "tracker", "supervisor"):
         positive(t[4]["detail"]["rss_mb"][k], f"rss_mb.{k}")
+    side = t[4]["detail"]["side_by_side"]  # start-up, agents forked and spawned
+    for how in ("fork", "spawn"):
+        assert len(side["ready_s"][how]) == 1
+        positive(side["ready_s"][how][0], f"side_by_side.{how}")
+    assert side["spawn_over_fork"] == pytest.approx(side["ready_s"]["spawn"][0] / side["ready_s"]["fork"][0])
+    assert "spawn / fork" in res.stdout
     for x in d["targets"]:
         assert f"  {x['target']}     {x['goal']}" in res.stdout and isinstance(x["met"], bool)
 
