@@ -166,8 +166,10 @@ def run(args: argparse.Namespace) -> int:
               f"{side['median_s']['spawn']:.2f} s: spawn / fork {side['spawn_over_fork']:.2f}")  # fmt: skip
     rss = result[3]["detail"]["rss_mb"]
     if rss:
-        print(f"  resident memory [MB]: agent p50 {rss['agent_p50']:.0f}, max {rss['agent_max']:.0f}; "
-              f"tracker {rss['tracker']:.0f}; supervisor {rss['supervisor']:.0f}")  # fmt: skip
+        print(f"  resident memory [MB]: agent p50 {rss['agent_p50']:.0f}, max {rss['agent_max']:.0f} "
+              f"(PSS, the pages shared with the other agents counted as its share: p50 "
+              f"{rss.get('agent_pss_p50', math.nan):.0f}); tracker {rss['tracker']:.0f}; "
+              f"supervisor {rss['supervisor']:.0f}")  # fmt: skip
     info["loadavg_at_end"] = scale.loadavg()
     doc = {"schema": SCHEMA, "quick": quick, "seed": args.seed, "machine": info, "targets": result,
            "cpu_rows": cpu_rows, "realtime_runs": {str(n): r for n, r in rt.items()},

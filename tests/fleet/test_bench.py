@@ -438,8 +438,10 @@ def test_targets_quick_prints_and_writes_every_target(tmp_path):
     assert t[3]["met"] == (t[3]["measured"] <= 5.0)
     positive(t[4]["measured"], "ready_s")
     assert t[4]["measured"] == r3["ready_s"] and t[4]["met"] == (r3["ready_s"] <= 5.0)
-    for k in ("agent_p50", "tracker", "supervisor"):
+    for k in ("agent_p50", "agent_pss_p50", "tracker", "supervisor"):
         positive(t[4]["detail"]["rss_mb"][k], f"rss_mb.{k}")
+    # PSS counts the pages an agent shares (its forked imports, the libraries) as its share.
+    assert t[4]["detail"]["rss_mb"]["agent_pss_p50"] < t[4]["detail"]["rss_mb"]["agent_p50"]
     side = t[4]["detail"]["side_by_side"]  # start-up, agents forked and spawned
     for how in ("fork", "spawn"):
         assert len(side["ready_s"][how]) == 1
