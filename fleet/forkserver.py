@@ -148,7 +148,7 @@ def _serve(sock: socket.socket, preload: list[str]) -> int:
             if not data:
                 open_ = False
                 break
-            reply = _fork(data, fds, preload, [sock.fileno(), wake_r, wake_w])
+            reply = _fork(data, fds, preload, [sock.fileno(), wake_r, wake_w, sel.fileno()])
             if "pid" in reply:
                 children.add(reply["pid"])
             try:

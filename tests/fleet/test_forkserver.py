@@ -28,8 +28,10 @@ if os.environ.get("PROBE_THREAD"):
 
 
 def main(argv):
+    fds = sorted(int(fd) for fd in os.listdir("/proc/self/fd"))  # one of them is listdir's own
     print(json.dumps({"event": "ready", "role": "probe", "pid": os.getpid(), "ppid": os.getppid(),
-                      "stdin": sys.stdin.read(), "argv": argv, "sys_argv": sys.argv}), flush=True)
+                      "stdin": sys.stdin.read(), "argv": argv, "sys_argv": sys.argv, "fds": fds}),
+          flush=True)
     mode = argv[0]
     if mode == "exit":
         return int(argv[1])
@@ -77,6 +79,9 @@ def test_children_are_forked_with_the_imports_done_and_the_stdio_of_a_spawned_pr
         assert r["pid"] == p.pid and r["ppid"] == server.popen.pid
         assert r["argv"] == ["exit", str(i)] and r["sys_argv"] == ["fork_probe", "exit", str(i)]
         assert r["stdin"] == ""  # /dev/null, not the server's socket or pipe
+        # Nothing of the server's is left open (its socket, its wake-up pipe, its epoll): stdio,
+        # and the descriptor listdir used.
+        assert r["fds"][:3] == [0, 1, 2] and len(r["fds"]) == 4, r["fds"]
         assert p.popen.wait(timeout=30) == i
     # Each child showed its title as its command line while it ran (checked on a live one).
     hang = server.start("probe hang", "fork_probe", ["hang"], "python -m probe --robot r9")
