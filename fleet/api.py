@@ -139,8 +139,8 @@ class Fleet:
         same semantics and the same summary, much faster, a pre-flight check of a script.  On
         lockstep both give the same trajectories for the same script and ``seed``.  ``out``: the
         run's directory (summary.json; default out/<scenario name>).  ``run_options`` go to
-        ``fleet run`` (``exchange``, ``topology``, ``lease``, ``viewer``, ``faults``, ``timeout``,
-        ``ros2``, ``ros_domain``, ``ros_listen``, ``fork``).
+        ``fleet run`` (``exchange``, ``topology``, ``lease``, ``viewer``, ``faults``, ``hub``,
+        ``ros2``, ``ros_domain``, ``ros_listen``, ``fork``: :data:`fleet.script.RUN_OPTIONS`).
         Bad input raises :class:`ground.scenario.ConfigError` naming the field."""
         from ground.scenario import ConfigError
 

@@ -28,7 +28,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from fleet.launch import TOPOLOGIES
+from fleet.launch import STARTS, TOPOLOGIES
 from fleet.report import strict_json
 from ground.params import PRESETS, preset
 from ground.process import domain_arg, lease_arg, seed_arg
@@ -425,10 +425,10 @@ def build_parser() -> argparse.ArgumentParser:
         "lightest for large realtime fleets; docs/design.md, \"Topology\")",
     )  # fmt: skip
     r.add_argument(
-        "--start-agents", choices=["fork", "spawn"], default="fork" if sys.platform == "linux" else "spawn",
-        help="fork (default on Linux): fork every agent from one process that imported the agent's code "
-        "once, which saves each its imports; spawn: start each agent as its own interpreter "
-        "(docs/performance.md, \"Start-up\")",
+        "--start-agents", choices=STARTS, default=STARTS[0],
+        help="fork (Linux only, and its default): fork every agent from one process that imported the "
+        "agent's code once, which saves each its imports; spawn: start each agent as its own "
+        "interpreter (docs/performance.md, \"Start-up\")",
     )  # fmt: skip
     r.add_argument(
         "--ros2", action="store_true",

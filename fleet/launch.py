@@ -40,6 +40,9 @@ from supervisor.judge import verdict
 
 TOPOLOGIES = ("mesh", "star")
 """How ``fleet run`` links its processes: a mesh of Zenoh peers, or a star around the tracker."""
+STARTS = ("fork", "spawn") if sys.platform == "linux" else ("spawn",)
+"""How ``fleet run`` may start the agents, the default first: forked by :class:`ForkServer`
+(Linux only: ``SOCK_SEQPACKET`` Unix sockets, ``/proc``), or each spawned as an interpreter."""
 STAR_LEASE = 1.0
 """Default Zenoh lease in the star [s]: a hung agent is "not alive" within about a second.  The
 mesh keeps 10 s: there a 1 s lease's keep-alives cost CPU in proportion to the n(n − 1)/2 links,
@@ -425,7 +428,8 @@ def start_fleet(
     ROS 2 tools in the mesh (default a free loopback port); a ROS 2 session must link to the face
     itself, since peers do not forward each other's data.  In the star, ROS 2 tools connect to the
     hub, the router.  ``fork``: fork the agents from a fork server that imported their code once
-    (:mod:`fleet.forkserver`) rather than start each as a new interpreter; None: on Linux."""
+    (:mod:`fleet.forkserver`) rather than start each as a new interpreter; None: as
+    :data:`STARTS` says (on Linux)."""
     if ros_listen is not None and topology == "star":
         raise ValueError("ros_listen: in the star topology ROS 2 tools connect to the hub (the router)")
     if topology not in TOPOLOGIES:
@@ -463,7 +467,7 @@ def start_fleet(
         procs.append(
             start("tracker", "tracker", [*common, *hub_mode, "--listen", hub, *seed_args, *source, *script])
         )
-        if sys.platform == "linux" if fork is None else fork:
+        if STARTS[0] == "fork" if fork is None else fork:
             server = ForkServer(["agent.node"], env, stderr)  # imports while the tracker starts
         if _wait_ready(procs, 60.0):
             raise LaunchError("tracker did not start")
