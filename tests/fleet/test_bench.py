@@ -429,7 +429,11 @@ def test_targets_quick_prints_and_writes_every_target(tmp_path):
     sim, run = d["cpu_rows"]
     assert (sim["config"], run["config"]) == ("fleet simulate", "fleet run (defaults)")
     assert t[1]["measured"] == pytest.approx(run["ms_per_robot_step"] / sim["ms_per_robot_step"])
-    assert t[1]["met"] == (t[1]["measured"] <= 2.0) and t[1]["measured"] > 1.0  # processes cost more
+    assert t[1]["met"] == (t[1]["measured"] <= 2.0)
+    # Processes cost more: in total, for each run length.  (Not the marginal ratio: over --quick's
+    # 300 robot-steps fleet simulate's marginal CPU is about 0.1 s, within the spread of its
+    # start-up on a loaded machine, and has come out negative.)
+    assert all(r > s for r, s in zip(run["cpu_s"], sim["cpu_s"], strict=True)), (run["cpu_s"], sim["cpu_s"])
     r3 = d["realtime_runs"]["3"]
     assert (r3["exchange"], r3["topology"], r3["clock"]) == ("default", "default", "realtime")
     assert t[2]["measured"] == pytest.approx(r3["miss_rate"]) and r3["collisions"] == 0
