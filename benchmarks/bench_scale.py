@@ -72,6 +72,7 @@ for _p in (str(ROOT), str(HERE)):
     if _p not in sys.path:
         sys.path.insert(0, _p)
 
+import bench_cpu  # noqa: E402
 import bench_step as bs  # noqa: E402
 import proxsuite  # noqa: E402
 
@@ -794,19 +795,7 @@ class Sampler:
 
     def _children(self) -> list[int]:
         """The descendants of :attr:`parent`: the agents are its fork server's children."""
-        parent = {}
-        for d in Path("/proc").iterdir():
-            if d.name.isdigit():
-                st = _proc_stat(int(d.name))
-                if st is not None:
-                    parent[int(d.name)] = st[0]
-        out, todo = [], [self.parent]
-        while todo:
-            p = todo.pop()
-            kids = [c for c, pp in parent.items() if pp == p]
-            out += kids
-            todo += kids
-        return out
+        return [p for p in bench_cpu._descendants(self.parent) if p != self.parent]
 
     def _run(self) -> None:
         scan_every = 4  # full /proc scans until the fleet is up, then only now and then

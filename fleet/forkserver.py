@@ -133,12 +133,7 @@ def _serve(sock: socket.socket, preload: list[str]) -> int:
     while open_:
         for key, _ in sel.select():
             if key.fileobj == wake_r:
-                while True:
-                    try:
-                        if not os.read(wake_r, 512):
-                            break
-                    except BlockingIOError:
-                        break
+                _drain(wake_r)
                 _reap(sock, children)
                 continue
             try:
@@ -156,8 +151,16 @@ def _serve(sock: socket.socket, preload: list[str]) -> int:
             except OSError:
                 open_ = False
         _reap(sock, children)
-    _end(sock, children)
+    sel.unregister(sock)  # at its end: from here on only SIGCHLD wakes the selector
+    _end(sock, children, sel, wake_r)
     return 0
+
+
+def _drain(wake_r: int) -> None:
+    """Empty the signal wake-up pipe (non-blocking)."""
+    with contextlib.suppress(BlockingIOError):
+        while os.read(wake_r, 512):
+            pass
 
 
 def _fork(data: bytes, fds: list[int], preload: list[str], close: list[int]) -> dict[str, Any]:
@@ -183,17 +186,19 @@ def _fork(data: bytes, fds: list[int], preload: list[str], close: list[int]) -> 
     return {"pid": pid}
 
 
-def _end(sock: socket.socket, children: set[int]) -> None:
+def _end(sock: socket.socket, children: set[int], sel: selectors.BaseSelector, wake_r: int) -> None:
     """SIGTERM the children still running, SIGKILL them after :data:`GRACE`; reap and report
-    them all (the launcher closed its writing end only, and reads on)."""
+    them all (the launcher closed its writing end only, and reads on).  ``sel`` waits on the
+    signal wake-up pipe ``wake_r``: each SIGCHLD wakes it."""
     for pid in children:
         with contextlib.suppress(ProcessLookupError):
             os.kill(pid, signal.SIGTERM)
     deadline = time.monotonic() + GRACE
-    while children and time.monotonic() < deadline:
+    _reap(sock, children)
+    while children and (left := deadline - time.monotonic()) > 0:
+        sel.select(left)
+        _drain(wake_r)
         _reap(sock, children)
-        if children:
-            time.sleep(0.05)
     for pid in children:
         with contextlib.suppress(ProcessLookupError):
             os.kill(pid, signal.SIGKILL)

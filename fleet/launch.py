@@ -87,8 +87,9 @@ def _pump(stream: IO[str], q: queue.Queue[str]) -> None:
 
 
 def _start(
-    role: str, module: str, args: list[str], env: dict[str, str], stderr: int | IO[str] | None = None
-) -> Proc:
+    role: str, module: str, args: list[str], env: dict[str, str], stderr: int | IO[str] | None = None,
+    pass_fds: tuple[int, ...] = (),
+) -> Proc:  # fmt: skip
     popen = subprocess.Popen(
         [sys.executable, "-m", module, *args],
         stdout=subprocess.PIPE,
@@ -96,6 +97,7 @@ def _start(
         stderr=stderr,
         text=True,
         env=env,
+        pass_fds=pass_fds,
     )
     proc = Proc(role, popen)
     assert popen.stdout is not None
@@ -144,15 +146,9 @@ class ForkServer:
     def __init__(self, preload: list[str], env: dict[str, str], stderr: int | IO[str] | None):
         self._sock, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         with theirs:
-            preloads = [a for m in preload for a in ("--preload", m)]
-            cmd = ["fleet.forkserver", "--socket-fd", str(theirs.fileno()), *preloads]
-            self.popen = subprocess.Popen(
-                [sys.executable, "-m", *cmd], stdout=subprocess.PIPE, stdin=subprocess.DEVNULL,
-                stderr=stderr, text=True, env=env, pass_fds=[theirs.fileno()],
-            )  # fmt: skip
-        self.proc = Proc("forkserver", self.popen)
-        assert self.popen.stdout is not None
-        threading.Thread(target=_pump, args=(self.popen.stdout, self.proc.lines), daemon=True).start()
+            args = ["--socket-fd", str(theirs.fileno()), *[a for m in preload for a in ("--preload", m)]]
+            self.proc = _start("forkserver", "fleet.forkserver", args, env, stderr, (theirs.fileno(),))
+        self.popen = self.proc.popen
         self._replies: queue.Queue[dict[str, Any]] = queue.Queue()
         self._codes: dict[int, int] = {}
         self._gone = False
