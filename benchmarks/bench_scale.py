@@ -766,9 +766,16 @@ class Sampler:
     """Samples VmRSS and CPU time of the descendants of ``parent`` (the ``fleet run``
     process: tracker, supervisor, agents) every ``period`` seconds, in a thread."""
 
-    def __init__(self, parent: int, period: float = 0.25):
+    START_PERIOD = 0.02
+    """Sampling period [s] until ``expected`` processes are found: a forked agent is ready within
+    about 0.1 s of its fork, and a short lockstep run's whole window can be shorter than
+    :attr:`period`, so a process found one period late would show no CPU in it."""
+
+    def __init__(self, parent: int, period: float = 0.25, expected: int = 0):
         self.parent = parent
         self.period = period
+        self.expected = expected
+        """How many processes with a role the fleet has (agents, tracker, supervisor)."""
         self.roles: dict[int, str] = {}
         self.hwm: dict[int, float] = {}
         """pid → VmHWM, the peak resident memory [MB]."""
@@ -801,7 +808,8 @@ class Sampler:
         scan_every = 4  # full /proc scans until the fleet is up, then only now and then
         i = 0
         while not self._stop.is_set():
-            if i % scan_every == 0:
+            starting = len(self.roles) < self.expected
+            if starting or i % scan_every == 0:
                 for pid in self._children():
                     if pid not in self.roles:
                         role = _role(pid)
@@ -825,7 +833,7 @@ class Sampler:
                 if i % (2 * scan_every) == 1 and (pss := _pss_mb(pid)) is not None:
                     self.pss.setdefault(pid, []).append((now, pss))
                 self.cpu.setdefault(pid, []).append((now, st[1]))
-            self._stop.wait(self.period)
+            self._stop.wait(self.START_PERIOD if starting else self.period)
 
     def rss_in(self, pid: int, t0: float, t1: float, pss: bool = False) -> float:
         """Median VmRSS of ``pid`` [MB] over the samples between ``t0`` and ``t1`` (all samples if
@@ -976,7 +984,7 @@ def fleet_run(
     observer = None
     timeout = 300.0 + sim_s * (30.0 if clock == "lockstep" else 1.5)
     try:
-        with Sampler(proc.pid) as sampler:
+        with Sampler(proc.pid, expected=robots + 2) as sampler:
             if _wait_port(port, 60.0, proc):
                 with contextlib.suppress(Exception):  # no observer: no latency figures, the run goes on
                     observer = Observer(loopback(port), mode="client" if topology == "star" else "peer")
