@@ -464,3 +464,37 @@ def test_bench_harnesses_are_one_a_run(tmp_path):
     assert res.returncode == 2 and res.stderr.strip().splitlines() == [
         "fleet: error: --targets: not with --cpu (one harness a run)"
     ], res.stderr
+
+
+def test_latency_floor_times_every_command_of_its_window():
+    """``benchmarks/bench_latency_floor.py``: stand-in agents answer each pose with a command,
+    the command first (then the real controller's step, spread over the period) or the bare path
+    (no controller); the driver times every command of its window from its pose.  Each robot
+    answers each pose of the window once, and each row's latencies are ordered and positive."""
+    res = subprocess.run(
+        [sys.executable, "benchmarks/bench_latency_floor.py",
+         "--scenario", "scenarios/paper_three_robots.toml", "--seconds", "1",
+         "--runs", "1", "--orders", "command-spread,echo"],
+        cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr[-2000:]
+    rows = {line.split()[0]: line.split()[1:] for line in res.stdout.splitlines()[2:]}
+    assert set(rows) == {"command-spread", "echo"}, res.stdout
+    for order, (commands, missing, *ms) in rows.items():
+        assert int(commands) == 3 * 10 and int(missing) == 0, f"{order}: {res.stdout}"  # 1 s at Ts = 0.1 s
+        p50, p99, top = map(float, ms)
+        assert 0 < p50 <= p99 <= top < 1000, f"{order}: {res.stdout}"
+
+
+@pytest.mark.parametrize(
+    ("args", "field"), [(["--orders", "echo,nope"], "--orders"), (["--seconds", "0"], "--seconds"),
+                        (["--runs", "0"], "--runs")],
+)  # fmt: skip
+def test_latency_floor_refuses_bad_input_in_one_line(args: list[str], field: str) -> None:
+    res = subprocess.run(
+        [sys.executable, "benchmarks/bench_latency_floor.py", *args],
+        cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert res.returncode == 2 and res.stdout == ""
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and field in lines[0], res.stderr
