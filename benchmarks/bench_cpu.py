@@ -8,6 +8,8 @@ robot-steps between them, is the marginal CPU per robot-step: start-up and shut-
 * ``fleet simulate`` (the whole fleet in one process) is the math: controllers, plants, judge.
 * ``fleet run`` with its defaults, and with ``--exchange relay --topology star``: one process
   per robot, a tracker and a supervisor, talking over Zenoh on loopback.
+* ``fleet run`` with its defaults and Zenoh's runtime sized down to one worker thread
+  (:data:`ZENOH_RUNTIME`), beside the defaults: what Zenoh's own threads cost.
 * ``fleet run --ros2``: the defaults plus the fleet's ROS 2 face (``python -m ros2_link``), a
   process of its own that observes the fleet and republishes it as ROS 2 messages.  Its CPU
   is its role's ("ros2") in the split, set against the whole fleet's and the agents'; and the
@@ -15,7 +17,8 @@ robot-steps between them, is the marginal CPU per robot-step: start-up and shut-
   face costs the control loop anything.  Without rosbags (the ``ros2`` extra) the row is
   skipped.
 
-Each run's total CPU is exact (``getrusage`` of the waited-for process tree).  The split by
+Each run's total CPU, its system CPU and its context switches are exact (``getrusage`` of the
+waited-for process tree).  The split by
 process role (agents, tracker, supervisor, ros2, launcher) and by thread (a process's main
 thread, the Python threads Zenoh runs subscriber callbacks on, Zenoh's own runtime threads, the
 Rerun recorder's threads) comes from ``/proc/PID/task/TID/stat`` sampled every ``POLL``
@@ -43,14 +46,26 @@ from typing import Any
 ROOT = Path(__file__).resolve().parent.parent
 SCENES = {3: "paper_three_robots", 8: "swap_8", 16: "swap_16", 32: "swap_32"}
 SCHEMA = "fleet-bench-cpu/1"
+ZENOH_SIZED_ROW = "fleet run (defaults), one Zenoh worker"
+ZENOH_RUNTIME = (
+    "(app: (worker_threads: 1), acc: (handover: app), tx: (handover: app), rx: (handover: app), "
+    "net: (handover: app))"
+)
+"""Zenoh's runtime sized down (the ``ZENOH_RUNTIME`` environment variable, RON): one pool of
+one worker thread, to which the receive, transmit, accept and network pools hand over their
+work.  Measured beside the defaults only: a Zenoh router (the star topology's hub) stalled with
+it (docs/performance.md), so ``fleet run`` leaves Zenoh's own sizes alone."""
 POLL = 0.05
 """Seconds between two samples of the fleet's threads."""
 CONFIGS: dict[str, list[str]] = {
     "fleet run (defaults)": [],
+    ZENOH_SIZED_ROW: [],
     "fleet run --ros2": ["--ros2"],
     "fleet run --exchange relay --topology star": ["--exchange", "relay", "--topology", "star"],
 }
 """``fleet run``'s flags by row label; ``--ros2`` next to the defaults it is compared with."""
+ENVS: dict[str, dict[str, str]] = {ZENOH_SIZED_ROW: {"ZENOH_RUNTIME": ZENOH_RUNTIME}}
+"""Environment set for a row's runs, by row label."""
 ROS2 = ("fleet run --ros2", "fleet run (defaults)")
 """The row with the ROS 2 face and the row without it (the same flags otherwise)."""
 ROLES = {"agent": "agents", "tracker": "tracker", "supervisor": "supervisor", "ros2_link": "ros2"}
@@ -116,13 +131,16 @@ def _thread_kind(pid: int, tid: int, name: str) -> str:
     return "other (rerun, allocator)"
 
 
-def _measure(cmd: list[str], out: Path) -> tuple[float, dict[str, float], dict[str, float], float]:
-    """Run ``cmd`` to its end: (exact CPU s of its whole tree, sampled CPU s by role, by thread
-    kind, wall s).  Exit code 1 with a summary in ``out`` is the expected end of a run capped
-    before every robot arrived ("goal not reached")."""
+def _measure(
+    cmd: list[str], out: Path, extra_env: dict[str, str] | None = None
+) -> tuple[float, dict[str, float], dict[str, float], float, dict[str, float]]:
+    """Run ``cmd`` to its end, with ``extra_env`` added to this process's environment: (exact
+    CPU s of its whole tree, sampled CPU s by role, by thread kind, wall s, and the tree's exact
+    system CPU s and context switches, ``{"sys_s", "csw"}``).  Exit code 1 with a summary in
+    ``out`` is the expected end of a run capped before every robot arrived ("goal not reached")."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.monotonic()
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "RERUN_ANALYTICS": "0"}
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "RERUN_ANALYTICS": "0", **(extra_env or {})}
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     last: dict[tuple[int, int], tuple[str, str, float]] = {}
     roles_of: dict[int, str] = {}
@@ -143,12 +161,16 @@ def _measure(cmd: list[str], out: Path) -> tuple[float, dict[str, float], dict[s
         raise RuntimeError(f"{' '.join(cmd[2:5])} exited {proc.returncode}: {err.strip()[-400:]}")
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     total = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    counters = {
+        "sys_s": after.ru_stime - before.ru_stime,
+        "csw": float(after.ru_nvcsw - before.ru_nvcsw + after.ru_nivcsw - before.ru_nivcsw),
+    }
     roles: dict[str, float] = {}
     kinds: dict[str, float] = {}
     for role, kind, cpu in last.values():
         roles[role] = roles.get(role, 0.0) + cpu
         kinds[kind] = kinds.get(kind, 0.0) + cpu
-    return total, roles, kinds, wall
+    return total, roles, kinds, wall, counters
 
 
 def _scene(n: int, seconds: float, tmp: Path) -> Path:
@@ -204,13 +226,18 @@ def marginal_rows(
                 d = tmp / f"{len(rows)}_{s:g}"
                 cmd = [sys.executable, "-m", "fleet.cli", extra[0], str(scn), "--out", str(d),
                        "--seed", str(seed), *extra[1:]]  # fmt: skip
-                got[s] = (*_measure(cmd, d), _steps(d))
-            (c0, r0, k0, w0, s0), (c1, r1, k1, w1, s1) = got[lengths[0]], got[lengths[1]]
+                got[s] = (*_measure(cmd, d, ENVS.get(label)), _steps(d))
+            (c0, r0, k0, w0, x0, s0), (c1, r1, k1, w1, x1, s1) = got[lengths[0]], got[lengths[1]]
             try:
                 m = marginal((c0, r0, k0), (c1, r1, k1), (s1 - s0) * n)
             except ValueError:
                 raise RuntimeError(f"{label}: the longer run took no more steps ({s0}, {s1})") from None
-            rows.append({"config": label, "steps": [s0, s1], "cpu_s": [c0, c1], "wall_s": [w0, w1], **m})
+            units = (s1 - s0) * n
+            rows.append({
+                "config": label, "steps": [s0, s1], "cpu_s": [c0, c1], "wall_s": [w0, w1], **m,
+                "sys_ms_per_robot_step": 1e3 * (x1["sys_s"] - x0["sys_s"]) / units,
+                "csw_per_robot_step": (x1["csw"] - x0["csw"]) / units,
+            })  # fmt: skip
             print(f"  {label}: {m['ms_per_robot_step']:.2f} ms per robot-step", flush=True)
     return rows
 
@@ -259,10 +286,13 @@ def run(args: argparse.Namespace) -> int:
         print(f"  {ROS2[0]}: skipped (needs rosbags: pip install 'epuck-fleet[ros2]')", flush=True)
     rows = marginal_rows(n, (short, long), args.seed, runs)
     base = rows[0]["ms_per_robot_step"]
-    lines = [f"{'how it ran':<46} {'ms/robot-step':>13} {'× simulate':>10}"]
+    lines = [f"{'how it ran':<46} {'ms/robot-step':>13} {'× simulate':>10} {'sys ms':>7} {'switches':>8}"]
     for r in rows:
         ms = r["ms_per_robot_step"]
-        lines.append(f"{r['config']:<46} {ms:>13.2f} {ms / base:>10.1f}")
+        lines.append(
+            f"{r['config']:<46} {ms:>13.2f} {ms / base:>10.1f} {r['sys_ms_per_robot_step']:>7.2f}"
+            f" {r['csw_per_robot_step']:>8.1f}"
+        )
     for r in rows[1:]:
         lines.append(f"\n{r['config']}, marginal CPU per robot-step [ms] by process and by thread:")
         lines += [f"  {k:<28} {v:6.2f}" for k, v in sorted(r["by_role_ms"].items(), key=lambda kv: -kv[1])]
