@@ -110,9 +110,7 @@ def _agent(scenario: str, rank: int, hub: str, order: str, ready: Any, stop: Any
         inbox.subscribe(session, keys.plan(), Plan, keep=True, remote=True),
     ]
     pub_plan = publisher(session, keys.plan(me))
-    gc.collect()
-    gc.freeze()  # as a fleet process does once ready (ground.process.announce)
-    ready.put(me)
+    _ready(ready, me)
     x = design.E @ start  # at rest at the start: the stand-in's own nominal model
     x_next, v_next = x.copy(), np.zeros((ctrl.N, 2))
     K = design.K
@@ -132,16 +130,8 @@ def _agent(scenario: str, rank: int, hub: str, order: str, ready: Any, stop: Any
             continue
         if order != "solve-first":
             a = v_next[0] + K @ (x - x_next)
-            cmd = Command(
-                robot=me,
-                step=k,
-                ax=float(a[0]),
-                ay=float(a[1]),
-                fallback=True,
-                x_next=x_next,
-                v_next=v_next,
-                K=K,
-            )
+            cmd = Command(robot=me, step=k, ax=float(a[0]), ay=float(a[1]), fallback=True,
+                          x_next=x_next, v_next=v_next, K=K)  # fmt: skip
             pub_cmd.put(cmd.encode())
         if order == "command-spread":  # leave the tick to the commands: each solve at its own offset
             offset = SPREAD[0] + (SPREAD[1] - SPREAD[0]) * (rank + 0.5) / (len(others) + 1)
@@ -161,6 +151,14 @@ def _agent(scenario: str, rank: int, hub: str, order: str, ready: Any, stop: Any
     for sub in subs:
         sub.undeclare()
     session.close()
+
+
+def _ready(ready: Any, who: str) -> None:
+    """Freeze the start-up heap, as a fleet process does once ready
+    (:func:`ground.process.announce`), and say so on ``ready``."""
+    gc.collect()
+    gc.freeze()
+    ready.put(who)
 
 
 def _measured(inbox: Any, me: str) -> int:
@@ -204,9 +202,7 @@ def _echo(session: Any, keys: Any, me: str, pub_cmd: Any, in_callback: bool, rea
         sub = session.declare_subscriber(keys.pose(me), answer)
     else:
         sub = session.declare_subscriber(keys.pose(me), zenoh.handlers.FifoChannel(64))
-    gc.collect()
-    gc.freeze()
-    ready.put(me)
+    _ready(ready, me)
     if in_callback:
         stop.wait(900)  # bounded: the driver sets it
     while not in_callback and not stop.is_set():  # the driver sends a last pose after setting stop
@@ -221,44 +217,26 @@ def _echo(session: Any, keys: Any, me: str, pub_cmd: Any, in_callback: bool, rea
 
 def _observer(hub: str, ready: Any, stop: Any, results: Any) -> None:
     """The supervisor's reception, standing in: take and decode every pose, plan and command.
-    It also times each command from its pose's arrival here, as ``fleet bench --targets`` times
-    target 3 (``benchmarks/bench_scale.py``, the probe), and puts {(robot, step): ms} on
-    ``results`` once the driver stops."""
-    import zenoh
+    Poses and commands are timed on arrival by target 3's own probe
+    (``benchmarks/bench_scale.py`` ``Observer``); {(robot, step): ms} goes on ``results`` once
+    the driver stops."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bench_scale import Observer
 
-    from ground.net import NetConfig, loopback
-    from ground.wire import Command, Plan, Pose, WireError, decode
+    from ground.wire import Plan, WireError, decode
 
-    session = zenoh.open(NetConfig(listen=[loopback(0)], connect=[hub]).zenoh())
-    lock = threading.Lock()
-    at: dict[str, dict[tuple[str, int], float]] = {"pose": {}, "cmd": {}}
+    probe = Observer(hub, fleet="floor")
 
-    def taker(kind: str, typ: Any) -> Any:
-        def take(sample: Any) -> None:
-            now = time.monotonic()
-            try:
-                msg = decode(sample.payload.to_bytes(), typ, robot=str(sample.key_expr).rsplit("/", 1)[-1])
-            except WireError:
-                return
-            if kind in at:
-                with lock:
-                    at[kind].setdefault((msg.robot, msg.seq if kind == "pose" else msg.step), now)
+    def take_plan(sample: Any) -> None:
+        with contextlib.suppress(WireError):
+            decode(sample.payload.to_bytes(), Plan, robot=str(sample.key_expr).rsplit("/", 1)[-1])
 
-        return take
-
-    subs = [
-        session.declare_subscriber(f"fleet/floor/{kind}/*", taker(kind, typ))
-        for kind, typ in (("pose", Pose), ("plan", Plan), ("cmd", Command))
-    ]
-    gc.collect()
-    gc.freeze()
-    ready.put("observer")
+    plans = probe.session.declare_subscriber(probe.keys.plan(), take_plan)
+    _ready(ready, "observer")
     stop.wait(900)  # bounded: the driver sets it
-    for sub in subs:
-        sub.undeclare()
-    session.close()
-    with lock:
-        results.put({key: 1e3 * (t - at["pose"][key]) for key, t in at["cmd"].items() if key in at["pose"]})
+    plans.undeclare()
+    probe.close()
+    results.put({key: 1e3 * (t - probe.pose[key]) for key, t in probe.cmd.items() if key in probe.pose})
 
 
 def measure(scenario: str, order: str, seconds: float) -> dict[str, Any]:
