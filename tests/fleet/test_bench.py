@@ -300,7 +300,7 @@ def test_cpu_harness_splits_a_fleets_cpu_by_process_and_thread(tmp_path):
     assert d["schema"] == "fleet-bench-cpu/1" and d["robots"] == 3
     sim, *fleets = d["rows"]
     ros2 = importlib.util.find_spec("rosbags") is not None  # the ros2 extra, in the test extras
-    labels = ["fleet run (defaults)", "fleet run (defaults), one Zenoh worker",
+    labels = ["fleet run (defaults)", "fleet run (defaults), Zenoh sized down",
               *(["fleet run --ros2"] if ros2 else []),
               "fleet run --exchange relay --topology star"]  # fmt: skip
     assert sim["config"] == "fleet simulate" and [r["config"] for r in fleets] == labels
@@ -507,3 +507,26 @@ def test_latency_floor_refuses_bad_input_in_one_line(args: list[str], field: str
     assert res.returncode == 2 and res.stdout == ""
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and field in lines[0], res.stderr
+
+
+def test_the_sized_zenoh_runtime_keeps_a_router_forwarding(tmp_path):
+    """``fleet bench --cpu``'s sized Zenoh runtime (:data:`bench_cpu.ZENOH_RUNTIME`, the transmit
+    pool apart) set for every process of a star, whose hub forwards every sample between the
+    others: the run completes, every goal reached.  With the transmit pool handed over too, the
+    hub deadlocked within 20 steps of this scene, every time it was tried (docs/performance.md)."""
+    spec = importlib.util.spec_from_file_location("bench_cpu", ROOT / "benchmarks" / "bench_cpu.py")
+    assert spec is not None and spec.loader is not None
+    bench_cpu = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench_cpu)
+    assert "tx:" not in bench_cpu.ZENOH_RUNTIME  # the transmit pool keeps its own worker
+    out = tmp_path / "star"
+    res = subprocess.run(
+        [sys.executable, "-m", "fleet.cli", "run", str(ROOT / "scenarios" / "paper_three_robots.toml"),
+         "--out", str(out), "--exchange", "relay", "--topology", "star"],
+        cwd=ROOT, env={**ENV, "ZENOH_RUNTIME": bench_cpu.ZENOH_RUNTIME}, capture_output=True, text=True,
+        timeout=300,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr[-2000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["completed"] and summary["all_goals_reached"] and summary["collisions"] == 0, summary
+    assert summary["network"]["topology"] == "star"
