@@ -24,7 +24,7 @@ how much (:class:`InadmissibleDesign`).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.linalg
@@ -143,6 +143,22 @@ class TubeDesign:
         """True if the error z = x − x̂ (4,) lies in Z."""
         return bool(np.all(np.abs(self.Z_F @ z) <= self.Z_f + tol))
 
+    @property
+    def W_box(self) -> Array:
+        """W's half-widths (4,) [m, m/s, m, m/s] in the state order (px, vx, py, vy), zero
+        ones padded as Z was synthesised with them."""
+        return w_box(self.params)
+
+    def ahead(self) -> TubeDesign:
+        """The design for plans made a step ahead (delay compensation, docs/method.md §5):
+        Z's facets shrunk by W's support function, Z_f − h_W(Z_Fᵀ), which is Z ⊖ W exactly,
+        for constraint (a′) x^p − x̂ ∈ Z ⊖ W.  Everything else is this design's.  Raises
+        :class:`InadmissibleDesign` if a facet closes (Z is then not invariant)."""
+        f = self.Z_f - np.abs(self.Z_F) @ self.W_box
+        if np.any(f <= 0):
+            raise InadmissibleDesign([f"Z ⊖ W is empty: facet offset {float(f.min()):.3g} ≤ 0"])
+        return replace(self, Z_f=f)
+
     def summary(self) -> dict[str, object]:
         """Machine-readable view (used by ``fleet design --json``)."""
         zp = self.Z.Z.interval_hull()
@@ -196,11 +212,7 @@ def synthesize(
     AK = A + B @ K
     AR = A - B @ K_r
 
-    # W: box per axis; zero half-widths are padded so W is full-dimensional
-    # (an outer approximation, hence still sound).
-    w = np.array([p.W[0], p.W[1], p.W[0], p.W[1]], dtype=float)
-    w = np.maximum(w, 1e-6 * max(float(w.max()), 1e-12))
-    Zr = mrpi_outer(AK, Zonotope.box(w), p.mrpi_tol, p.mrpi_max_terms)
+    Zr = mrpi_outer(AK, Zonotope.box(w_box(p)), p.mrpi_tol, p.mrpi_max_terms)
     blocks = [[0, 1], [2, 3]]
     Z_F, Z_f = _block_halfspaces(Zr.Z, blocks)
 
@@ -311,6 +323,14 @@ def synthesize(
         noise_margin=noise_margin,
         failures=failures,
     )
+
+
+def w_box(p: ControllerParams) -> Array:
+    """W as a box: half-widths (4,) [m, m/s, m, m/s] per state (px, vx, py, vy).  Zero
+    half-widths are padded so W is full-dimensional (an outer approximation, hence still
+    sound)."""
+    w = np.array([p.W[0], p.W[1], p.W[0], p.W[1]], dtype=float)
+    return np.maximum(w, 1e-6 * max(float(w.max()), 1e-12))
 
 
 def require_admissible(design: TubeDesign) -> TubeDesign:

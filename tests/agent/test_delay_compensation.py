@@ -1,11 +1,12 @@
-"""Delay compensation (docs/method.md §5, "A variant the code does not run"), checked in closed loop.
+"""Delay compensation (docs/method.md §5, "A variant in the simulator"), checked in closed loop.
 
 In the variant the QP of step t is solved during step t − 1, from the prediction
 x^p_t = A x_{t−1} + B a_{t−1}, with constraint (a) tightened to x^p_t − x̂_t ∈ Z ⊖ W, and the
-command a_t = v̂_t + K(x_t − x̂_t) is applied as soon as x_t is measured.  The runtime does not
-run it yet.  These tests check the proof's claims with the real controller and QP
-(:class:`agent.controller.TubeMPC` given the tightened facets), one robot among the scene's
-obstacles:
+command a_t = v̂_t + K(x_t − x̂_t) is applied as soon as x_t is measured.  The process runtime
+does not run it yet (``fleet simulate --delay-compensation`` does, for whole fleets:
+tests/fleet/test_simulate.py).  These tests check the proof's claims with the real controller and QP
+(:class:`agent.controller.TubeMPC` given the tightened facets, :meth:`TubeDesign.ahead`), one
+robot among the scene's obstacles:
 
 * the disturbance is chosen after each solve, as the vertex of W that pushes the error
   furthest out of Z: the worst the plant can do;
@@ -23,7 +24,6 @@ leaves Z, so the first test can fail.
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import zlib
 from pathlib import Path
@@ -43,22 +43,10 @@ STEPS = 400
 reaches its goal in about 350 (40 s)."""
 
 
-def _w(design: TubeDesign) -> np.ndarray:
-    """W's half-widths (4,) [m, m/s, m, m/s] in the state order (px, vx, py, vy)."""
-    w = design.params.W
-    return np.array([w[0], w[1], w[0], w[1]], dtype=float)
-
-
-def tightened(design: TubeDesign) -> TubeDesign:
-    """The design with Z's facets shrunk by W's support function, Z_f − h_W(Z_Fᵀ): Z ⊖ W
-    exactly, for constraint (a′)."""
-    return dataclasses.replace(design, Z_f=design.Z_f - np.abs(design.Z_F) @ _w(design))
-
-
 def worst(design: TubeDesign, e: np.ndarray) -> np.ndarray:
     """The vertex w of W that takes the error e + w (4,) furthest out of Z (relative to each
     facet's offset): the adversary, which sees the plan before it moves the plant."""
-    verts = np.array(list(itertools.product((-1.0, 1.0), repeat=4))) * _w(design)
+    verts = np.array(list(itertools.product((-1.0, 1.0), repeat=4))) * design.W_box
     excess = (np.abs((e + verts) @ design.Z_F.T) - design.Z_f) / design.Z_f
     return np.asarray(verts[int(np.argmax(excess.max(axis=1)))])
 
@@ -69,7 +57,7 @@ def _scene(name: str = "paper_three_robots") -> tuple[TubeDesign, TubeMPC, np.nd
     r = scn.robots[0]
     goal = np.array(r.goal, float)
     start = controlled_point(r.start, design.params.lookahead)
-    ctrl = TubeMPC(tightened(design), start, goal, scn.arena, obstacles=scn.obstacles)
+    ctrl = TubeMPC(design.ahead(), start, goal, scn.arena, obstacles=scn.obstacles)
     return design, ctrl, goal
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 import pytest
@@ -187,3 +188,28 @@ def test_a_design_without_a_look_ahead_point_is_refused():
     assert not d.admissible
     assert any("lookahead 0" in f and "not bounded by W" in f for f in d.failures), d.failures
     assert synthesize(preset("epuck"), ARENA).admissible
+
+
+@pytest.mark.parametrize("name", ["epuck", "paper"])
+def test_ahead_design_is_Z_minus_W_and_holds_A_K_Z(name):
+    """Constraint (a′) of plans made a step ahead (docs/method.md §5): the shrunk facets hold
+    A_K Z (so the shifted candidate meets them), and every point they admit stays in Z whatever
+    W adds; only Z_f changes."""
+    d = synthesize(preset(name), ARENA)
+    a = d.ahead()
+    assert np.array_equal(a.Z_F, d.Z_F) and np.array_equal(a.K, d.K) and a.footprint == d.footprint
+    assert np.all(a.Z_f < d.Z_f)
+    AK = d.A + d.B @ d.K
+    # To well within the solver's tolerance: W's zero half-widths are padded by 1e-6 of the largest.
+    assert np.all(d.Z.Z.linear_map(AK).support(d.Z_F) <= a.Z_f + 1e-7)
+    rng = np.random.default_rng(3)
+    verts = np.array(list(itertools.product((-1.0, 1.0), repeat=4))) * d.W_box
+    # Points of the shrunk set: Z's points (from its generators) scaled until they are admitted.
+    Z = d.Z.Z
+    pts = Z.c + rng.uniform(-1.0, 1.0, (400, Z.G.shape[1])) @ Z.G.T
+    scale = np.max(np.abs(pts @ a.Z_F.T) / a.Z_f, axis=1, keepdims=True)
+    inside = pts / np.maximum(scale, 1.0)
+    assert all(a.contains_error(z) for z in inside)
+    assert all(d.contains_error(z + w, tol=1e-12) for z in inside for w in verts)
+    # Exactly Z ⊖ W, not a tighter set: each facet moves in by W's support in its direction.
+    assert np.allclose(d.Z_f - a.Z_f, Zonotope.box(d.W_box).support(d.Z_F), rtol=0, atol=1e-15)
