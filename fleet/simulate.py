@@ -14,6 +14,12 @@ Each step, synchronously:
 4. the safety judge (:class:`supervisor.judge.Judge`) takes the true poses and the plans, as
    the supervisor does in a process run.
 
+With ``ahead`` (``fleet simulate --delay-compensation``; docs/method.md §5) step 2 changes: every
+robot applies at once the plan its agent made during the step before, ``u = v̂ + K(x − x̂)``,
+and the agent then makes its next plan from the prediction ``A x + B u``, with the tube
+constraint tightened to Z ⊖ W (:meth:`agent.tube.TubeDesign.ahead`).  The process runtime
+does not run this variant yet.
+
 The plants, the disturbances and the camera noise are the simulated tracker's
 (:mod:`tracker.world`), drawn in the same order from the same seeds, so a lockstep
 ``fleet run`` of the same scenario and seed reproduces this run bit for bit.
@@ -87,6 +93,8 @@ class RunResult:
     """Wall time of the run [s]."""
     times: list[float]
     """Time of each sample [s]."""
+    ahead: bool = False
+    """The plans were made a step ahead (delay compensation; :class:`Simulation`)."""
 
     @property
     def min_distance(self) -> float:
@@ -128,7 +136,10 @@ class RunResult:
         """``summary.json`` of the run (:meth:`supervisor.judge.Judge.summary`)."""
         for rid, ctrl in self.controllers.items():
             self.judge.repairs[rid] = ctrl.counters.repairs
-        return self.judge.summary(completed=True, wall_time=self.wall_time)
+        summary = self.judge.summary(completed=True, wall_time=self.wall_time)
+        if self.ahead:  # only then: a lockstep fleet run's summary equals the default one's
+            summary["delay_compensation"] = True
+        return summary
 
 
 def _unapplied(
@@ -172,6 +183,7 @@ class Simulation:
         extra_disturbance: Callable[[str, int], Array | None] | None = None,
         late: Callable[[str, int], bool] | None = None,
         late_policy: str = "candidate",
+        ahead: bool = False,
     ):
         if late_policy not in LATE_POLICIES:
             raise ValueError(f"late_policy: {late_policy!r} is not one of {', '.join(LATE_POLICIES)}")
@@ -187,6 +199,12 @@ class Simulation:
         self.Ts = p.Ts
         """Sampling period [s]."""
         self.extra_disturbance, self.late, self.late_policy = extra_disturbance, late, late_policy
+        self.ahead = ahead
+        """Plans made a step ahead (delay compensation, docs/method.md §5): each step applies the
+        plan made during the step before, from the prediction, and then makes the next one."""
+        if ahead and late_policy != "candidate":
+            raise ValueError("late_policy: plans made a step ahead are followed on the candidate only")
+        plan_design = design.ahead() if ahead else design
         self.dist = Disturbance(sim.disturbance, p.W, sim.disturbance_fraction, rng, p.point_noise)
         self.noise = PoseNoise(p.pose_noise, seed)
         self.W4 = np.array([p.W[0], p.W[1], p.W[0], p.W[1]])
@@ -213,7 +231,7 @@ class Simulation:
             if solver_fault is not None:
                 fault = (lambda rid: lambda k: solver_fault(rid, k))(rb.id)
             self.ctrls[rb.id] = TubeMPC(
-                design,
+                plan_design,
                 start_pt,
                 np.array(rb.goal, dtype=float),
                 scenario.arena,
@@ -236,6 +254,14 @@ class Simulation:
         """The next step; also the number of steps done."""
         self.home_run = 0
         """Consecutive steps after which every robot was home (:func:`ground.scenario.home`)."""
+        self.in_force: dict[str, tuple[StepOutput, Plan]] = {}
+        """Ahead: each robot's plan for step :attr:`k`, made during the step before (the plan of
+        step 0 from the first measurement itself, as without delay compensation)."""
+        if ahead:
+            infos = self._infos()
+            for rid in self.ids:
+                out = self.ctrls[rid].step(self.meas[rid], [infos[j] for j in self.ids if j != rid])
+                self.in_force[rid] = (out, plan_message(rid, 0, self.ctrls[rid], out))
 
     def set_goal(self, robot: str, goal: Array) -> None:
         """Give ``robot`` the goal (2,) [m], world frame, from the next step on (unchecked: the
@@ -246,19 +272,14 @@ class Simulation:
         """Step k (:attr:`k`): judge sample k, plan, publish, move to sample k + 1."""
         k, ids, judge, design = self.k, self.ids, self.judge, self.design
         ctrls, traces = self.ctrls, self.traces
-        Ts = self.Ts
         # The sample the agents measure now, as the supervisor judges it: the true poses
         # with the camera's.
         judge.truth({rid: traces[rid].pose[-1] for rid in ids}, self.cams)
-        infos = {}
-        for rid in ids:
-            inf = ctrls[rid].info()
-            inf.id = rid
-            infos[rid] = inf
-        for rid, goal in self.pending.items():  # after the neighbours' view of step k − 1
-            if not np.array_equal(goal, ctrls[rid].goal):
-                ctrls[rid].set_goal(goal)
-        self.pending = {}
+        if self.ahead:
+            self._step_ahead()
+            return
+        infos = self._infos()
+        self._take_goals()
         outs = {}
         for rid in ids:
             x = self.meas[rid]
@@ -271,7 +292,6 @@ class Simulation:
         for rid in ids:
             x, out = outs[rid]
             plans[rid] = plan_message(rid, k, ctrls[rid], out)
-            plant = self.plants[rid]
             a, x_hat = out.a, out.x_hat
             if self.late is not None and self.late(rid, k):
                 a, x_hat, what = _unapplied(
@@ -283,36 +303,108 @@ class Simulation:
             else:
                 self.applied[rid] = (k, out)
             self.last_a[rid] = a
-            plant.step(a, Ts)
-            w = self.dist.sample(x - x_hat)
-            if self.extra_disturbance is not None:
-                extra = self.extra_disturbance(rid, k)
-                if extra is not None:
-                    w = w + extra
-            plant.perturb(w)
-            xn = plant.state()
-            self.meas[rid], self.cams[rid] = measure(plant, self.noise, design.params.lookahead)
-            w_real = self.meas[rid] - (design.A @ x + design.B @ a)
-            tr = traces[rid]
-            tr.w_ratio.append(float(np.max(np.abs(w_real) / self.W4)))
-            tr.pose.append(plant.pose.copy())
-            pt = xn[[0, 2]]
-            tr.point.append(pt)
-            tr.committed_last.append(ctrls[rid].y_ref[-1].copy())
-            tr.goal_error.append(float(np.linalg.norm(pt - ctrls[rid].goal)))
-            tr.modes.append(out.mode)
-            tr.ref_deviation.append(float(np.linalg.norm(pt - ctrls[rid].y_ref[0])))
-            tr.candidate_violation.append(out.candidate_violation)
-            tr.tube_ok.append(
-                out.tube_ok if x_hat is out.x_hat else design.contains_error(x - x_hat, TUBE_TOL)
-            )
-            tr.fallback.append(out.fallback)
-            judge.simulated(rid, out.step_time * 1e3, tr.w_ratio[-1], out.candidate_violation)
+            self._move(rid, x, a, x_hat)
+            tube_ok = out.tube_ok if x_hat is out.x_hat else design.contains_error(x - x_hat, TUBE_TOL)
+            self._record(rid, x, a, out, ctrls[rid].y_ref[0], ctrls[rid].y_ref[-1], tube_ok)
         judge.plans(plans, unexecuted)
-        self.times.append((k + 1) * Ts)
+        self._end_step()
+
+    def _step_ahead(self) -> None:
+        """Step k with plans made a step ahead (:attr:`ahead`; docs/method.md §5).
+
+        A robot whose plan of step k missed its deadline (``late``) follows the shifted
+        candidate of the last plan it applied, and its agent, told so by the tick, drops that
+        plan before anyone makes the plans of step k + 1.  Every other robot applies its plan
+        of step k to its measurement, u = v̂ + K(x − x̂), at once.  Then each agent makes its
+        plan of step k + 1 from the prediction x^p = A x + B u, against the plans of step k in
+        force."""
+        k, ids, design, ctrls = self.k, self.ids, self.design, self.ctrls
+        applied: dict[str, tuple[Array, Array]] = {}
+        unexecuted: list[str] = []
+        plans = {rid: self.in_force[rid][1] for rid in ids}
+        for rid in ids:
+            x = self.meas[rid]
+            if self.late is not None and self.late(rid, k):
+                a, x_hat, what = _unapplied(
+                    ctrls[rid], design, self.applied[rid], k, x, self.last_a[rid], "candidate"
+                )
+                unexecuted.append(rid)
+                self.judge.off_plan(rid, what)
+            else:
+                x_hat = ctrls[rid].xi[0:4].copy()
+                a = ctrls[rid].xi[4:6] + design.K @ (x - x_hat)
+                self.applied[rid] = (k, self.in_force[rid][0])
+            applied[rid] = (a, x_hat)
+        infos = self._infos()  # the plans of step k in force, the dropped ones replaced
+        self._take_goals()
+        for rid in ids:
+            ctrl, x = ctrls[rid], self.meas[rid]
+            (a, x_hat), ref_next, end = applied[rid], ctrl.y_ref[0].copy(), ctrl.y_ref[-1].copy()
+            self.outputs[rid] = self.in_force[rid][0]
+            self.last_a[rid] = a
+            out = ctrl.step(design.A @ x + design.B @ a, [infos[j] for j in ids if j != rid])
+            self.in_force[rid] = (out, plan_message(rid, k + 1, ctrl, out))
+            self._move(rid, x, a, x_hat)
+            self._record(rid, x, a, out, ref_next, end, design.contains_error(x - x_hat, TUBE_TOL))
+        self.judge.plans(plans, unexecuted)
+        self._end_step()
+
+    def _infos(self) -> dict[str, Any]:
+        """Every robot's view for its neighbours (its last committed point, …), by id."""
+        infos = {}
+        for rid in self.ids:
+            inf = self.ctrls[rid].info()
+            inf.id = rid
+            infos[rid] = inf
+        return infos
+
+    def _take_goals(self) -> None:
+        """Goals given since the last step, taken after the neighbours' view is fixed."""
+        for rid, goal in self.pending.items():
+            if not np.array_equal(goal, self.ctrls[rid].goal):
+                self.ctrls[rid].set_goal(goal)
+        self.pending = {}
+
+    def _move(self, rid: str, x: Array, a: Array, x_hat: Array) -> None:
+        """Robot ``rid``'s plant over one step with acceleration ``a`` (2,) [m/s²], disturbed
+        (the adversary pushes x − x̂ outward), then measured."""
+        plant = self.plants[rid]
+        plant.step(a, self.Ts)
+        w = self.dist.sample(x - x_hat)
+        if self.extra_disturbance is not None:
+            extra = self.extra_disturbance(rid, self.k)
+            if extra is not None:
+                w = w + extra
+        plant.perturb(w)
+        self.meas[rid], self.cams[rid] = measure(plant, self.noise, self.design.params.lookahead)
+
+    def _record(
+        self, rid: str, x: Array, a: Array, out: StepOutput, ref_next: Array, end: Array, tube_ok: bool
+    ) -> None:
+        """Trace robot ``rid``'s step: from ``x`` (4,) with ``a`` (2,) applied, ``out`` the
+        step's controller output, ``ref_next`` (2,) [m] the reference for the sample reached,
+        ``end`` (2,) [m] the end point committed, ``tube_ok`` whether x − x̂ ∈ Z."""
+        design, tr, plant = self.design, self.traces[rid], self.plants[rid]
+        w_real = self.meas[rid] - (design.A @ x + design.B @ a)
+        tr.w_ratio.append(float(np.max(np.abs(w_real) / self.W4)))
+        tr.pose.append(plant.pose.copy())
+        pt = plant.state()[[0, 2]]
+        tr.point.append(pt)
+        tr.committed_last.append(np.array(end, dtype=float))
+        tr.goal_error.append(float(np.linalg.norm(pt - self.ctrls[rid].goal)))
+        tr.modes.append(out.mode)
+        tr.ref_deviation.append(float(np.linalg.norm(pt - ref_next)))
+        tr.candidate_violation.append(out.candidate_violation)
+        tr.tube_ok.append(tube_ok)
+        tr.fallback.append(out.fallback)
+        self.judge.simulated(rid, out.step_time * 1e3, tr.w_ratio[-1], out.candidate_violation)
+
+    def _end_step(self) -> None:
+        ids, ctrls, traces = self.ids, self.ctrls, self.traces
+        self.times.append((self.k + 1) * self.Ts)
         all_home = all(home(ctrls[r].y_ref[-1], traces[r].point[-1], ctrls[r].goal) for r in ids)
         self.home_run = self.home_run + 1 if all_home else 0
-        self.k = k + 1
+        self.k += 1
 
     @property
     def done(self) -> bool:
@@ -334,6 +426,7 @@ class Simulation:
             sim_time=self.k * self.Ts,
             wall_time=time.perf_counter() - self.t_wall,
             times=self.times,
+            ahead=self.ahead,
         )
 
 
@@ -347,6 +440,7 @@ def run(
     extra_disturbance: Callable[[str, int], Array | None] | None = None,
     late: Callable[[str, int], bool] | None = None,
     late_policy: str = "candidate",
+    ahead: bool = False,
 ) -> RunResult:
     """Run ``scenario`` closed loop.
 
@@ -360,8 +454,11 @@ def run(
     applied (:func:`epuck_link.robot_side.chain_input`; braking once that is used up)
     and the controller rewinds to it (:meth:`TubeMPC.rewind`), as the process runtime
     does; ``"hold"`` holds the previous acceleration and tells nobody (the
-    runtime before the candidate fallback, for comparison)."""
-    sim = Simulation(scenario, seed, design, solver_fault, extra_disturbance, late, late_policy)
+    runtime before the candidate fallback, for comparison).
+
+    ``ahead`` makes every plan a step ahead (delay compensation, docs/method.md §5;
+    :class:`Simulation`): the process runtime does not run it yet."""
+    sim = Simulation(scenario, seed, design, solver_fault, extra_disturbance, late, late_policy, ahead)
     n_steps = steps if steps is not None else round(scenario.duration / sim.Ts)
     for _ in range(n_steps):
         sim.step()

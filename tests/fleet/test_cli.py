@@ -269,6 +269,29 @@ def test_simulate_seed_is_recorded_and_deterministic(tmp_path, two_robot_run):
     assert figures(a) != figures(default)
 
 
+def test_simulate_with_delay_compensation_says_so_and_keeps_the_figures(tmp_path, two_robot_run):
+    """``--delay-compensation``: the run and its summary say so, and where constraint (a) never
+    binds the safety figures are those of the default (docs/method.md §5)."""
+    _, default = two_robot_run
+    proc, s = simulate(SCENARIOS / "paper_two_robots.toml", tmp_path / "dc", "--delay-compensation")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert s["delay_compensation"] is True and "delay_compensation" not in default
+    assert s["steps"] == default["steps"] and s["collisions"] == 0
+    assert s["min_reference_separation_m"] == pytest.approx(default["min_reference_separation_m"], abs=1e-9)
+    assert all(r["reached_goal"] and r["tube_exits"] == 0 for r in s["robots"].values())
+
+
+def test_simulate_refuses_delay_compensation_for_missions_in_one_line(tmp_path):
+    out = tmp_path / "out"
+    proc = fleet("simulate", SCENARIOS / "patrol_two.toml", "--out", out, "--delay-compensation")
+    no_traceback(proc)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines() == [
+        "fleet: error: --delay-compensation: scenarios with missions run through the script API, without it"
+    ]
+    assert not out.exists()
+
+
 def test_simulate_too_short_fails_and_names_robots(tmp_path):
     f = tmp_path / "short.toml"
     f.write_text(scenario_toml(duration=2.0, name="short"))
