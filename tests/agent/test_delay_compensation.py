@@ -13,7 +13,9 @@ robot among the scene's obstacles:
 * a seeded share of commands is not applied: the robot side follows the shifted candidate of
   the last command it applied (:func:`epuck_link.robot_side.chain_input`) for that step and
   the next, whose plan the agent solved from the command that was never applied, and the
-  agent takes the same candidate twice (:meth:`TubeMPC.rewind`).
+  agent takes the same candidate twice (:meth:`TubeMPC.rewind`).  This is the single robot's
+  worst case, the agent learning of the miss only after its next solve; with neighbours the
+  miss must be known before they make their next plans (docs/method.md §5).
 
 In these scenes neither (a′) nor the untightened (a) binds: the QP keeps x̂ where the shifted
 candidate puts it, and A_K Z ⊆ Z ⊖ W does the work, so the tightening costs the plan no freedom
