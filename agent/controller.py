@@ -76,7 +76,7 @@ class StepOutput:
     candidate_violation: float
     """Constraint violation of the shifted candidate in this step's QP (0 = feasible)."""
     tube_ok: bool
-    """x_t − x̂_t ∈ Z for the applied x̂_t."""
+    """x_t − x̂_t ∈ Z for the applied x̂_t (x^p_t − x̂_t ∈ Z ⊖ W for a predicted x^p_t)."""
     min_slack: float
     """Smallest σ = ‖c_i − c_j‖ − (r_i + r_j) against neighbours [m]."""
     target: Array
@@ -278,13 +278,21 @@ class TubeMPC:
         self._ahead = (self.y_ref, *self.steer(known))
 
     def step(
-        self, x: Array, neighbours: Sequence[NeighbourInfo], hazards: Sequence[Hazard] = ()
+        self,
+        x: Array,
+        neighbours: Sequence[NeighbourInfo],
+        hazards: Sequence[Hazard] = (),
+        predicted: bool = False,
     ) -> StepOutput:
         """One control step from measured state ``x`` (4,) [m, m/s].
 
         ``neighbours`` are coordinated with by the split rule (their plans of
         the previous step are in); ``hazards`` are neighbours known only from an
-        older plan, or dead, kept clear of as static discs (:class:`Hazard`)."""
+        older plan, or dead, kept clear of as static discs (:class:`Hazard`).
+        ``predicted``: ``x`` is the prediction A x + B u of a state not measured yet, the plan
+        being made a step ahead (delay compensation, docs/method.md §5): constraint (a) and
+        :attr:`StepOutput.tube_ok` then use Z ⊖ W (:attr:`TubeDesign.Z_f_ahead`), and the
+        returned ``a`` is the law at the prediction, not a command to apply."""
         t0 = time.perf_counter()
         self._snapshot()
         p, design, qp = self.params, self.design, self.qp
@@ -331,6 +339,7 @@ class TubeMPC:
             coord_bounds=rows_b,
             penalty_H=None if pen is None else pen[0],
             penalty_g=None if pen is None else pen[1],
+            z_f=design.Z_f_ahead if predicted else None,
         )
         prob = qp.problem(data)
         cand = self.candidate()
@@ -361,7 +370,7 @@ class TubeMPC:
             # when v̂_{t+N−1} moves by K_r·E·Δȳ, which is what x̃_{t+N}(ȳ) needs.
             xi[qp.iv.stop - 2 : qp.iv.stop] += design.K_r @ design.E @ (xi[qp.iy] - y_sol)
         x_hat = xi[0:4]
-        tube_ok = design.contains_error(x - x_hat, tol=TUBE_TOL)
+        tube_ok = design.contains_error(x - x_hat, tol=TUBE_TOL, ahead=predicted)
         if not tube_ok:
             ctr.tube_exits += 1
         a = xi[4:6] + design.K @ (x - x_hat)

@@ -66,7 +66,7 @@ class StepData:
     """Everything one step's QP depends on.  Shapes for horizon N."""
 
     x: Array
-    """Measured state (4,) [m, m/s]."""
+    """Measured state (4,) [m, m/s], or its prediction (:attr:`z_f`)."""
     x_ref: Array
     """Reference states x̃_t … x̃_{t+N−1}, (N, 4)."""
     y_ref: Array
@@ -85,6 +85,9 @@ class StepData:
     """Convexified V_coll Hessian on ȳ (2, 2), or None."""
     penalty_g: Array | None = None
     """Convexified V_coll gradient term on ȳ (2,), or None."""
+    z_f: Array | None = None
+    """Facet offsets (p,) of the set constraint (a) keeps ``x − x̂_t`` in: None for Z
+    (``design.Z_f``); Z ⊖ W (``design.Z_f_ahead``) when ``x`` is a prediction."""
 
 
 @dataclass
@@ -204,8 +207,9 @@ class TubeQP:
         l = np.empty(self.n_in)
         u = np.empty(self.n_in)
         zc = design.Z_F @ d.x
-        l[: self.nz] = zc - design.Z_f
-        u[: self.nz] = zc + design.Z_f
+        z_f = design.Z_f if d.z_f is None else d.z_f
+        l[: self.nz] = zc - z_f
+        u[: self.nz] = zc + z_f
         ls = l[self.nz : self.nz + self.ns].reshape(N - 1, 4)
         us = u[self.nz : self.nz + self.ns].reshape(N - 1, 4)
         ls[:, 0] = np.maximum(pb[0], x_ref[1:, 0] - delta)

@@ -24,7 +24,8 @@ how much (:class:`InadmissibleDesign`).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 import scipy.linalg
@@ -139,9 +140,9 @@ class TubeDesign:
         """Radius around the controlled point that covers the body [m]."""
         return self.params.robot_radius + self.params.lookahead
 
-    def contains_error(self, z: Array, tol: float = 1e-9) -> bool:
-        """True if the error z = x − x̂ (4,) lies in Z."""
-        return bool(np.all(np.abs(self.Z_F @ z) <= self.Z_f + tol))
+    def contains_error(self, z: Array, tol: float = 1e-9, ahead: bool = False) -> bool:
+        """True if the error z = x − x̂ (4,) lies in Z (``ahead``: in Z ⊖ W, :attr:`Z_f_ahead`)."""
+        return bool(np.all(np.abs(self.Z_F @ z) <= (self.Z_f_ahead if ahead else self.Z_f) + tol))
 
     @property
     def W_box(self) -> Array:
@@ -149,15 +150,16 @@ class TubeDesign:
         ones padded as Z was synthesised with them."""
         return w_box(self.params)
 
-    def ahead(self) -> TubeDesign:
-        """The design for plans made a step ahead (delay compensation, docs/method.md §5):
-        Z's facets shrunk by W's support function, Z_f − h_W(Z_Fᵀ), which is Z ⊖ W exactly,
-        for constraint (a′) x^p − x̂ ∈ Z ⊖ W.  Everything else is this design's.  Raises
-        :class:`InadmissibleDesign` if a facet closes (Z is then not invariant)."""
-        f = self.Z_f - np.abs(self.Z_F) @ self.W_box
+    @cached_property
+    def Z_f_ahead(self) -> Array:
+        """Facet offsets (p,) of Z ⊖ W for plans made a step ahead from a prediction (delay
+        compensation, docs/method.md §5; constraint (a′) |Z_F(x^p − x̂)| ≤ Z_f_ahead): Z's
+        facets shrunk by W's support function, Z_f − h_W(Z_Fᵀ), which is Z ⊖ W exactly.
+        Raises :class:`InadmissibleDesign` if a facet closes (Z is then not invariant)."""
+        f = np.asarray(self.Z_f - np.abs(self.Z_F) @ self.W_box)
         if np.any(f <= 0):
             raise InadmissibleDesign([f"Z ⊖ W is empty: facet offset {float(f.min()):.3g} ≤ 0"])
-        return replace(self, Z_f=f)
+        return f
 
     def summary(self) -> dict[str, object]:
         """Machine-readable view (used by ``fleet design --json``)."""

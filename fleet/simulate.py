@@ -17,7 +17,7 @@ Each step, synchronously:
 With ``ahead`` (``fleet simulate --delay-compensation``; docs/method.md §5) step 2 changes: every
 robot applies at once the plan its agent made during the step before, ``u = v̂ + K(x − x̂)``,
 and the agent then makes its next plan from the prediction ``A x + B u``, with the tube
-constraint tightened to Z ⊖ W (:meth:`agent.tube.TubeDesign.ahead`).  The process runtime
+constraint tightened to Z ⊖ W (``TubeMPC.step(…, predicted=True)``).  The process runtime
 does not run this variant yet.
 
 The plants, the disturbances and the camera noise are the simulated tracker's
@@ -30,7 +30,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -204,7 +204,6 @@ class Simulation:
         plan made during the step before, from the prediction, and then makes the next one."""
         if ahead and late_policy != "candidate":
             raise ValueError("late_policy: plans made a step ahead are followed on the candidate only")
-        plan_design = design.ahead() if ahead else design
         self.dist = Disturbance(sim.disturbance, p.W, sim.disturbance_fraction, rng, p.point_noise)
         self.noise = PoseNoise(p.pose_noise, seed)
         self.W4 = np.array([p.W[0], p.W[1], p.W[0], p.W[1]])
@@ -231,7 +230,7 @@ class Simulation:
             if solver_fault is not None:
                 fault = (lambda rid: lambda k: solver_fault(rid, k))(rb.id)
             self.ctrls[rb.id] = TubeMPC(
-                plan_design,
+                design,
                 start_pt,
                 np.array(rb.goal, dtype=float),
                 scenario.arena,
@@ -256,7 +255,8 @@ class Simulation:
         """Consecutive steps after which every robot was home (:func:`ground.scenario.home`)."""
         self.in_force: dict[str, tuple[StepOutput, Plan]] = {}
         """Ahead: each robot's plan for step :attr:`k`, made during the step before (the plan of
-        step 0 from the first measurement itself, as without delay compensation)."""
+        step 0 from the first measurement itself, with the untightened constraint (a), as
+        without delay compensation: nothing is predicted yet)."""
         if ahead:
             infos = self._infos()
             for rid in self.ids:
@@ -317,11 +317,11 @@ class Simulation:
         plan before anyone makes the plans of step k + 1.  Every other robot applies its plan
         of step k to its measurement, u = v̂ + K(x − x̂), at once.  Then each agent makes its
         plan of step k + 1 from the prediction x^p = A x + B u, against the plans of step k in
-        force."""
+        force.  The trace and the judge take the plan of step k, its ``tube_ok`` being
+        x − x̂ ∈ Z for the x̂ applied."""
         k, ids, design, ctrls = self.k, self.ids, self.design, self.ctrls
         applied: dict[str, tuple[Array, Array]] = {}
         unexecuted: list[str] = []
-        plans = {rid: self.in_force[rid][1] for rid in ids}
         for rid in ids:
             x = self.meas[rid]
             if self.late is not None and self.late(rid, k):
@@ -337,15 +337,19 @@ class Simulation:
             applied[rid] = (a, x_hat)
         infos = self._infos()  # the plans of step k in force, the dropped ones replaced
         self._take_goals()
+        plans: dict[str, Plan] = {}
         for rid in ids:
             ctrl, x = ctrls[rid], self.meas[rid]
-            (a, x_hat), ref_next, end = applied[rid], ctrl.y_ref[0].copy(), ctrl.y_ref[-1].copy()
-            self.outputs[rid] = self.in_force[rid][0]
+            (a, x_hat), (out, plan) = applied[rid], self.in_force[rid]
+            ref_next, end = ctrl.y_ref[0].copy(), ctrl.y_ref[-1].copy()
+            tube_ok = design.contains_error(x - x_hat, TUBE_TOL)
+            plans[rid] = replace(plan, tube_ok=tube_ok)
+            self.outputs[rid] = out
             self.last_a[rid] = a
-            out = ctrl.step(design.A @ x + design.B @ a, [infos[j] for j in ids if j != rid])
-            self.in_force[rid] = (out, plan_message(rid, k + 1, ctrl, out))
+            nxt = ctrl.step(design.A @ x + design.B @ a, [infos[j] for j in ids if j != rid], predicted=True)
+            self.in_force[rid] = (nxt, plan_message(rid, k + 1, ctrl, nxt))
             self._move(rid, x, a, x_hat)
-            self._record(rid, x, a, out, ref_next, end, design.contains_error(x - x_hat, TUBE_TOL))
+            self._record(rid, x, a, out, ref_next, end, tube_ok)
         self.judge.plans(plans, unexecuted)
         self._end_step()
 

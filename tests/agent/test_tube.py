@@ -191,25 +191,25 @@ def test_a_design_without_a_look_ahead_point_is_refused():
 
 
 @pytest.mark.parametrize("name", ["epuck", "paper"])
-def test_ahead_design_is_Z_minus_W_and_holds_A_K_Z(name):
-    """Constraint (a′) of plans made a step ahead (docs/method.md §5): the shrunk facets hold
-    A_K Z (so the shifted candidate meets them), and every point they admit stays in Z whatever
-    W adds; only Z_f changes."""
+def test_Z_minus_W_for_plans_made_ahead_holds_A_K_Z_and_leaves_room_for_W(name):
+    """Constraint (a′) of plans made a step ahead (docs/method.md §5): the shrunk facets are
+    exactly Z ⊖ W's, they hold A_K Z (so the shifted candidate meets them), and every point they
+    admit stays in Z whatever W adds."""
     d = synthesize(preset(name), ARENA)
-    a = d.ahead()
-    assert np.array_equal(a.Z_F, d.Z_F) and np.array_equal(a.K, d.K) and a.footprint == d.footprint
-    assert np.all(a.Z_f < d.Z_f)
+    f = d.Z_f_ahead
+    assert np.all(f > 0) and np.all(f < d.Z_f)
+    # Exactly Z ⊖ W, not a tighter set: each facet moves in by W's support in its direction.
+    assert np.allclose(d.Z_f - f, Zonotope.box(d.W_box).support(d.Z_F), rtol=0, atol=1e-15)
     AK = d.A + d.B @ d.K
     # To well within the solver's tolerance: W's zero half-widths are padded by 1e-6 of the largest.
-    assert np.all(d.Z.Z.linear_map(AK).support(d.Z_F) <= a.Z_f + 1e-7)
+    assert np.all(d.Z.Z.linear_map(AK).support(d.Z_F) <= f + 1e-7)
     rng = np.random.default_rng(3)
     verts = np.array(list(itertools.product((-1.0, 1.0), repeat=4))) * d.W_box
-    # Points of the shrunk set: Z's points (from its generators) scaled until they are admitted.
+    # Points admitted by the shrunk facets: Z's points (from its generators) scaled in until they are.
     Z = d.Z.Z
     pts = Z.c + rng.uniform(-1.0, 1.0, (400, Z.G.shape[1])) @ Z.G.T
-    scale = np.max(np.abs(pts @ a.Z_F.T) / a.Z_f, axis=1, keepdims=True)
-    inside = pts / np.maximum(scale, 1.0)
-    assert all(a.contains_error(z) for z in inside)
+    inside = pts / np.maximum(np.max(np.abs(pts @ d.Z_F.T) / f, axis=1, keepdims=True), 1.0)
     assert all(d.contains_error(z + w, tol=1e-12) for z in inside for w in verts)
-    # Exactly Z ⊖ W, not a tighter set: each facet moves in by W's support in its direction.
-    assert np.allclose(d.Z_f - a.Z_f, Zonotope.box(d.W_box).support(d.Z_F), rtol=0, atol=1e-15)
+    # And the check the controller makes of a prediction uses them: a point on their boundary.
+    edge = pts[0] / np.max(np.abs(d.Z_F @ pts[0]) / f)
+    assert d.contains_error(edge, tol=1e-12, ahead=True) and not d.contains_error(1.01 * edge, ahead=True)
