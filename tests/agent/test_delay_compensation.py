@@ -121,8 +121,9 @@ def run_delay_compensated(seed: int, share: float, kick_at: int | None = None) -
         recovering = recovering and out.fallback
         # Recursive feasibility: every QP solves, and the shifted candidate met every row.
         assert recovering or not out.fallback, (t, out.status)
-        # To the solver's tolerance, as a row of the plan it shifts may be active.
-        assert recovering or t == kick_at or out.candidate_violation <= 1e-5, (t, out.candidate_violation)
+        # After a kick a row of the plan it shifts may be active: then to the solver's tolerance.
+        tol = 1e-5 if kick_at is not None and t > kick_at else 1e-6
+        assert recovering or t == kick_at or out.candidate_violation <= tol, (t, out.candidate_violation)
     return {"x": x, "goal": goal, "solved": solved, "misses": misses, "max_ratio": max_ratio}
 
 
@@ -142,11 +143,11 @@ def test_delay_compensated_loop_keeps_the_tube_and_feasibility_and_arrives(seed,
 
 
 def test_after_a_kick_out_of_the_tube_the_tightening_keeps_it_once_a_plan_solves():
-    """A push of six times W takes the error out of Z; the plans fall back to the candidate until
-    one solves again.  That plan puts x̂ where (a′) binds, and from then on the adversary cannot
-    take the error out of Z again: the margin W that Z ⊖ W leaves is what keeps it in.  With
-    the untightened (a) in its place the first solved plan sits on Z's boundary, and the next
-    push of W takes the error out."""
+    """A push of six times W takes the error out of Z; a plan that cannot meet (a′) falls back to
+    the candidate (here the first plan after the push already solves).  The first plan that
+    solves puts x̂ where (a′) binds, and from then on the adversary cannot take the error out of
+    Z again: the margin W that Z ⊖ W leaves is what keeps it in.  With the untightened (a) in
+    its place that plan sits on Z's boundary, and the next push of W takes the error out."""
     seen = run_delay_compensated(0, 0.0, kick_at=120)
     x, goal = seen["x"], seen["goal"]
     assert isinstance(x, np.ndarray) and isinstance(goal, np.ndarray)
