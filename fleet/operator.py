@@ -35,7 +35,9 @@ def send_goal(
     secure deployment (the operator's certificate may give goals and publish
     nothing else).
     Exit 2: bad input (the line names the field); 1: the robot is not up, did
-    not take the goal within ``timeout`` [s], or a neighbour parks too close."""
+    not take the goal within ``timeout`` [s], a neighbour parks too close, or a live
+    neighbour sent no plan (its goal travels in it) within ``timeout``: nothing is sent
+    then, since the goal could not be checked against that neighbour's."""
     import zenoh
 
     scn = load_scenario(scenario)
@@ -69,8 +71,14 @@ def send_goal(
         with inbox.cond:
             own = inbox.get(Plan, robot)
             plans = [p for r in ids if r != robot and (p := inbox.get(Plan, r)) is not None]
+            unheard = [r for r in ids if r != robot and r in inbox.live and inbox.get(Plan, r) is None]
         if own is None:
             return 1, f"{robot} sent no plan within {timeout:g} s"
+        if unheard:  # checked against some goals only, a goal on theirs would go out and be refused
+            return 1, (
+                f"no plan from {', '.join(unheard)} within {timeout:g} s: the goal cannot be checked "
+                f"against {'its goal' if len(unheard) == 1 else 'their goals'}; nothing sent"
+            )
         problem = goal_problem(scn, own.footprint, target, [])
         if problem is not None:  # the walls and obstacles, with the robot's own footprint
             raise ConfigError("goal", problem)

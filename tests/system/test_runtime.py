@@ -437,7 +437,8 @@ def test_goal_changed_at_run_time(tmp_path):
         assert ok.returncode == 0, ok.stderr
         assert ok.stdout.startswith("r1 took goal (0.700, -0.450) at step")
         # Refused: it would park r1 on top of r2's goal (0.35, -0.61).
-        near = _fleet("goal", scn, "--robot", "r1", "0.40", "-0.55", "--connect", hub, "--timeout", "5")
+        # A bound, not a wait: the refusal comes once the neighbours' plans are in.
+        near = _fleet("goal", scn, "--robot", "r1", "0.40", "-0.55", "--connect", hub, "--timeout", "60")
         assert near.returncode == 1 and "r2" in near.stderr, near.stderr
         _, stderr = launcher.communicate(timeout=240)
     finally:
@@ -454,6 +455,64 @@ def test_goal_changed_at_run_time(tmp_path):
     r1 = s["robots"]["r1"]
     assert r1["goal"] == [0.7, -0.45] and r1["final_error_m"] <= 0.02
     assert s["robots"]["r2"]["goal"] == pytest.approx([0.35, -0.606217782649107])
+
+
+def test_goal_is_not_sent_while_a_live_neighbour_has_sent_no_plan():
+    """``fleet goal`` checks a goal against the neighbours' goals, which travel in their plans.
+    This test plays r1 and r2 on the hub: both live, r1 planning.  While r2 has sent no plan the
+    command sends nothing and says whose plan is missing (one line, exit 1), rather than send a
+    goal that r1 would refuse; once r2's plan comes, a goal on r2's goal is refused naming r2."""
+    import numpy as np
+    import zenoh
+
+    from ground.net import NetConfig
+    from ground.wire import Keys, Plan
+
+    scn = str(SCENARIOS / "paper_three_robots.toml")
+    hub, keys = loopback(free_port()), Keys("lab")
+    session = zenoh.open(NetConfig(listen=[hub]).zenoh())
+    sent: list[bytes] = []
+    stop, planning = threading.Event(), {"r1"}
+
+    def plan(robot: str, goal: tuple[float, float]) -> bytes:
+        return Plan(
+            robot=robot, step=1, t0=0.2, Ts=0.1, committed=np.zeros((20, 2)), nominal=np.zeros((21, 2)),
+            footprint=0.134, priority=0, rank=0, phase=0, target=np.array(goal), goal=np.array(goal),
+            status="PROXQP_SOLVED", solve_time=1e-3, tube_ok=True,
+        ).encode()  # fmt: skip
+
+    plans = {"r1": plan("r1", (0.7, 0.0)), "r2": plan("r2", (0.35, -0.606217782649107))}
+    pubs = {r: session.declare_publisher(keys.plan(r)) for r in plans}
+
+    def publish() -> None:  # as agents do, a plan a step, for as long as the test needs (bounded)
+        for _ in range(3000):
+            for r in sorted(planning):
+                pubs[r].put(plans[r])
+            if stop.wait(0.05):
+                return
+
+    goals = session.declare_subscriber(keys.goal("r1"), lambda sample: sent.append(sample.payload.to_bytes()))
+    tokens = [session.liveliness().declare_token(keys.alive(r)) for r in ("r1", "r2")]
+    publisher = threading.Thread(target=publish, daemon=True)
+    publisher.start()
+    try:
+        args = ("goal", scn, "--robot", "r1", "0.40", "-0.55", "--connect", hub)
+        silent = _fleet(*args, "--timeout", "3")
+        assert silent.returncode == 1, silent.stderr
+        assert silent.stderr.splitlines() == [
+            "no plan from r2 within 3 s: the goal cannot be checked against its goal; nothing sent"
+        ]
+        planning.add("r2")
+        heard = _fleet(*args, "--timeout", "60")
+        assert heard.returncode == 1 and heard.stderr.startswith("goal rejected: ") and "r2" in heard.stderr
+        assert sent == []  # neither goal went out
+    finally:
+        stop.set()
+        publisher.join(timeout=10)
+        for tok in tokens:
+            tok.undeclare()
+        goals.undeclare()
+        session.close()
 
 
 def test_agent_checks_run_time_goals_itself():
