@@ -232,6 +232,11 @@ class TubeMPC:
             phase_age=self.phase_age,
         )
 
+    def ancillary(self, x: Array) -> Array:
+        """The ancillary law on the plan in force: u = v̂_t + K(x − x̂_t) (2,) [m/s²] for the
+        state ``x`` (4,) [m, m/s], x̂_t and v̂_t being the plan's first nominal state and input."""
+        return np.asarray(self.xi[4:6] + self.design.K @ (x - self.xi[0:4]))
+
     def candidate(self) -> Array:
         """Shifted previous solution with ȳ = ỹ_{t+N−1} (stay put), (n,), a fresh array.
 
@@ -373,8 +378,8 @@ class TubeMPC:
         tube_ok = design.contains_error(x - x_hat, tol=TUBE_TOL, ahead=predicted)
         if not tube_ok:
             ctr.tube_exits += 1
-        a = xi[4:6] + design.K @ (x - x_hat)
         self.xi = xi
+        a = self.ancillary(x)
         self._append(xi[qp.iy])
         plan = (qp.S_pos @ xi).reshape(self.N + 1, 2)
         self.k += 1

@@ -331,8 +331,7 @@ class Simulation:
                 unexecuted.append(rid)
                 self.judge.off_plan(rid, what)
             else:
-                x_hat = ctrls[rid].xi[0:4].copy()
-                a = ctrls[rid].xi[4:6] + design.K @ (x - x_hat)
+                x_hat, a = ctrls[rid].xi[0:4].copy(), ctrls[rid].ancillary(x)
                 self.applied[rid] = (k, self.in_force[rid][0])
             applied[rid] = (a, x_hat)
         infos = self._infos()  # the plans of step k in force, the dropped ones replaced
