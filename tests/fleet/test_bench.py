@@ -514,10 +514,9 @@ def test_the_sized_zenoh_runtime_keeps_a_router_forwarding(tmp_path):
     pool apart) set for every process of a star, whose hub forwards every sample between the
     others: the run completes, every goal reached.  With the transmit pool handed over too, the
     hub deadlocked within 20 steps of this scene, every time it was tried (docs/performance.md)."""
-    spec = importlib.util.spec_from_file_location("bench_cpu", ROOT / "benchmarks" / "bench_cpu.py")
-    assert spec is not None and spec.loader is not None
-    bench_cpu = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench_cpu)
+    from fleet.bench import CPU, _harness
+
+    bench_cpu = _harness(CPU)
     assert "tx:" not in bench_cpu.ZENOH_RUNTIME  # the transmit pool keeps its own worker
     out = tmp_path / "star"
     res = subprocess.run(
