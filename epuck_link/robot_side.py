@@ -13,31 +13,11 @@ import math
 import numpy as np
 
 from ground.bus import remember_steps
-from ground.geometry import Array
-from ground.model import double_integrator
+from ground.model import chain_input, double_integrator
 from ground.params import ControllerParams
 from ground.wire import Applied, Command
 
 COMMAND, CANDIDATE, HELD, BRAKED = "command", "candidate", "held", "braked"
-
-
-def chain_input(x_next: Array, v_next: Array, m: int, x: Array, A: Array, B: Array, K: Array) -> Array | None:
-    """The robot side's fallback ``m`` ≥ 0 steps after the step of the last command it
-    applied (m = 0: the very next step), with no command in time.
-
-    ``x_next`` (4,) and ``v_next`` (M, 2) are that command's shifted candidate
-    (:attr:`StepOutput.x_next`); ``x`` (4,) [m, m/s] is the measured state now.
-    Returns u = v̂ + K(x − x̂) (2,) [m/s²] with x̂ propagated m steps by the nominal
-    model x̂⁺ = A x̂ + B v̂, or None once the candidate is used up (m ≥ M).  The
-    agent, told so by the tick, takes the same candidate (:meth:`TubeMPC.rewind`):
-    it is feasible by construction, so x − x̂ stays in Z and the references
-    already committed stay valid."""
-    if not 0 <= m < v_next.shape[0]:
-        return None
-    x_hat = np.asarray(x_next, dtype=float)
-    for i in range(m):
-        x_hat = A @ x_hat + B @ v_next[i]
-    return np.asarray(v_next[m] + K @ (np.asarray(x, dtype=float) - x_hat))
 
 
 class RobotSide:

@@ -39,8 +39,8 @@ import numpy as np
 from agent.controller import TUBE_TOL, StepOutput, TubeMPC
 from agent.messages import plan_message
 from agent.tube import TubeDesign, require_admissible, synthesize
-from epuck_link.robot_side import chain_input
 from ground.geometry import Array
+from ground.model import chain_input
 from ground.scenario import Scenario, home, settle_samples
 from ground.wire import Plan
 from supervisor.judge import Judge

@@ -10,7 +10,8 @@ zero-order hold on the acceleration::
 
 The agent's tube MPC plans with it (:mod:`agent.tube`), and the robot side propagates the
 nominal state of a command's shifted candidate with it when a command misses its deadline
-(:func:`epuck_link.robot_side.chain_input`): both take it from here.
+(:func:`chain_input`): both take it from here, and so does an agent planning a step ahead,
+which predicts what its robot side applied.
 """
 
 from __future__ import annotations
@@ -36,3 +37,22 @@ def double_integrator(Ts: float) -> tuple[Array, Array, Array]:
 def position_to_rest_state() -> Array:
     """``E`` (4, 2): maps a position ``[x, y]`` [m] to the state at rest there."""
     return np.array([[1.0, 0.0], [0.0, 0.0], [0.0, 1.0], [0.0, 0.0]])
+
+
+def chain_input(x_next: Array, v_next: Array, m: int, x: Array, A: Array, B: Array, K: Array) -> Array | None:
+    """The robot side's fallback ``m`` ≥ 0 steps after the step of the last command it
+    applied (m = 0: the very next step), with no command in time.
+
+    ``x_next`` (4,) and ``v_next`` (M, 2) are that command's shifted candidate
+    (:attr:`StepOutput.x_next`); ``x`` (4,) [m, m/s] is the measured state now.
+    Returns u = v̂ + K(x − x̂) (2,) [m/s²] with x̂ propagated m steps by the nominal
+    model x̂⁺ = A x̂ + B v̂, or None once the candidate is used up (m ≥ M).  The
+    agent, told so by the tick, takes the same candidate (``TubeMPC.rewind``):
+    it is feasible by construction, so x − x̂ stays in Z and the references
+    already committed stay valid."""
+    if not 0 <= m < v_next.shape[0]:
+        return None
+    x_hat = np.asarray(x_next, dtype=float)
+    for i in range(m):
+        x_hat = A @ x_hat + B @ v_next[i]
+    return np.asarray(v_next[m] + K @ (np.asarray(x, dtype=float) - x_hat))

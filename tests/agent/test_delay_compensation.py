@@ -35,8 +35,8 @@ import pytest
 
 from agent.controller import TUBE_TOL, TubeMPC
 from agent.tube import TubeDesign, require_admissible, synthesize
-from epuck_link.robot_side import chain_input
 from ground.geometry import controlled_point
+from ground.model import chain_input
 from ground.scenario import load_scenario
 
 SCENARIOS = Path(__file__).resolve().parents[2] / "scenarios"

@@ -23,9 +23,9 @@ import pytest
 from agent.controller import SNAPSHOTS, TubeMPC
 from agent.coordination import NeighbourInfo
 from agent.tube import require_admissible, synthesize
-from epuck_link.robot_side import chain_input
 from fleet import simulate as harness
 from ground.geometry import controlled_point
+from ground.model import chain_input
 from ground.scenario import load_scenario
 
 SCENARIOS = Path(__file__).resolve().parents[2] / "scenarios"
