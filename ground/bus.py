@@ -21,7 +21,7 @@ from ground.process import log
 from ground.wire import Digest, Goal, Keys, Message, Plan, RejectCounter, WireError, decode
 
 M = TypeVar("M", bound=Message)
-_SENDER_KEYS = ("/clock", "/digest")
+_SENDER_KEYS = ("/clock", "/digest", "/outcome")
 """Keys that name no robot: the message's ``robot`` is its sender (the tracker)."""
 DRAIN_CAPACITY = 4096
 """Samples a drained subscription queues between two drains (Zenoh blocks the sender beyond)."""

@@ -19,6 +19,8 @@ Keys, for a fleet named ``F`` and a robot id ``R``:
 ``fleet/F/goal/R``         operator → agent: new goal (:class:`Goal`); put, or a query the agent answers
 ``fleet/F/script``         script → tracker: permits steps, ends the run (:class:`Script`)
 ``fleet/F/clock``          tracker → all: the clock's tick (:class:`Tick`)
+``fleet/F/outcome``        tracker → agents: what the robot sides did over a step, at its deadline
+                           (:class:`Outcome`; with delay compensation)
 ``fleet/F/digest``         tracker → agents: one step's plans, relayed (:class:`Digest`)
 ``fleet/F/alive/R``        liveliness token of agent R (also ``supervisor``, :data:`SCRIPT`, and
                            ``tracker`` in a scripted run)
@@ -121,6 +123,10 @@ class Keys:
     @property
     def clock(self) -> str:
         return f"{self.root}/clock"
+
+    @property
+    def outcome(self) -> str:
+        return f"{self.root}/outcome"
 
     @property
     def digest(self) -> str:
@@ -518,6 +524,40 @@ class Tick(Message):
         """The newest step whose plan ``robot`` executed, if the robot side says it
         did not apply the command of step ``step − 1`` (None: it applied it, or the
         robot side did not say)."""
+        got = self.fallback.get(robot)
+        return self.braked.get(robot) if got is None else got
+
+
+@dataclass(frozen=True)
+class Outcome(Message):
+    """Tracker → agents, with delay compensation (docs/design.md, "Delay compensation"): what
+    the robot sides did over step ``step``, sent as soon as it is decided (at the step's
+    deadline, or once every live agent's command is in), so that the agents make their plans
+    of step ``step + 1`` knowing which plans of step ``step`` are in force.  ``robot`` is the
+    sender.  The next tick says the same again (:attr:`Tick.fallback`, :attr:`Tick.braked`)."""
+
+    TYPE: ClassVar[str] = "outcome"
+    step: int
+    fallback: dict[str, int] = field(default_factory=dict)
+    """Robots whose command of ``step`` the robot side did not apply, and that followed the
+    shifted candidate of their last applied command instead: robot id → the step of that
+    command (< ``step``).  At most 64 robots."""
+    braked: dict[str, int] = field(default_factory=dict)
+    """Robots braked over ``step`` instead: robot id → the step of the last applied command,
+    −1 if none (< ``step``)."""
+
+    @classmethod
+    def _check(cls, d: dict[str, Any]) -> dict[str, Any]:
+        step = _int(d["step"], "step")
+        return {
+            "step": step,
+            "fallback": _steps_by_robot(d["fallback"], "fallback", 0, step - 1),
+            "braked": _steps_by_robot(d["braked"], "braked", -1, step - 1),
+        }
+
+    def executed(self, robot: str) -> int | None:
+        """The newest step whose plan ``robot`` executed, if its robot side did not apply the
+        command of ``step`` (None: it applied it)."""
         got = self.fallback.get(robot)
         return self.braked.get(robot) if got is None else got
 

@@ -38,6 +38,7 @@ from ground.wire import (
     LinkState,
     Message,
     Odom,
+    Outcome,
     Plan,
     Pose,
     Script,
@@ -46,10 +47,8 @@ from ground.wire import (
     Wheels,
 )
 
-TYPES: dict[str, type[Message]] = {
-    m.TYPE: m
-    for m in (Pose, Truth, Odom, Plan, Command, Goal, Script, Tick, Wheels, Digest, Applied, LinkState)
-}
+TYPES: dict[str, type[Message]] = {m.TYPE: m for m in (Pose, Truth, Odom, Plan, Command, Goal, Script, Tick)}
+TYPES |= {m.TYPE: m for m in (Outcome, Wheels, Digest, Applied, LinkState)}
 NAMES = tuple(TYPES)
 
 _SEQ = (0, 2**62)
@@ -62,6 +61,7 @@ FLOATS: dict[str, tuple[str, ...]] = {
     "goal": (),
     "script": (),
     "tick": ("t",),
+    "outcome": (),
     "wheels": ("t", "v", "omega"),
     "digest": ("Ts",),
     "applied": (),
@@ -83,6 +83,7 @@ INTS: dict[str, dict[str, tuple[int, int]]] = {
     "goal": {},
     "script": {"step": (-1, 2**62)},
     "tick": {"step": _SEQ, "misses": _SEQ},
+    "outcome": {"step": _SEQ},
     "wheels": {"seq": _SEQ, "left_steps": (-(2**62), 2**62), "right_steps": (-(2**62), 2**62)},
     "digest": {"step": _SEQ},
     "applied": {"step": _SEQ, "last": (-1, 2**62)},
@@ -121,8 +122,12 @@ LISTS: dict[str, dict[str, tuple[int, int] | None]] = {
 (``steps``: 0 … the digest's step, written −1)."""
 STRINGS: dict[str, dict[str, int]] = {"plan": {"status": 64}}
 """Free-text fields and their longest accepted length."""
-MAPS: dict[str, dict[str, int]] = {"tick": {"fallback": 0, "braked": -1}}
-"""Maps robot id → step, and the smallest step each accepts (the largest is the tick's step)."""
+MAPS: dict[str, dict[str, int]] = {
+    "tick": {"fallback": 0, "braked": -1},
+    "outcome": {"fallback": 0, "braked": -1},
+}
+"""Maps robot id → step, and the smallest step each accepts (the largest is the message's step,
+less one for an outcome)."""
 POINT_MAPS: dict[str, tuple[str, ...]] = {"goal": ("batch",)}
 """Maps robot id → point (2,) [m], never the message's own robot, at most MAX_BATCH entries."""
 OPEN_RANGES: dict[str, dict[str, tuple[float, float]]] = {
@@ -215,6 +220,10 @@ def realistic(name: str, robot: str, rng: np.random.Generator) -> Message:
             robot=robot, step=k, t=t, stop=False, misses=int(rng.integers(0, 3)), fallback=late,
             braked={"r9": -1} if rng.random() < 0.3 else {},
         )  # fmt: skip
+    if name == "outcome":
+        late = {r: max(0, k - int(rng.integers(1, 4))) for r in OTHER_IDS[: int(rng.integers(0, 3))]}
+        braked = {"r9": -1} if rng.random() < 0.3 else {}
+        return Outcome(robot=robot, step=max(k, 1), fallback=late, braked=braked)
     if name == "applied":
         last = k - int(rng.integers(0, 4))
         return Applied(

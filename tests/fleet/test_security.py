@@ -573,7 +573,8 @@ def test_acl_grants_exactly_the_documented_rights() -> None:
                                  "permission": "allow", "key_exprs": [K.alive("r1")]}  # fmt: skip
     assert rules["publish-tracker"]["key_exprs"] == [K.pose(), K.truth(), K.clock]
     sim = {r["id"]: r for r in acl_json(["r1"], sim_tracker=True)["rules"]}
-    assert sim["publish-tracker"]["key_exprs"] == [K.pose(), K.truth(), K.clock, K.odom(), K.digest]
+    sim_puts = [K.pose(), K.truth(), K.clock, K.odom(), K.digest, K.outcome]
+    assert sim["publish-tracker"]["key_exprs"] == sim_puts
     ingress_puts = [r for r in acl["rules"] if "put" in r["messages"] and "ingress" in r["flows"]]
     assert sorted(r["id"] for r in ingress_puts) == ["publish-operator", "publish-r1", "publish-r2",
                                                      "publish-tracker"]  # fmt: skip

@@ -24,6 +24,7 @@ from ground.wire import (
     Keys,
     LinkState,
     Odom,
+    Outcome,
     Plan,
     Pose,
     RejectCounter,
@@ -77,6 +78,7 @@ SAMPLES = {
     ),
     "digest": Digest.of("tracker", 7, 0.1, 20, [_plan("r1"), _plan("r2"), _plan("r3")]),
     "applied": Applied(robot="r1", step=9, last=7, braked=False),
+    "outcome": Outcome(robot="tracker", step=12, fallback={"r2": 9}, braked={"r3": -1}),
     "link": LinkState(
         robot="r1",
         up=False,
@@ -146,6 +148,10 @@ BAD = [
     ("tick: braked below -1", lambda: _mutate(SAMPLES["tick"], braked={"r3": -2}), Tick, "braked"),
     ("tick: not a map", lambda: _mutate(SAMPLES["tick"], fallback=[["r2", 9]]), Tick, "fallback"),
     ("tick: bad robot id", lambda: _mutate(SAMPLES["tick"], braked={"r 3": 1}), Tick, "braked"),
+    ("outcome: its own step on a candidate",
+     lambda: _mutate(SAMPLES["outcome"], fallback={"r2": 12}), Outcome, "fallback"),
+    ("outcome: braked after its step", lambda: _mutate(SAMPLES["outcome"], braked={"r3": 12}), Outcome,
+     "braked"),
     ("cmd: non-bool fallback", lambda: _mutate(SAMPLES["cmd"], fallback=1), Command, "fallback"),
     ("cmd: NaN candidate", lambda: _mutate(
         SAMPLES["cmd"], x_next=encode_array(np.array([0.0, np.nan, 0.0, 0.0]))
@@ -387,3 +393,5 @@ def test_tick_says_which_plans_each_robot_side_executed():
     assert tick.executed("r2") == 9  # followed the candidate of its command of step 9
     assert tick.executed("r3") == -1  # braked, never commanded
     assert Tick(robot="tracker", step=3, t=0.3, stop=False, misses=0).executed("r2") is None
+    outcome = SAMPLES["outcome"]  # the same, of its own step
+    assert [outcome.executed(r) for r in ("r1", "r2", "r3")] == [None, 9, -1]

@@ -95,6 +95,7 @@ TARGETS: dict[str, list[tuple[str, int | None]]] = {
     "goal": [("goal/r1", None), ("goal/r2", None), ("goal/r3", None)],
     "script": [("script", None)],
     "tick": [("clock", None)],
+    "outcome": [("outcome", None)],
     "digest": [("digest", None)],
     "applied": [("applied/r1", None), ("applied/r2", None), ("applied/r3", None), ("applied/r9", 50)],
     "wheels": [("wheels/r1", None), ("wheels/r2", None), ("wheels/r3", None)],
@@ -118,9 +119,10 @@ supervisor/monitor.py, agent/node.py; the tracker takes epuck_link's reports in 
 and ignores them for simulated robots).  In the mesh an agent takes the plans of every key but
 its own publications, and this test is remote to it, so plan/<its id> reaches it too; with
 relayed plans it takes the tracker's digest instead, and no plan."""
-NOT_IN = {"mesh": ("digest", "script"), "relay": ("script",)}
+NOT_IN = {"mesh": ("digest", "script", "outcome"), "relay": ("script", "outcome")}
 """Types nobody decodes in a fleet of that exchange (nobody subscribes to the digest in the mesh;
-only the tracker of a scripted run takes a script's messages)."""
+only the tracker of a scripted run takes a script's messages, and only agents with delay
+compensation the outcomes)."""
 
 
 def _matches(pattern: str, key: str) -> bool:
@@ -160,9 +162,9 @@ def verdict(key: str, typ: type[Message], data: bytes) -> str:
 
 
 def _robot_for(key: str) -> str | None:
-    """The id a payload for ``key`` is built for (None: the clock and the digest, whose keys name
-    no robot; r1 on keys with a bad id)."""
-    if key in ("clock", "digest"):
+    """The id a payload for ``key`` is built for (None: the clock, the digest and the outcome,
+    whose keys name no robot; r1 on keys with a bad id)."""
+    if key in ("clock", "digest", "outcome"):
         return None
     try:
         return KEYS.robot_of(f"{KEYS.root}/{key}")
@@ -234,7 +236,7 @@ def test_generated_payloads_are_all_rejected_by_the_decoder():
         assert len(items) == PER_TYPE
         kinds = Counter(it.payload.kind for it in items)
         gen = Generator(name, np.random.default_rng(0))
-        nobody = name in ("tick", "digest")  # their keys name no robot: nothing to claim
+        nobody = name in ("tick", "digest", "outcome")  # their keys name no robot: nothing to claim
         assert set(kinds) == set(gen.kinds) - ({"claims"} if nobody else set()), (name, kinds)
         assert min(kinds.values()) >= 30, (name, kinds)
         sizes = [len(it.payload.data) for it in items]
