@@ -7,6 +7,7 @@ plans to the safety judge (:mod:`fleet.simulate`), so that both judge the same m
 from __future__ import annotations
 
 from agent.controller import StepOutput, TubeMPC
+from ground.geometry import Array
 from ground.wire import Command, Plan
 
 
@@ -21,11 +22,15 @@ def plan_message(robot: str, k: int, ctrl: TubeMPC, out: StepOutput) -> Plan:
     )  # fmt: skip
 
 
-def command_message(robot: str, k: int, ctrl: TubeMPC, out: StepOutput, follow: bool = True) -> Command:
-    """The command of step ``k``: the acceleration u = v̂ + K(x − x̂), and the shifted candidate
-    with the gain K for the robot side to follow if later commands miss their deadline
+def command_message(
+    robot: str, k: int, ctrl: TubeMPC, out: StepOutput, follow: bool = True, a: Array | None = None
+) -> Command:
+    """The command of step ``k``: the acceleration u = v̂ + K(x − x̂) (``out.a``, or ``a`` (2,)
+    [m/s²] for a plan made a step ahead, applied to the measurement at its step), and the shifted
+    candidate with the gain K for the robot side to follow if later commands miss their deadline
     (``follow`` False: nothing to follow, e.g. while the agent holds without poses)."""
+    u = out.a if a is None else a
     return Command(
-        robot=robot, step=k, ax=float(out.a[0]), ay=float(out.a[1]), fallback=follow, x_next=out.x_next,
+        robot=robot, step=k, ax=float(u[0]), ay=float(u[1]), fallback=follow, x_next=out.x_next,
         v_next=out.v_next, K=ctrl.design.K,
     )  # fmt: skip

@@ -12,6 +12,13 @@ the tick says the robot side did not apply the agent's last commands, the agent 
 the robot executed (:meth:`TubeMPC.rewind`) or, if the robot braked, starts again where it is
 (docs/design.md, "Missed deadlines").
 
+With ``--delay-compensation`` the agent plans a step ahead (docs/design.md, "Delay
+compensation"): at tick k it only applies the ancillary law of the plan of step k, made during
+step k − 1, to its measurement and publishes the command; once the tracker's outcome of step k
+says which plans are in force, it makes its plan of step k + 1 from the prediction
+A x_k + B u_k against the neighbours' plans of step k, and publishes it.  A step with no such
+plan (the first, or after the robot braked) plans from the measurement as above, then ahead.
+
 Goals at run time come on ``fleet/F/goal/ID``: published (``fleet goal``), or as a query (a
 script), which the agent answers with a msgpack map, ``{"ok": true}`` or ``{"ok": false,
 "reason": "<one line>"}`` (a payload that is not a valid Goal for this robot is counted with the
@@ -28,21 +35,36 @@ import argparse
 import sys
 import threading
 import time
+from dataclasses import replace
 from functools import partial
 from typing import Any
 
 import numpy as np
 
-from agent.controller import TubeMPC
+from agent.controller import SNAPSHOTS, TUBE_TOL, StepOutput, TubeMPC
 from agent.coordination import NeighbourInfo
 from agent.hazards import Guard, neighbour_of
 from agent.messages import command_message, plan_message
 from agent.tube import validated_design
 from ground.bus import Inbox, goal_reply, open_session, publisher, remember_steps
 from ground.geometry import controlled_point, measured_state
+from ground.model import chain_input
 from ground.process import add_common_args, announce, fault_plan, log
 from ground.scenario import ConfigError, Scenario, goal_problem, load_scenario
-from ground.wire import Command, Digest, Goal, Keys, LinkState, Odom, Plan, Pose, Tick, WireError, decode
+from ground.wire import (
+    Command,
+    Digest,
+    Goal,
+    Keys,
+    LinkState,
+    Odom,
+    Outcome,
+    Plan,
+    Pose,
+    Tick,
+    WireError,
+    decode,
+)
 
 REJOIN_GAP = 5
 """Steps missed (0.5 s at Ts = 0.1 s, the link watchdog's time) after which an agent re-initialises."""
@@ -138,6 +160,16 @@ class Agent:
         self.behind = ""
         """What the robot side did instead of this agent's last commands: "" (applied them),
         "candidate" or "braked"; each episode is logged once."""
+        self.dc = bool(args.delay_compensation)
+        """Plan a step ahead (delay compensation; docs/design.md, "Delay compensation")."""
+        self.ahead: tuple[int, StepOutput, bool] | None = None
+        """The plan made ahead for the next step: (its step, the controller's output, whether it
+        is a blind hold, whose command is its own brake input and has nothing to follow)."""
+        self.reported = -1
+        """The newest step whose outcome (what the robot sides did) has been taken."""
+        self.sent: dict[int, StepOutput] = {}
+        """The controller outputs of the recent commands sent, by step: with delay compensation
+        the agent predicts what its robot side applied when it followed one's candidate."""
         self.link.go_live(self._answer_goal)
 
     def step(self) -> int | None:
@@ -175,18 +207,28 @@ class Agent:
             # at step 1, a neighbour or a dead robot's static disc, would depend on how fast
             # the liveliness tokens travelled.
             inbox.wait(lambda: set(self.others) <= inbox.live, args.timeout)
-        x, fresh, live, goal = self._gather(k)
+        held = self.blind > args.blind_steps
+        x = self._measure(k)
+        ahead, self.ahead = self.ahead, None
+        if ahead is not None and ahead[0] == k and self.joined and not (held and self.blind == 0):
+            # The plan of step k was made during step k − 1 (and poses did not come back after
+            # a hold, which started the controller again where the robot is: plan from x below).
+            assert x is not None
+            _, out, hold = ahead
+            a = out.a if hold else self.ctrl.ancillary(x)
+            self.link.pub_cmd.put(command_message(self.me, k, self.ctrl, out, follow=not hold, a=a).encode())
+            self.x_est, self.a_prev, self.sent[k] = x, a, out
+            inbox.prune(k - 2)
+            self._plan_ahead(k, x, a)
+            self.k += 1
+            return None
+        fresh, live, goal = self._neighbours(k)
         if x is None:
             # Not joined yet and nothing measured: keep the robot still, commit nothing.
             self.link.pub_cmd.put(Command(robot=self.me, step=k, ax=0.0, ay=0.0).encode())
             self.k += 1
             return None
-        if goal is not None and goal is not self.goal_seen:
-            self._take_goal(goal, k)
-        with inbox.cond:
-            asked, self.pending = self.pending, None
-        if asked is not None:  # accepted when it came (_answer_goal)
-            self._set_goal(asked.goal, k)
+        self._goals(goal, k)
         ctrl, blind = self.ctrl, self.blind > args.blind_steps
         nbs, hazards = self.guard.classify(
             k, self.others, fresh, self.last, live, self.starts, set(tick.braked), self.links
@@ -199,10 +241,58 @@ class Agent:
         self.link.pub_cmd.put(command_message(self.me, k, ctrl, out, follow=not blind).encode())
         self.link.pub_plan.put(plan_message(self.me, k, ctrl, out).encode())
         inbox.prune(k - 2)
-        if self.link.drained and not blind:  # realtime relay, not holding blind: off the deadline's path
+        if self.dc:
+            self.sent[k] = out
+            self._plan_ahead(k, x, out.a)
+        elif self.link.drained and not blind:  # realtime relay, not holding blind: off the deadline's path
             _steer_ahead(ctrl, inbox, self.others, self.withdrawn, self.last, self.starts, k, self.p.Ts)
         self.k += 1
         return None
+
+    def _plan_ahead(self, k: int, x: np.ndarray, a: np.ndarray) -> None:
+        """Delay compensation: once the outcome of step k is in, make the plan of step k + 1
+        from the prediction A x + B u (``x`` (4,) [m, m/s] the state of step k, ``a`` (2,)
+        [m/s²] the command sent for it) and publish it (docs/design.md, "Delay compensation").
+
+        Nothing is made ahead if the outcome does not come before tick k + 1 (that tick says
+        the same, and step k + 1 plans from the measurement), or if the robot braked (it starts
+        again where it is).  If the robot side followed the candidate instead, the agent takes
+        it too (:meth:`_take_report`), and the robot's input was the ancillary law on it."""
+        args, inbox, me, ctrl, design = self.args, self.inbox, self.me, self.ctrl, self.design
+        limit = args.timeout if self.lockstep else self.p.Ts
+        inbox.wait(lambda: _outcome_at_least(inbox, k) or _tick_at_least(inbox, k + 1), limit)
+        with inbox.cond:
+            outcome = inbox.get(Outcome, "tracker")
+        if outcome is None or outcome.step != k or _tick_at_least(inbox, k + 1):
+            return
+        self._take_report(k + 1, outcome)
+        for s in [s for s in self.sent if s < k - 2 * SNAPSHOTS]:
+            del self.sent[s]
+        if not self.joined:
+            return
+        j = outcome.executed(me)
+        if j is not None:  # the robot side followed the candidate of its command of step j
+            applied = self.sent.get(j)
+            a_j = None if applied is None else chain_input(
+                applied.x_next, applied.v_next, k - j - 1, x, design.A, design.B, design.K
+            )  # fmt: skip
+            a = self.a_prev = ctrl.ancillary(x) if a_j is None else a_j  # (the same, to rounding)
+        # What the plan can tell of the tube: whether it held at x, the measurement it follows.
+        tube_ok = design.contains_error(x - ctrl.xi[0:4], TUBE_TOL)
+        fresh, live, goal = self._neighbours(k + 1)
+        self._goals(goal, k + 1)
+        x_next = np.asarray(design.A @ x + design.B @ a)
+        hold = self.blind > args.blind_steps
+        if hold:  # still no poses: brake and hold, as the step would
+            out = ctrl.hold(x_next)
+        else:
+            nbs, hazards = self.guard.classify(
+                k + 1, self.others, fresh, self.last, live, self.starts, set(outcome.braked), self.links
+            )
+            out = ctrl.step(x_next, nbs, hazards, predicted=True)
+        self.ran.append(k + 1)
+        self.link.pub_plan.put(replace(plan_message(me, k + 1, ctrl, out), tube_ok=tube_ok).encode())
+        self.ahead = (k + 1, out, hold)
 
     def _follow_clock(self, tick: Tick) -> None:
         """Catch up with tick ``tick.step``, and take what it says the robot sides executed."""
@@ -217,10 +307,18 @@ class Agent:
                 log(self.role, f"fell behind the clock: step {k} → {tick.step}")
             self.k = k = tick.step
         self.inbox.release(k)
-        for j, done in (*tick.fallback.items(), *tick.braked.items()):
+        if self.reported < k - 1:  # not told yet by the outcome of step k − 1
+            self._take_report(k, tick)
+
+    def _take_report(self, k: int, report: Tick | Outcome) -> None:
+        """Take what the robot sides did up to step k − 1 (``report``: tick k, or the outcome of
+        step k − 1): skip the plans never executed, and take the candidate the robot followed
+        instead of this agent's commands, or start again where it braked."""
+        me = self.me
+        for j, done in (*report.fallback.items(), *report.braked.items()):
             if j in self.withdrawn:  # the plans of steps done + 1 … k − 1 were never executed
                 remember_steps(self.withdrawn[j], range(done + 1, k), k)  # only the recent part is kept
-        executed = tick.executed(me)
+        executed = report.executed(me)
         if self.joined and executed is not None:
             # The robot side did not apply the command of step k − 1.  It followed the shifted
             # candidate of its last applied command (or braked): do the same.  Controller steps
@@ -229,7 +327,7 @@ class Agent:
             # followed on the candidate too.
             unapplied = sum(1 for s in self.ran if s > executed)
             coasted = k - 1 - max(self.synced, executed) - unapplied
-            if me in tick.braked or not self.ctrl.rewind(unapplied, coasted):
+            if me in report.braked or not self.ctrl.rewind(unapplied, coasted):
                 if self.behind != "braked":  # logged once a braking episode
                     log(
                         self.role, f"step {k}: robot braked after step {executed}; starting again where it is"
@@ -241,30 +339,38 @@ class Agent:
                 self.behind = self.behind or "candidate"
         elif executed is None:
             self.behind, self.rejoined = "", False
-        self.synced, self.ran = k - 1, []
+        self.synced, self.ran, self.reported = k - 1, [], k - 1
 
-    def _gather(
-        self, k: int
-    ) -> tuple[np.ndarray | None, dict[str, Plan | None], set[str], Goal | None]:  # fmt: skip
-        """Own measurement of step k, then the live neighbours' plans of step k − 1: (the state
-        x (4,) [m, m/s] to plan from, None if there is none yet; the plans of step k − 1; who is
-        live; the latest goal given at run time).
+    def _measure(self, k: int) -> np.ndarray | None:
+        """Own measurement of step k: the state x (4,) [m, m/s] to plan from (the prediction
+        while poses are missing), None if there is none yet (:meth:`_state`).
 
-        Realtime: neither wait may hold up this step's deadline; a withheld message (fault plan)
-        is never waited for.  In mesh the plans come by callback, so a plan a little late is
-        still used.  In realtime relay, own pose and odometry come just before the tick on one
-        link and are drained, and the digest came by callback in the second half of the last
-        step (:class:`_Link`)."""
-        args, inbox, me, p = self.args, self.inbox, self.me, self.p
-        limit = args.timeout if self.lockstep else 0.3 * p.Ts
+        Realtime: the wait may not hold up this step's deadline; a withheld message (fault plan)
+        is never waited for.  In realtime relay, own pose and odometry come just before the
+        tick on one link and are drained (:class:`_Link`)."""
+        args, inbox, me = self.args, self.inbox, self.me
+        limit = args.timeout if self.lockstep else 0.3 * self.p.Ts
         wait = inbox.drain_until if self.link.drained else inbox.wait
         wait(partial(_measured, inbox, me, k), limit)
+        with inbox.cond:
+            pose = inbox.get(Pose, me, k)
+            odom = inbox.get(Odom, me, k)
+        return self._state(k, pose, odom)
+
+    def _neighbours(self, k: int) -> tuple[dict[str, Plan | None], set[str], Goal | None]:
+        """The live neighbours' plans of step k − 1, to plan step k against: (those plans, who is
+        live, the latest goal given at run time).
+
+        Realtime: the wait may not hold up this step's deadline.  In mesh the plans come by
+        callback, so a plan a little late is still used; in relay the digest came by callback
+        before the tick (half a step before; with delay compensation, with the outcome)."""
+        args, inbox, me = self.args, self.inbox, self.me
+        limit = args.timeout if self.lockstep else 0.3 * self.p.Ts
+        wait = inbox.drain_until if self.link.drained else inbox.wait
         if k > 0:
             plans_in = _relayed if self.relay else _plans_in
             wait(partial(plans_in, inbox, self.others, k - 1), limit)
         with inbox.cond:
-            pose = inbox.get(Pose, me, k)
-            odom = inbox.get(Odom, me, k)
             # Plans of step k − 1, and of no later step than each robot side executed
             # (Tick.fallback, Tick.braked): a plan whose command missed its deadline was never
             # executed, and its robot keeps to the plan before.
@@ -279,7 +385,17 @@ class Agent:
             live = set(inbox.live)
             goal = inbox.get(Goal, me)
             self.links = {j: inbox.get(LinkState, j) for j in self.others}
-        return self._state(k, pose, odom), fresh, live, goal
+        return fresh, live, goal
+
+    def _goals(self, goal: Goal | None, k: int) -> None:
+        """Take, for the plan of step k, a goal published at run time (checked here) and one a
+        query gave (accepted when it came, :meth:`_answer_goal`)."""
+        if goal is not None and goal is not self.goal_seen:
+            self._take_goal(goal, k)
+        with self.inbox.cond:
+            asked, self.pending = self.pending, None
+        if asked is not None:
+            self._set_goal(asked.goal, k)
 
     def _state(self, k: int, pose: Pose | None, odom: Odom | None) -> np.ndarray | None:
         """The state to plan from at step k: measured, or the nominal model's prediction while
@@ -402,6 +518,8 @@ class _Link:
             inbox.subscribe(self.session, keys.clock, Tick),
             inbox.watch_liveliness(self.session),
         ]
+        if args.delay_compensation:
+            self.subs.append(inbox.subscribe(self.session, keys.outcome, Outcome))
         self.pub_plan = publisher(self.session, keys.plan(me))
         self.pub_cmd = publisher(self.session, keys.cmd(me))
         self.args, self.keys, self.me, self.role = args, keys, me, role
@@ -473,6 +591,12 @@ def _steer_ahead(
     known = {j: pl or last.get(j) for j, pl in plans.items()}
     ctrl.steer_ahead([starts[j] if pl is None else neighbour_of(pl) for j, pl in known.items()])
     return True
+
+
+def _outcome_at_least(inbox: Inbox, k: int) -> bool:
+    """The tracker's outcome of step k (or of a later step) has arrived."""
+    o = inbox.get(Outcome, "tracker")
+    return o is not None and o.step >= k
 
 
 def _tick_at_least(inbox: Inbox, k: int) -> bool:

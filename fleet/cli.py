@@ -7,7 +7,7 @@
   only if the run completed with zero collisions and every robot reached its goal.
 * ``fleet run SCENARIO.toml [--out DIR] [--clock C] [--exchange E] [--seed N] [--viewer]
   [--listen ENDPOINT] [--lease S] [--topology T] [--start-agents fork|spawn]
-  [--ros2 [--ros-domain N] [--ros-listen E]]``
+  [--delay-compensation] [--ros2 [--ros-domain N] [--ros-listen E]]``
   runs the fleet as processes over Zenoh (with ``--ros2``, ROS 2 sees it too: docs/ros2.md).
 * ``fleet goal SCENARIO.toml --robot ID X Y --connect ENDPOINT`` gives a
   running agent a new goal.
@@ -206,6 +206,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     clock = args.clock or ("realtime" if emulated else "lockstep")
     if emulated and clock != "realtime":
         return _bad("--clock: emulated robots move in wall time; use --clock realtime")
+    if args.delay_compensation and emulated:
+        return _bad("--delay-compensation: simulated robots only (the robots' links are emulators)")
+    if args.delay_compensation and any(r.waypoints for r in scn.robots):
+        return _bad("--delay-compensation: scenarios with missions run through the script API, without it")
     out = Path(args.out) if args.out else Path("out") / scn.name
     out.mkdir(parents=True, exist_ok=True)
     if any(r.waypoints for r in scn.robots):  # missions: run by a script (fleet.api)
@@ -226,6 +230,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             viewer=args.viewer, clock=clock, hub=args.listen, links=links, faults=args.faults,
             exchange=args.exchange, lease=args.lease, topology=args.topology, ros2=ros2,
             ros_domain=args.ros_domain, ros_listen=args.ros_listen, fork=args.start_agents == "fork",
+            delay_compensation=args.delay_compensation,
         )  # fmt: skip
     if summary is not None:
         print(
@@ -393,7 +398,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument(
         "--delay-compensation", action="store_true",
         help="make each plan a step ahead, from the predicted state, and apply it to the measurement "
-        "at once (docs/method.md §5); fleet run does not run this variant yet",
+        "at once (docs/method.md §5)",
     )  # fmt: skip
     s.set_defaults(func=cmd_simulate)
     r = sub.add_parser("run", help="run the fleet as separate processes over Zenoh (lockstep clock)")
@@ -430,6 +435,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="how the processes link: mesh (every one a Zenoh peer, default) or star (the tracker a "
         "router, the others its clients: one link each, and a 1 s lease; with --exchange relay, the "
         "lightest for large realtime fleets; docs/design.md, \"Topology\")",
+    )  # fmt: skip
+    r.add_argument(
+        "--delay-compensation", action="store_true",
+        help="plan a step ahead: each agent makes its plan of the next step during this one, and at "
+        "the tick only applies it to its measurement, so no solve lies between a pose and its "
+        "command (simulated robots; docs/design.md, \"Delay compensation\")",
     )  # fmt: skip
     r.add_argument(
         "--start-agents", choices=STARTS, default=STARTS[0],

@@ -361,6 +361,8 @@ class Launched:
             summary["processes"] = self.pids
             summary["exit_codes"] = codes
             summary["network"] = self.network
+            if self.network.get("delay_compensation"):  # as fleet simulate's summary says it
+                summary["delay_compensation"] = True
             summary_path.write_text(json.dumps(summary, indent=2) + "\n")
         crashed = [r for r, c in codes.items() if c not in (0, None)]
         if crashed:
@@ -392,6 +394,7 @@ def start_fleet(
     ros_domain: int | None = None,
     ros_listen: str | None = None,
     fork: bool | None = None,
+    delay_compensation: bool = False,
 ) -> Launched:
     """Start the fleet of ``scenario`` (its robots ``robots``), writing to ``out``, and return
     once every process is ready.  Raises :class:`LaunchError` if one does not start, once the
@@ -425,7 +428,10 @@ def start_fleet(
     itself, since peers do not forward each other's data.  In the star, ROS 2 tools connect to the
     hub, the router.  ``fork``: fork the agents from a fork server that imported their code once
     (:mod:`fleet.forkserver`) rather than start each as a new interpreter; None: as
-    :data:`STARTS` says (on Linux)."""
+    :data:`STARTS` says (on Linux).  ``delay_compensation``: every agent plans a step ahead
+    (simulated robots only; docs/design.md, "Delay compensation")."""
+    if delay_compensation and any((links or {}).get(r, "sim") == "emulator" for r in robots):
+        raise ValueError("delay_compensation: simulated robots only")
     if ros_listen is not None and topology == "star":
         raise ValueError("ros_listen: in the star topology ROS 2 tools connect to the hub (the router)")
     if topology not in TOPOLOGIES:
@@ -447,6 +453,7 @@ def start_fleet(
         exchange,
         *(["--faults", faults] if faults else []),
         *(["--lease", repr(lease)] if lease is not None else []),
+        *(["--delay-compensation"] if delay_compensation else []),
     ]
     seed_args = [] if seed is None else ["--seed", str(seed)]
     hub_mode = ["--mode", "router"] if topology == "star" else []
@@ -522,6 +529,8 @@ def start_fleet(
                 server.close()
     lease_s = NetConfig.lease if lease is None else lease
     network: dict[str, Any] = {"topology": topology, "exchange": exchange, "lease_s": lease_s}
+    if delay_compensation:  # only then: a default run's summary stays as it was
+        network["delay_compensation"] = True
     if ros2:
         network["ros_endpoint"] = ros_endpoint
     return Launched(procs, emulators, hub, out, network, server)

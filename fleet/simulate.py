@@ -317,8 +317,9 @@ class Simulation:
         plan before anyone makes the plans of step k + 1.  Every other robot applies its plan
         of step k to its measurement, u = v̂ + K(x − x̂), at once.  Then each agent makes its
         plan of step k + 1 from the prediction x^p = A x + B u, against the plans of step k in
-        force.  The trace and the judge take the plan of step k, its ``tube_ok`` being
-        x − x̂ ∈ Z for the x̂ applied."""
+        force.  The trace and the judge take the plan of step k.  The trace's ``tube_ok`` is
+        x_k − x̂_k ∈ Z for the x̂ applied; a plan's is that of the step before its own (the
+        plan of step 0: its own, made from the measurement), as the agent process can tell it."""
         k, ids, design, ctrls = self.k, self.ids, self.design, self.ctrls
         applied: dict[str, tuple[Array, Array]] = {}
         unexecuted: list[str] = []
@@ -342,11 +343,13 @@ class Simulation:
             (a, x_hat), (out, plan) = applied[rid], self.in_force[rid]
             ref_next, end = ctrl.y_ref[0].copy(), ctrl.y_ref[-1].copy()
             tube_ok = design.contains_error(x - x_hat, TUBE_TOL)
-            plans[rid] = replace(plan, tube_ok=tube_ok)
+            plans[rid] = plan
             self.outputs[rid] = out
             self.last_a[rid] = a
             nxt = ctrl.step(design.A @ x + design.B @ a, [infos[j] for j in ids if j != rid], predicted=True)
-            self.in_force[rid] = (nxt, plan_message(rid, k + 1, ctrl, nxt))
+            # Its tube_ok says whether the tube held at the measurement it was made after, x_k:
+            # all a plan made ahead can tell (the agent process publishes it before x_{k+1}).
+            self.in_force[rid] = (nxt, replace(plan_message(rid, k + 1, ctrl, nxt), tube_ok=tube_ok))
             self._move(rid, x, a, x_hat)
             self._record(rid, x, a, out, ref_next, end, tube_ok)
         self.judge.plans(plans, unexecuted)

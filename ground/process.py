@@ -85,6 +85,12 @@ def add_common_args(ap: argparse.ArgumentParser) -> None:
         help="plans: mesh, every agent subscribes to every plan; relay, the tracker sends each "
         "agent one digest of a step's plans (docs/design.md, \"Relayed plans\")",
     )  # fmt: skip
+    ap.add_argument(
+        "--delay-compensation", action="store_true",
+        help="plan a step ahead: each agent makes its plan of step k + 1 during step k, from the "
+        "prediction, and at tick k + 1 only applies the ancillary law to its measurement "
+        "(docs/design.md, \"Delay compensation\"; simulated robots)",
+    )  # fmt: skip
 
 
 def fault_plan(args: argparse.Namespace) -> FaultPlan | None:

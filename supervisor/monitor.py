@@ -293,8 +293,10 @@ def _plan_step(inbox: Inbox, ids: list[str], k: int) -> dict[str, Plan] | None:
     step's tick, so one that claims a later step (a forged or corrupt far-future
     step) neither makes step k judgeable nor marks another step as skipped."""
     tick = inbox.get(Tick, "tracker")
-    if tick is None or k > tick.step or (k == tick.step and not tick.stop):
-        return None  # the tick of step k + 1 says whose plans of step k were executed
+    if tick is None or k >= tick.step:
+        # The tick of step k + 1 says whose plans of step k were executed; none comes for the
+        # stop step, whose plans (made ahead, with delay compensation) are never executed.
+        return None
     plans: dict[str, Plan] = {}
     reached = False
     for r in ids:

@@ -147,6 +147,10 @@ def _checked(
     """The scenario, its camera, the robots' markers, the calibration file's homography if any,
     the lens intrinsics if any, and the opened frame source; ConfigError names the bad option
     (nothing is left open)."""
+    if args.delay_compensation:
+        raise ConfigError(
+            "--delay-compensation", "simulated robots only: the links report their steps too late for it"
+        )
     if args.exchange == "relay":
         raise ConfigError(
             "--exchange", "relay needs the simulated tracker; the camera tracker relays no plans"

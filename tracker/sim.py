@@ -54,7 +54,7 @@ from ground.bus import Inbox, open_session, publisher, remember_steps
 from ground.geometry import measured_state
 from ground.process import add_common_args, announce, fault_plan, log, seed_arg
 from ground.scenario import ConfigError, Scenario, home, load_scenario, settle_samples
-from ground.wire import SCRIPT, Applied, Command, Digest, Keys, Odom, Plan, Pose, Script, Tick, Truth
+from ground.wire import SCRIPT, Applied, Command, Digest, Keys, Odom, Outcome, Plan, Pose, Script, Tick, Truth
 from tracker.reports import REPORT_WAIT, Reports
 from tracker.world import Disturbance, EmulatedWorld, PoseNoise, SimulatedWorld
 
@@ -103,6 +103,11 @@ def main(argv: list[str] | None = None) -> int:
         scn = load_scenario(args.scenario)
         if args.source == "emulator" and args.clock != "realtime":
             raise ConfigError("--clock", "the emulated robots move in wall time; use realtime")
+        if args.source == "emulator" and args.delay_compensation:
+            raise ConfigError(
+                "--delay-compensation",
+                "simulated robots only: the links of emulated robots report their steps too late for it",
+            )
         if not 0 < args.deadline <= 1 - LAG_LIMIT:
             # Beyond, the rest of the step is too short for this process's own work, and each
             # tick would go out later than the last until the clock starts over.
@@ -188,6 +193,11 @@ class SimTracker:
         }
         self.clock = publisher(session, keys.clock, express=express)
         self.relay = publisher(session, keys.digest, express=express) if args.exchange == "relay" else None
+        self.ahead = bool(args.delay_compensation)
+        """Delay compensation: the agents plan a step ahead (docs/design.md, "Delay compensation").
+        Step k's outcome goes out as soon as it is decided, with the digest of the plans of step k
+        in force, and the early end judges the plans of step k + 1."""
+        self.outcome = publisher(session, keys.outcome, express=True) if self.ahead else None
         self.sides = {rid: RobotSide(p, args.watchdog, self.world.drives) for rid in ids}
         self.reports = Reports(ids)
         self.heard: set[str] = set()
@@ -289,7 +299,7 @@ class SimTracker:
             with inbox.cond:
                 measured, truths, states = self._measure(k, t)
             inbox.drain()
-            if self.relay is not None and k > 0:
+            if self.relay is not None and k > 0 and not self.ahead:
                 self.relayed = _relayed_plans(inbox, ids, k - 1, p.horizon, self.sides)
                 self.digest = Digest.of(ROLE, k - 1, p.Ts, p.horizon, self.relayed).encode()
                 if self.realtime:
@@ -317,7 +327,7 @@ class SimTracker:
             self._links_reported(k)
         for pub, payload in measured if self.truths_out < k else ():
             pub.put(payload)
-        if self.relay is not None and k > 0:
+        if self.relay is not None and k > 0 and not self.ahead:
             self._relay(k, early)
         self.clock.put(
             Tick(
@@ -335,16 +345,23 @@ class SimTracker:
         with inbox.cond:
             live = set(inbox.live)
         self._apply(k, live, states)
+        if self.ahead:
+            self._outcome(k)
         if not live & set(ids):
             log(ROLE, f"step {k}: no agent alive; stopping the run")
             return k + 1
         # Agents send the command before the plan of a step; the early stop below judges the
-        # plans of this very step, as `fleet simulate` does.
-        inbox.wait(partial(_planned, inbox, answering, k), 0.0 if self.realtime else self.args.timeout)
+        # plans of this very step, as `fleet simulate` does (of the next step, made during this
+        # one, with delay compensation).
+        made = k + self.ahead
+        # (With delay compensation, an agent whose robot braked plans the next step only after
+        # its tick, from where the robot stands.)
+        planning = [r for r in answering if not self.ahead or r not in self.braked_map]
+        inbox.wait(partial(_planned, inbox, planning, made), 0.0 if self.realtime else self.args.timeout)
         inbox.prune(k if self.world.drives else k - Reports.LOOKBACK)
         if self.scripted:  # the script decides when the run ends
             return None
-        self.home_run = self.home_run + 1 if _all_home(inbox, ids, self.world, k) else 0
+        self.home_run = self.home_run + 1 if _all_home(inbox, ids, self.world, made) else 0
         return k + 1 if self.home_run >= settle_samples(p.Ts) else None
 
     def _answering(self, k: int) -> list[str]:
@@ -389,6 +406,16 @@ class SimTracker:
             assert self.digest is not None
             self.relay.put(self.digest)
 
+    def _outcome(self, k: int) -> None:
+        """Delay compensation: step k is decided; the digest of the plans of step k in force
+        (relay), then the outcome, which sets the agents planning step k + 1."""
+        p = self.p
+        assert self.outcome is not None
+        if self.relay is not None:
+            self.relayed = _relayed_plans(self.inbox, self.ids, k, p.horizon, self.sides)
+            self.relay.put(Digest.of(ROLE, k, p.Ts, p.horizon, self.relayed).encode())
+        self.outcome.put(Outcome(robot=ROLE, step=k, fallback=self.on_chain, braked=self.braked_map).encode())
+
     def _collect(self, k: int, t: float, sent: float, answering: list[str]) -> None:
         """Wait for step k's commands: every answering agent's (bounded) in lockstep and in the
         realtime start-up steps, until the deadline on the realtime clock."""
@@ -415,7 +442,14 @@ class SimTracker:
                     log(ROLE, f"step {k}: the tick went out {lag * 1e3:.0f} ms late; the clock starts over")
             self.behind = lag > LAG_LIMIT * p.Ts
             due = sent + args.deadline * p.Ts
-            _until(due)  # sent ≥ t_start + t: it waited for it
+            # With delay compensation the commands come at once (each agent only applies the
+            # ancillary law): decide as soon as they are in, so that the agents have the rest
+            # of the step to plan the next one.
+            early = self.ahead and inbox.drain_until(
+                partial(_answered, inbox, answering, k), due - time.monotonic()
+            )
+            if not early:
+                _until(due)  # sent ≥ t_start + t: it waited for it
             if time.monotonic() - due > LAG_LIMIT * p.Ts:
                 # This process itself woke late (stopped, or starved of the CPU): commands
                 # that came in time may still sit in Zenoh's queues, unread while it slept.
