@@ -284,11 +284,12 @@ def test_cpu_figures_cover_a_window_shorter_than_the_sampling_period() -> None:
 
 def test_cpu_harness_splits_a_fleets_cpu_by_process_and_thread(tmp_path):
     """``fleet bench --cpu 3``: the marginal CPU per robot-step of ``fleet run`` (defaults,
-    ``--ros2`` and relay + star) next to ``fleet simulate``'s, from two run lengths, with its
-    split by process role and by thread.  A fleet of processes costs more than the one-process
-    simulator (it does the same math and talks besides).  The split of three robots' short runs
-    is mostly start-up noise, so only its parts and their accounting are checked here, not their
-    sizes: the ROS 2 face's CPU is its own role's ("ros2"), in the ``--ros2`` row only."""
+    ``--ros2``, ``--delay-compensation`` and relay + star) next to ``fleet simulate``'s, from two
+    run lengths, with its split by process role and by thread.  A fleet of processes costs more
+    than the one-process simulator (it does the same math and talks besides).  The split of three
+    robots' short runs is mostly start-up noise, so only its parts and their accounting are
+    checked here, not their sizes: the ROS 2 face's CPU is its own role's ("ros2"), in the
+    ``--ros2`` row only."""
     out = tmp_path / "cpu.json"
     res = subprocess.run(
         [sys.executable, *_command(), "--cpu", "3", "--cpu-s", "2,20", "--out", str(tmp_path),
@@ -301,7 +302,7 @@ def test_cpu_harness_splits_a_fleets_cpu_by_process_and_thread(tmp_path):
     sim, *fleets = d["rows"]
     ros2 = importlib.util.find_spec("rosbags") is not None  # the ros2 extra, in the test extras
     labels = ["fleet run (defaults)", "fleet run (defaults), Zenoh sized down",
-              *(["fleet run --ros2"] if ros2 else []),
+              *(["fleet run --ros2"] if ros2 else []), "fleet run --delay-compensation",
               "fleet run --exchange relay --topology star"]  # fmt: skip
     assert sim["config"] == "fleet simulate" and [r["config"] for r in fleets] == labels
     for r in d["rows"]:
@@ -448,6 +449,11 @@ def test_targets_quick_prints_and_writes_every_target(tmp_path):
     assert t[2]["met"] == (r3["miss_rate"] < 1e-3 and r3["supervisor_complete"])
     assert t[3]["measured"] == r3["latency"]["pose_to_command_ms"]["p99"]
     assert t[3]["met"] == (t[3]["measured"] <= 5.0)
+    # Beside it, the same fleet planning a step ahead: its latency, for the same poses.
+    ahead = t[3]["detail"]["delay_compensation"]
+    positive(ahead["pose_to_command_ms"]["p99"], "delay_compensation p99")
+    assert ahead["pose_to_command_ms"]["n"] > 0 and ahead["collisions"] == 0
+    assert "3 with --delay-compensation: pose -> command p99" in res.stdout
     positive(t[4]["measured"], "ready_s")
     assert t[4]["measured"] == r3["ready_s"] and t[4]["met"] == (r3["ready_s"] <= 5.0)
     for k in ("agent_p50", "agent_pss_p50", "tracker", "supervisor"):
