@@ -454,6 +454,8 @@ def test_targets_quick_prints_and_writes_every_target(tmp_path):
     positive(ahead["pose_to_command_ms"]["p99"], "delay_compensation p99")
     assert ahead["pose_to_command_ms"]["n"] > 0 and ahead["collisions"] == 0
     assert "3 with --delay-compensation: pose -> command p99" in res.stdout
+    assert t[2]["detail"]["delay_compensation"]["collisions"] == 0  # --quick: one size for both
+    assert "2 with --delay-compensation:" in res.stdout
     positive(t[4]["measured"], "ready_s")
     assert t[4]["measured"] == r3["ready_s"] and t[4]["met"] == (r3["ready_s"] <= 5.0)
     for k in ("agent_p50", "agent_pss_p50", "tracker", "supervisor"):
