@@ -162,9 +162,8 @@ class Agent:
         "candidate" or "braked"; each episode is logged once."""
         self.dc = bool(args.delay_compensation)
         """Plan a step ahead (delay compensation; docs/design.md, "Delay compensation")."""
-        self.ahead: tuple[int, StepOutput, bool] | None = None
-        """The plan made ahead for the next step: (its step, the controller's output, whether it
-        is a blind hold, whose command is its own brake input and has nothing to follow)."""
+        self.ahead: tuple[int, StepOutput] | None = None
+        """The plan made ahead for the next step: (its step, the controller's output)."""
         self.reported = -1
         """The newest step whose outcome (what the robot sides did) has been taken."""
         self.sent: dict[int, StepOutput] = {}
@@ -207,16 +206,14 @@ class Agent:
             # at step 1, a neighbour or a dead robot's static disc, would depend on how fast
             # the liveliness tokens travelled.
             inbox.wait(lambda: set(self.others) <= inbox.live, args.timeout)
-        held = self.blind > args.blind_steps
         x = self._measure(k)
         ahead, self.ahead = self.ahead, None
-        if ahead is not None and ahead[0] == k and self.joined and not (held and self.blind == 0):
-            # The plan of step k was made during step k − 1 (and poses did not come back after
-            # a hold, which started the controller again where the robot is: plan from x below).
+        if ahead is not None and ahead[0] == k and self.joined:
+            # The plan of step k, made during step k − 1: apply it to x, the ancillary law.
             assert x is not None
-            _, out, hold = ahead
-            a = out.a if hold else self.ctrl.ancillary(x)
-            self.link.pub_cmd.put(command_message(self.me, k, self.ctrl, out, follow=not hold, a=a).encode())
+            out = ahead[1]
+            a = self.ctrl.ancillary(x)
+            self.link.pub_cmd.put(command_message(self.me, k, self.ctrl, out, a=a).encode())
             self.x_est, self.a_prev, self.sent[k] = x, a, out
             inbox.prune(k - 2)
             self._plan_ahead(k, x, a)
@@ -254,21 +251,33 @@ class Agent:
         from the prediction A x + B u (``x`` (4,) [m, m/s] the state of step k, ``a`` (2,)
         [m/s²] the command sent for it) and publish it (docs/design.md, "Delay compensation").
 
-        Nothing is made ahead if the outcome does not come before tick k + 1 (that tick says
-        the same, and step k + 1 plans from the measurement), or if the robot braked (it starts
-        again where it is).  If the robot side followed the candidate instead, the agent takes
+        Nothing is made ahead if the outcome is lost, or does not come before tick k + 1 on the
+        realtime clock (that tick says the same, and step k + 1 plans from the measurement), if
+        the robot braked (it starts again where it is), or after ``--blind-steps`` steps without
+        poses.  If the robot side followed the candidate instead, the agent takes
         it too (:meth:`_take_report`), and the robot's input was the ancillary law on it."""
         args, inbox, me, ctrl, design = self.args, self.inbox, self.me, self.ctrl, self.design
         limit = args.timeout if self.lockstep else self.p.Ts
-        inbox.wait(lambda: _outcome_at_least(inbox, k) or _tick_at_least(inbox, k + 1), limit)
+
+        def told() -> bool:
+            # The outcome or its loss (fault plan); on the realtime clock, or the next tick.  In
+            # lockstep the tracker always sends it, but the next tick may come first (another
+            # publisher), and which way the agent plans must not depend on that.
+            lost = inbox.lost(Outcome, TRACKER, k)
+            late = not self.lockstep and _tick_at_least(inbox, k + 1)
+            return lost or late or _outcome_at_least(inbox, k)
+
+        inbox.wait(told, limit)
         with inbox.cond:
-            outcome = inbox.get(Outcome, "tracker")
-        if outcome is None or outcome.step != k or _tick_at_least(inbox, k + 1):
+            outcome = inbox.get(Outcome, TRACKER)
+        if outcome is None or outcome.step != k:
             return
         self._take_report(k + 1, outcome)
         for s in [s for s in self.sent if s < k - 2 * SNAPSHOTS]:
             del self.sent[s]
-        if not self.joined:
+        if not self.joined or self.blind >= max(args.blind_steps, 1):
+            # Braked: it starts again where it stands.  Without poses for --blind-steps steps:
+            # the next step decides, on its own pose or its absence, to plan or to hold.
             return
         j = outcome.executed(me)
         if j is not None:  # the robot side followed the candidate of its command of step j
@@ -282,17 +291,13 @@ class Agent:
         fresh, live, goal = self._neighbours(k + 1)
         self._goals(goal, k + 1)
         x_next = np.asarray(design.A @ x + design.B @ a)
-        hold = self.blind > args.blind_steps
-        if hold:  # still no poses: brake and hold, as the step would
-            out = ctrl.hold(x_next)
-        else:
-            nbs, hazards = self.guard.classify(
-                k + 1, self.others, fresh, self.last, live, self.starts, set(outcome.braked), self.links
-            )
-            out = ctrl.step(x_next, nbs, hazards, predicted=True)
+        nbs, hazards = self.guard.classify(
+            k + 1, self.others, fresh, self.last, live, self.starts, set(outcome.braked), self.links
+        )
+        out = ctrl.step(x_next, nbs, hazards, predicted=True)
         self.ran.append(k + 1)
         self.link.pub_plan.put(replace(plan_message(me, k + 1, ctrl, out), tube_ok=tube_ok).encode())
-        self.ahead = (k + 1, out, hold)
+        self.ahead = (k + 1, out)
 
     def _follow_clock(self, tick: Tick) -> None:
         """Catch up with tick ``tick.step``, and take what it says the robot sides executed."""

@@ -353,7 +353,8 @@ class Simulation:
             self._move(rid, x, a, x_hat)
             self._record(rid, x, a, out, ref_next, end, tube_ok)
         self.judge.plans(plans, unexecuted)
-        self._end_step()
+        # Home is judged on the plans applied at this step, as without delay compensation.
+        self._end_step({rid: (pl.committed[-1], pl.goal) for rid, pl in plans.items()})
 
     def _infos(self) -> dict[str, Any]:
         """Every robot's view for its neighbours (its last committed point, …), by id."""
@@ -405,10 +406,14 @@ class Simulation:
         tr.fallback.append(out.fallback)
         self.judge.simulated(rid, out.step_time * 1e3, tr.w_ratio[-1], out.candidate_violation)
 
-    def _end_step(self) -> None:
+    def _end_step(self, applied: dict[str, tuple[Array, Array]] | None = None) -> None:
+        """Close step k: every robot home (its committed end point parked at its goal and its
+        point near it) counts towards the early end.  ``applied``: each robot's end point (2,)
+        and goal (2,) [m] of the plan applied at step k, when the controllers hold later ones."""
         ids, ctrls, traces = self.ids, self.ctrls, self.traces
         self.times.append((self.k + 1) * self.Ts)
-        all_home = all(home(ctrls[r].y_ref[-1], traces[r].point[-1], ctrls[r].goal) for r in ids)
+        ends = applied or {r: (ctrls[r].y_ref[-1], ctrls[r].goal) for r in ids}
+        all_home = all(home(ends[r][0], traces[r].point[-1], ends[r][1]) for r in ids)
         self.home_run = self.home_run + 1 if all_home else 0
         self.k += 1
 

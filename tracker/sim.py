@@ -196,7 +196,7 @@ class SimTracker:
         self.ahead = bool(args.delay_compensation)
         """Delay compensation: the agents plan a step ahead (docs/design.md, "Delay compensation").
         Step k's outcome goes out as soon as it is decided, with the digest of the plans of step k
-        in force, and the early end judges the plans of step k + 1."""
+        in force."""
         self.outcome = publisher(session, keys.outcome, express=True) if self.ahead else None
         self.sides = {rid: RobotSide(p, args.watchdog, self.world.drives) for rid in ids}
         self.reports = Reports(ids)
@@ -346,22 +346,18 @@ class SimTracker:
             live = set(inbox.live)
         self._apply(k, live, states)
         if self.ahead:
-            self._outcome(k)
+            self._outcome(k, answering, sent)
         if not live & set(ids):
             log(ROLE, f"step {k}: no agent alive; stopping the run")
             return k + 1
-        # Agents send the command before the plan of a step; the early stop below judges the
-        # plans of this very step, as `fleet simulate` does (of the next step, made during this
-        # one, with delay compensation).
-        made = k + self.ahead
-        # (With delay compensation, an agent whose robot braked plans the next step only after
-        # its tick, from where the robot stands.)
-        planning = [r for r in answering if not self.ahead or r not in self.braked_map]
-        inbox.wait(partial(_planned, inbox, planning, made), 0.0 if self.realtime else self.args.timeout)
+        # Agents send the command before the plan of a step (with delay compensation, the plan
+        # made ahead came during the step before); the early stop below judges the plans of this
+        # very step, as `fleet simulate` does.
+        inbox.wait(partial(_planned, inbox, answering, k), 0.0 if self.realtime else self.args.timeout)
         inbox.prune(k if self.world.drives else k - Reports.LOOKBACK)
         if self.scripted:  # the script decides when the run ends
             return None
-        self.home_run = self.home_run + 1 if _all_home(inbox, ids, self.world, made) else 0
+        self.home_run = self.home_run + 1 if _all_home(inbox, ids, self.world, k) else 0
         return k + 1 if self.home_run >= settle_samples(p.Ts) else None
 
     def _answering(self, k: int) -> list[str]:
@@ -406,13 +402,23 @@ class SimTracker:
             assert self.digest is not None
             self.relay.put(self.digest)
 
-    def _outcome(self, k: int) -> None:
-        """Delay compensation: step k is decided; the digest of the plans of step k in force
-        (relay), then the outcome, which sets the agents planning step k + 1."""
-        p = self.p
+    def _outcome(self, k: int, answering: list[str], sent: float) -> None:
+        """Delay compensation: step k is decided (the tick went out at ``sent`` [s]); the digest
+        of the plans of step k in force (relay), then the outcome, which sets the agents planning
+        step k + 1."""
+        p, inbox = self.p, self.inbox
         assert self.outcome is not None
         if self.relay is not None:
-            self.relayed = _relayed_plans(self.inbox, self.ids, k, p.horizon, self.sides)
+            # A plan made ahead came during the step before; one made from the measurement (at
+            # step 0, after a brake) follows its command at once: wait for those of the commands
+            # applied, as the agents would on their own keys (bounded by the deadline in realtime).
+            applied = [r for r in answering if r not in self.on_chain and r not in self.braked_map]
+            if self.realtime:
+                due = sent + self.args.deadline * p.Ts
+                inbox.drain_until(partial(_planned, inbox, applied, k), max(0.0, due - time.monotonic()))
+            else:
+                inbox.wait(partial(_planned, inbox, applied, k), self.args.timeout)
+            self.relayed = _relayed_plans(inbox, self.ids, k, p.horizon, self.sides)
             self.relay.put(Digest.of(ROLE, k, p.Ts, p.horizon, self.relayed).encode())
         self.outcome.put(Outcome(robot=ROLE, step=k, fallback=self.on_chain, braked=self.braked_map).encode())
 
@@ -446,8 +452,8 @@ class SimTracker:
             # ancillary law): decide as soon as they are in, so that the agents have the rest
             # of the step to plan the next one.
             early = self.ahead and inbox.drain_until(
-                partial(_answered, inbox, answering, k), due - time.monotonic()
-            )
+                partial(_answered, inbox, self.ids, k), due - time.monotonic()
+            )  # every live agent's, a rejoining one's too (answering or not)
             if not early:
                 _until(due)  # sent ≥ t_start + t: it waited for it
             if time.monotonic() - due > LAG_LIMIT * p.Ts:

@@ -329,14 +329,17 @@ def test_lockstep_run_with_lost_plans_and_poses_is_safe_and_deterministic(tmp_pa
         assert s[key] == pytest.approx(s2[key], abs=1e-12)
 
 
-def test_a_blind_robot_starts_again_from_its_measurement_when_poses_return(tmp_path):
+@pytest.mark.parametrize("flags", [[], ["--delay-compensation"]], ids=["default", "delay-compensation"])
+def test_a_blind_robot_starts_again_from_its_measurement_when_poses_return(tmp_path, flags):
     """Six robots swap places (lockstep).  r1's camera poses stop for 10 steps, past the model
     bound of 3: it runs 3 steps on its prediction, then brakes and holds for 7, and its
     neighbours keep clear of it as of a braked robot.  When the poses come back it starts again
     from the measurement: no step outside the tube, no QP failure, no
     reference break counted.  r2's poses stop for 3 steps, within the bound: it keeps its
     reference, with no tube exit either.  (Before the restart rule, r1 counted 8 tube exits and
-    8 failed QPs after such a blackout.)"""
+    8 failed QPs after such a blackout.)  The same with plans made a step ahead: a plan made
+    after --blind-steps steps without poses would come before the step knows whether its pose
+    is missing, so that step plans, or holds, itself."""
     scene = tmp_path / "swap_6.toml"
     scene.write_text(scene_to_toml(antipodal_swap(6)))
     plan = {"seed": 1, "rules": [
@@ -346,7 +349,7 @@ def test_a_blind_robot_starts_again_from_its_measurement_when_poses_return(tmp_p
     faults = tmp_path / "faults.json"
     faults.write_text(json.dumps(plan))
     out = tmp_path / "run"
-    res = _fleet("run", str(scene), "--out", str(out), "--faults", str(faults))
+    res = _fleet("run", str(scene), "--out", str(out), "--faults", str(faults), *flags)
     assert res.returncode == 0, res.stderr[-3000:]
     s, err = json.loads((out / "summary.json").read_text()), res.stderr
     assert s["completed"] and s["collisions"] == 0 and s["all_goals_reached"], s

@@ -269,6 +269,32 @@ def test_lost_commands_with_delay_compensation_are_told_before_the_next_plans(tm
     assert "[agent r1] step 21: commands after step 19 not applied; on its candidate" in errs["ahead"]
 
 
+def test_an_outcome_lost_on_the_way_leaves_the_next_step_to_plan_from_its_measurement(tmp_path):
+    """With ``--delay-compensation`` on the lockstep clock, 10 % of the tracker's outcomes are
+    lost on the way to each agent (a fault plan).  An agent that misses one cannot tell what its
+    robot did, so it makes no plan ahead; the tick says it, and the next step plans from the
+    measurement, then ahead again.  Nothing waits for the lost message (each would stall the
+    clock for the 30 s timeout, past this test's bound), and since the QP sees the state only
+    through the tube constraint, the run is ``fleet simulate --delay-compensation``'s to
+    rounding."""
+    import numpy as np
+
+    from supervisor.trace import Trace
+
+    scn = str(SCENARIOS / "paper_three_robots.toml")
+    faults = json.dumps({"seed": 2, "rules": [{"key": "outcome", "drop": 0.1}]})
+    res = _fleet("run", scn, "--out", str(tmp_path / "run"), "--faults", faults, "--delay-compensation")
+    assert res.returncode == 0, res.stderr[-3000:]
+    injected = dict(re.findall(r"\[agent (r\d)\] stopped after .*?, (\d+) injected faults", res.stderr))
+    assert set(injected) == {"r1", "r2", "r3"} and all(int(n) > 20 for n in injected.values()), injected
+    sim = _fleet("simulate", scn, "--out", str(tmp_path / "sim"), "--delay-compensation")
+    assert sim.returncode == 0, sim.stderr[-2000:]
+    run, ref = (json.loads((tmp_path / d / "summary.json").read_text()) for d in ("run", "sim"))
+    assert run["steps"] == ref["steps"] and run["collisions"] == 0 and run["all_goals_reached"]
+    a, b = Trace.load(tmp_path / "run" / "trace.npz"), Trace.load(tmp_path / "sim" / "trace.npz")
+    assert np.abs(a.poses - b.poses).max() < 1e-9
+
+
 def _links(pid: int) -> tuple[list[int], list[int]]:
     """(ports listened on, remote ports of established connections) of ``pid``'s TCP sockets."""
     socks = tcp_sockets(pid)
