@@ -17,8 +17,8 @@ Each step, synchronously:
 With ``ahead`` (``fleet simulate --delay-compensation``; docs/method.md §5) step 2 changes: every
 robot applies at once the plan its agent made during the step before, ``u = v̂ + K(x − x̂)``,
 and the agent then makes its next plan from the prediction ``A x + B u``, with the tube
-constraint tightened to Z ⊖ W (``TubeMPC.step(…, predicted=True)``).  The process runtime
-does not run this variant yet.
+constraint tightened to Z ⊖ W (``TubeMPC.step(…, predicted=True)``).  A lockstep
+``fleet run --delay-compensation`` reproduces it bit for bit.
 
 The plants, the disturbances and the camera noise are the simulated tracker's
 (:mod:`tracker.world`), drawn in the same order from the same seeds, so a lockstep

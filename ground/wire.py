@@ -19,7 +19,7 @@ Keys, for a fleet named ``F`` and a robot id ``R``:
 ``fleet/F/goal/R``         operator → agent: new goal (:class:`Goal`); put, or a query the agent answers
 ``fleet/F/script``         script → tracker: permits steps, ends the run (:class:`Script`)
 ``fleet/F/clock``          tracker → all: the clock's tick (:class:`Tick`)
-``fleet/F/outcome``        tracker → agents: what the robot sides did over a step, at its deadline
+``fleet/F/outcome``        tracker → agents: what the robot sides did over a step, once decided
                            (:class:`Outcome`; with delay compensation)
 ``fleet/F/digest``         tracker → agents: one step's plans, relayed (:class:`Digest`)
 ``fleet/F/alive/R``        liveliness token of agent R (also ``supervisor``, :data:`SCRIPT`, and
@@ -485,8 +485,23 @@ class Script(Message):
         return {"step": _int(d["step"], "step", -1), "stop": d["stop"]}
 
 
+class _Executed:
+    """What a robot-side report says per robot (:class:`Tick`, :class:`Outcome`): the maps of
+    robots that followed a candidate (``fallback``) or braked (``braked``) instead of the
+    command of the step reported, each to the step of its last applied command."""
+
+    fallback: dict[str, int]
+    braked: dict[str, int]
+
+    def executed(self, robot: str) -> int | None:
+        """The newest step whose plan ``robot`` executed, if its robot side did not apply the
+        command of the step reported (None: it applied it, or the report does not say)."""
+        got = self.fallback.get(robot)
+        return self.braked.get(robot) if got is None else got
+
+
 @dataclass(frozen=True)
-class Tick(Message):
+class Tick(_Executed, Message):
     """The clock: step k starts at time t; ``stop`` ends the run.  ``robot`` is the sender."""
 
     TYPE: ClassVar[str] = "tick"
@@ -520,16 +535,9 @@ class Tick(Message):
             "braked": _steps_by_robot(d["braked"], "braked", -1, step),
         }
 
-    def executed(self, robot: str) -> int | None:
-        """The newest step whose plan ``robot`` executed, if the robot side says it
-        did not apply the command of step ``step − 1`` (None: it applied it, or the
-        robot side did not say)."""
-        got = self.fallback.get(robot)
-        return self.braked.get(robot) if got is None else got
-
 
 @dataclass(frozen=True)
-class Outcome(Message):
+class Outcome(_Executed, Message):
     """Tracker → agents, with delay compensation (docs/design.md, "Delay compensation"): what
     the robot sides did over step ``step``, sent as soon as it is decided (at the step's
     deadline, or once every live agent's command is in), so that the agents make their plans
@@ -554,12 +562,6 @@ class Outcome(Message):
             "fallback": _steps_by_robot(d["fallback"], "fallback", 0, step - 1),
             "braked": _steps_by_robot(d["braked"], "braked", -1, step - 1),
         }
-
-    def executed(self, robot: str) -> int | None:
-        """The newest step whose plan ``robot`` executed, if its robot side did not apply the
-        command of ``step`` (None: it applied it)."""
-        got = self.fallback.get(robot)
-        return self.braked.get(robot) if got is None else got
 
 
 def _steps_by_robot(v: Any, name: str, lo: int, hi: int) -> dict[str, int]:

@@ -119,29 +119,35 @@ ROBOT_SAFETY = {
 """Each robot's figures in summary.json that do not depend on timing."""
 
 
+def _same_run(run_dir: Path, ref_dir: Path) -> None:
+    """The safety figures, every robot's figures and the whole trace of two runs are equal to the
+    last bit (the summaries of a fleet run and of ``fleet simulate`` share the judge)."""
+    import numpy as np
+
+    from supervisor.trace import Trace
+
+    run, ref = (json.loads((d / "summary.json").read_text()) for d in (run_dir, ref_dir))
+    assert SAFETY <= set(run) and SAFETY <= set(ref)
+    assert {k: run[k] for k in SAFETY} == {k: ref[k] for k in SAFETY}
+    assert set(run["robots"]) == set(ref["robots"])
+    for rid, r in run["robots"].items():
+        assert ROBOT_SAFETY <= set(r) and ROBOT_SAFETY <= set(ref["robots"][rid]), rid
+        assert {k: r[k] for k in ROBOT_SAFETY} == {k: ref["robots"][rid][k] for k in ROBOT_SAFETY}, rid
+    a, b = Trace.load(run_dir / "trace.npz"), Trace.load(ref_dir / "trace.npz")
+    assert a.poses.shape == b.poses.shape and (a.poses == b.poses).all()
+    assert np.array_equal(a.refs, b.refs, equal_nan=True) and (a.goals == b.goals).all()
+    assert (a.footprint, a.robot_radius, a.ids) == (b.footprint, b.robot_radius, b.ids)
+
+
 def test_lockstep_run_and_simulate_give_identical_safety_figures(three, tmp_path):
     """One judge: the supervisor of a lockstep run and ``fleet simulate`` of the same seed write
     their summaries through the same code, from the same trajectories, so every safety figure
     and every robot's figure is equal to the last bit, and so is the whole trace."""
-    from supervisor.trace import Trace
-
     _, out = three
-    run = json.loads((out / "summary.json").read_text())
     sim = _fleet("simulate", str(SCENARIOS / "paper_three_robots.toml"), "--out", str(tmp_path))
     assert sim.returncode == 0
-    ref = json.loads((tmp_path / "summary.json").read_text())
-    assert SAFETY <= set(run) and SAFETY <= set(ref)
-    assert {k: run[k] for k in SAFETY} == {k: ref[k] for k in SAFETY}
-    assert set(run["robots"]) == set(ref["robots"]) == {"r1", "r2", "r3"}
-    for rid, r in run["robots"].items():
-        assert ROBOT_SAFETY <= set(r) and ROBOT_SAFETY <= set(ref["robots"][rid]), rid
-        assert {k: r[k] for k in ROBOT_SAFETY} == {k: ref["robots"][rid][k] for k in ROBOT_SAFETY}, rid
-    import numpy as np
-
-    a, b = Trace.load(out / "trace.npz"), Trace.load(tmp_path / "trace.npz")
-    assert a.poses.shape == b.poses.shape and (a.poses == b.poses).all()
-    assert np.array_equal(a.refs, b.refs, equal_nan=True) and (a.goals == b.goals).all()
-    assert (a.footprint, a.robot_radius, a.ids) == (b.footprint, b.robot_radius, b.ids)
+    _same_run(out, tmp_path)
+    assert set(json.loads((out / "summary.json").read_text())["robots"]) == {"r1", "r2", "r3"}
 
 
 def test_lockstep_runs_are_deterministic_with_agents_forked_or_spawned(three, tmp_path):
@@ -189,23 +195,6 @@ def test_relayed_plans_give_the_same_run(three, tmp_path):
 
     events = [ln for ln in res.stderr.splitlines() if ln.startswith("[agent") and "step" in ln]
     assert strip(relay) == strip(mesh), "\n".join(events[-20:])
-
-
-def _same_run(run_dir: Path, ref_dir: Path) -> None:
-    """The safety figures, every robot's figures and the whole trace of two runs are equal to the
-    last bit (the summaries of a fleet run and of ``fleet simulate`` share the judge)."""
-    import numpy as np
-
-    from supervisor.trace import Trace
-
-    run, ref = (json.loads((d / "summary.json").read_text()) for d in (run_dir, ref_dir))
-    assert {k: run[k] for k in SAFETY} == {k: ref[k] for k in SAFETY}
-    assert set(run["robots"]) == set(ref["robots"])
-    for rid, r in run["robots"].items():
-        assert {k: r[k] for k in ROBOT_SAFETY} == {k: ref["robots"][rid][k] for k in ROBOT_SAFETY}, rid
-    a, b = Trace.load(run_dir / "trace.npz"), Trace.load(ref_dir / "trace.npz")
-    assert a.poses.shape == b.poses.shape and (a.poses == b.poses).all()
-    assert np.array_equal(a.refs, b.refs, equal_nan=True)
 
 
 @pytest.mark.parametrize("exchange", ["mesh", "relay"])
