@@ -42,6 +42,7 @@ from agent.navigator import Navigator
 from agent.qp import StepData, TubeQP
 from agent.sets import Array
 from agent.tube import TubeDesign
+from ground.model import ancillary_law
 from ground.scenario import AT_GOAL
 from ground.wire import BLIND, MAX_AGE
 
@@ -235,7 +236,7 @@ class TubeMPC:
     def ancillary(self, x: Array) -> Array:
         """The ancillary law on the plan in force: u = v̂_t + K(x − x̂_t) (2,) [m/s²] for the
         state ``x`` (4,) [m, m/s], x̂_t and v̂_t being the plan's first nominal state and input."""
-        return np.asarray(self.xi[4:6] + self.design.K @ (x - self.xi[0:4]))
+        return ancillary_law(x, self.xi[0:4], self.xi[4:6], self.design.K)
 
     def candidate(self) -> Array:
         """Shifted previous solution with ȳ = ỹ_{t+N−1} (stay put), (n,), a fresh array.

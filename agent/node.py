@@ -14,10 +14,12 @@ the robot executed (:meth:`TubeMPC.rewind`) or, if the robot braked, starts agai
 
 With ``--delay-compensation`` the agent plans a step ahead (docs/design.md, "Delay
 compensation"): at tick k it only applies the ancillary law of the plan of step k, made during
-step k − 1, to its measurement and publishes the command; once the tracker's outcome of step k
-says which plans are in force, it makes its plan of step k + 1 from the prediction
-A x_k + B u_k against the neighbours' plans of step k, and publishes it.  A step with no such
-plan (the first, or after the robot braked) plans from the measurement as above, then ahead.
+step k − 1, to its measurement and publishes the command, from the Zenoh callback that brings
+the last of tick k, its pose and its odometry (the main thread is not woken for it); once the
+tracker's outcome of step k says which plans are in force, it makes its plan of step k + 1 from
+the prediction A x_k + B u_k against the neighbours' plans of step k, and publishes it.  A step
+with no such plan (the first, or after the robot braked) plans from the measurement as above,
+then ahead.
 
 Goals at run time come on ``fleet/F/goal/ID``: published (``fleet goal``), or as a query (a
 script), which the agent answers with a msgpack map, ``{"ok": true}`` or ``{"ok": false,
@@ -35,7 +37,7 @@ import argparse
 import sys
 import threading
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from functools import partial
 from typing import Any
 
@@ -48,7 +50,7 @@ from agent.messages import command_message, plan_message
 from agent.tube import validated_design
 from ground.bus import Inbox, goal_reply, open_session, publisher, remember_steps
 from ground.geometry import controlled_point, measured_state
-from ground.model import chain_input
+from ground.model import ancillary_law, chain_input
 from ground.process import add_common_args, announce, fault_plan, log
 from ground.scenario import ConfigError, Scenario, goal_problem, load_scenario
 from ground.wire import (
@@ -122,7 +124,15 @@ class Agent:
             seed=scn.simulation.seed * 1000 + rank,
         )  # fmt: skip
         self.keys = Keys(args.fleet)
-        self.link = _Link(args, self.keys, me, self.role)
+        self.dc = bool(args.delay_compensation)
+        """Plan a step ahead (delay compensation; docs/design.md, "Delay compensation")."""
+        self.ready: _Ready | None = None
+        """The plan made ahead, for Zenoh's callback to answer its tick with (under inbox.cond)."""
+        self.answered: tuple[int, np.ndarray] | None = None
+        """The step the callback answered and the acceleration (2,) [m/s²] it sent (under inbox.cond)."""
+        self.on_arrival = 0
+        """Commands put by Zenoh's callback as their step's inputs arrived."""
+        self.link = _Link(args, self.keys, me, self.role, self._answer if self.dc else None)
         self.inbox = self.link.inbox
         self.others = [r for r in ids if r != me]
         self.starts = {
@@ -160,8 +170,6 @@ class Agent:
         self.behind = ""
         """What the robot side did instead of this agent's last commands: "" (applied them),
         "candidate" or "braked"; each episode is logged once."""
-        self.dc = bool(args.delay_compensation)
-        """Plan a step ahead (delay compensation; docs/design.md, "Delay compensation")."""
         self.ahead: tuple[int, StepOutput] | None = None
         """The plan made ahead for the next step: (its step, the controller's output)."""
         self.reported = -1
@@ -175,7 +183,7 @@ class Agent:
         """One step: wait for the tick, measure, plan, publish.  None to go on; the exit code
         once the run has stopped (0) or no tick came for ``--timeout`` (1)."""
         args, inbox, k = self.args, self.inbox, self.k
-        if not inbox.wait(partial(_tick_at_least, inbox, k), 1.0):
+        if not inbox.wait(partial(self._woken, k), 1.0):
             with inbox.cond:
                 now = time.monotonic()
                 seen = {f"{t}/{r}": round(now - at, 1) for (t, r), at in inbox.arrived.items()}
@@ -194,11 +202,16 @@ class Agent:
             return None
         self.silent_since = time.monotonic()
         self.held = False
-        tick = inbox.get(Tick, "tracker")
+        with inbox.cond:
+            tick = inbox.get(Tick, "tracker")
+            put = self.answered is not None and self.answered[0] == k
         assert tick is not None
-        self._follow_clock(tick)
-        if tick.stop:
-            return 0
+        if put:  # tick k came and was answered: step k goes on, whatever came since (the stop)
+            inbox.release(k)
+        else:
+            self._follow_clock(tick)
+            if tick.stop:
+                return 0
         k = self.k
         if k == 0 and self.lockstep:
             # The tracker started the clock once every agent was live in its view; wait
@@ -206,14 +219,18 @@ class Agent:
             # at step 1, a neighbour or a dead robot's static disc, would depend on how fast
             # the liveliness tokens travelled.
             inbox.wait(lambda: set(self.others) <= inbox.live, args.timeout)
-        x = self._measure(k)
+        x, answered = self._measure(k)
         ahead, self.ahead = self.ahead, None
         if ahead is not None and ahead[0] == k and self.joined:
-            # The plan of step k, made during step k − 1: apply it to x, the ancillary law.
+            # The plan of step k, made during step k − 1: apply it to x, the ancillary law,
+            # unless Zenoh's callback did so already, on the same pose and odometry.
             assert x is not None
             out = ahead[1]
-            a = self.ctrl.ancillary(x)
-            self.link.pub_cmd.put(command_message(self.me, k, self.ctrl, out, a=a).encode())
+            if answered is not None and answered[0] == k:
+                a = answered[1]
+            else:
+                a = self.ctrl.ancillary(x)
+                self.link.pub_cmd.put(command_message(self.me, k, self.ctrl, out, a=a).encode())
             self.x_est, self.a_prev, self.sent[k] = x, a, out
             inbox.prune(k - 2)
             self._plan_ahead(k, x, a)
@@ -258,16 +275,7 @@ class Agent:
         it too (:meth:`_take_report`), and the robot's input was the ancillary law on it."""
         args, inbox, me, ctrl, design = self.args, self.inbox, self.me, self.ctrl, self.design
         limit = args.timeout if self.lockstep else self.p.Ts
-
-        def told() -> bool:
-            # The outcome or its loss (fault plan); on the realtime clock, or the next tick.  In
-            # lockstep the tracker always sends it, but the next tick may come first (another
-            # publisher), and which way the agent plans must not depend on that.
-            lost = inbox.lost(Outcome, TRACKER, k)
-            late = not self.lockstep and _tick_at_least(inbox, k + 1)
-            return lost or late or _outcome_at_least(inbox, k)
-
-        inbox.wait(told, limit)
+        inbox.wait(partial(self._told, k), limit)
         with inbox.cond:
             outcome = inbox.get(Outcome, TRACKER)
         if outcome is None or outcome.step != k:
@@ -296,8 +304,55 @@ class Agent:
         )
         out = ctrl.step(x_next, nbs, hazards, predicted=True)
         self.ran.append(k + 1)
-        self.link.pub_plan.put(replace(plan_message(me, k + 1, ctrl, out), tube_ok=tube_ok).encode())
         self.ahead = (k + 1, out)
+        ready = _Ready(
+            k + 1, ctrl.xi[0:4].copy(), ctrl.xi[4:6].copy(), design.K,
+            command_message(me, k + 1, ctrl, out, a=np.zeros(2)),
+        )  # fmt: skip
+        with inbox.cond:  # ready before the plan goes out: in lockstep the tick waits for it
+            self.ready = ready
+            self._answer(None)  # its tick, pose and odometry may be in already (realtime, late)
+        self.link.pub_plan.put(replace(plan_message(me, k + 1, ctrl, out), tube_ok=tube_ok).encode())
+
+    def _told(self, k: int) -> bool:
+        """The outcome of step k is in, or lost (fault plan); on the realtime clock, or the next
+        tick came first (it says the same).  In lockstep the tracker always sends the outcome,
+        but the next tick may come first (another publisher), and which way the agent plans
+        must not depend on that (inbox.cond held)."""
+        lost = self.inbox.lost(Outcome, TRACKER, k)
+        late = not self.lockstep and _tick_at_least(self.inbox, k + 1)
+        return lost or late or _outcome_at_least(self.inbox, k)
+
+    def _woken(self, k: int) -> bool:
+        """What the main loop waits for at step k (inbox.cond held): tick k, or the stop.  If
+        Zenoh's callback put the command of step k (:meth:`_answer`), there is nothing to do
+        until the step's outcome (:meth:`_told`): the main threads of a fleet then stay asleep
+        while its commands are on their way."""
+        answered = self.answered
+        if answered is None or answered[0] != k:
+            return _tick_at_least(self.inbox, k)
+        return self._told(k) or _tick_at_least(self.inbox, k + 1)
+
+    def _answer(self, _: Any) -> None:
+        """Delay compensation, called by the inbox as a tick, pose or odometry is stored (a Zenoh
+        thread, inbox.cond held): once those of the step planned ahead are all in, put its
+        command, the ancillary law applied to that pose and odometry, here and now.  The main
+        thread is not woken for it; it does the rest of the step (:meth:`step`)."""
+        inbox, me, ready = self.inbox, self.me, self.ready
+        if ready is None or not _tick_is(inbox, ready.step):
+            return
+        if self.link.drained:  # realtime: its pose and odometry came just before the tick
+            inbox.drain()  # (their own calls of this find the tick and may answer first)
+            if self.ready is not ready:
+                return
+        pose, odom = inbox.get(Pose, me, ready.step), inbox.get(Odom, me, ready.step)
+        if pose is None or odom is None:
+            return
+        x = measured_state((pose.x, pose.y, pose.theta), (odom.vx, odom.vy), self.p.lookahead)
+        a = ancillary_law(x, ready.x_hat, ready.v_hat, ready.K)
+        self.ready, self.answered = None, (ready.step, a)
+        self.link.pub_cmd.put(replace(ready.command, ax=float(a[0]), ay=float(a[1])).encode())
+        self.on_arrival += 1
 
     def _follow_clock(self, tick: Tick) -> None:
         """Catch up with tick ``tick.step``, and take what it says the robot sides executed."""
@@ -346,9 +401,11 @@ class Agent:
             self.behind, self.rejoined = "", False
         self.synced, self.ran, self.reported = k - 1, [], k - 1
 
-    def _measure(self, k: int) -> np.ndarray | None:
+    def _measure(self, k: int) -> tuple[np.ndarray | None, tuple[int, np.ndarray] | None]:
         """Own measurement of step k: the state x (4,) [m, m/s] to plan from (the prediction
-        while poses are missing), None if there is none yet (:meth:`_state`).
+        while poses are missing), None if there is none yet (:meth:`_state`); and what Zenoh's
+        callback answered (:meth:`_answer`): from here on the main thread answers, and if the
+        callback did, it did on the pose and odometry taken here.
 
         Realtime: the wait may not hold up this step's deadline; a withheld message (fault plan)
         is never waited for.  In realtime relay, own pose and odometry come just before the
@@ -358,9 +415,10 @@ class Agent:
         wait = inbox.drain_until if self.link.drained else inbox.wait
         wait(partial(_measured, inbox, me, k), limit)
         with inbox.cond:
+            answered, self.ready, self.answered = self.answered, None, None
             pose = inbox.get(Pose, me, k)
             odom = inbox.get(Odom, me, k)
-        return self._state(k, pose, odom)
+        return self._state(k, pose, odom), answered
 
     def _neighbours(self, k: int) -> tuple[dict[str, Plan | None], set[str], Goal | None]:
         """The live neighbours' plans of step k − 1, to plan step k against: (those plans, who is
@@ -489,9 +547,9 @@ class Agent:
             self.role,
             f"stopped after {self.k} steps: {c.solves} solves, {c.fallbacks} fallbacks, "
             f"{c.tube_exits} tube exits, {c.holds} blind holds, {c.unapplied} steps on the candidate, "
-            f"{c.ahead} steered ahead, {guard.hazard_steps} neighbour-steps "
-            f"kept clear of as static discs ({guard.transitions} changes), {self.inbox.injected} injected "
-            f"faults, {self.inbox.rejects.total} rejected payloads",
+            f"{c.ahead} steered ahead, {self.on_arrival} commands put on arrival, "
+            f"{guard.hazard_steps} neighbour-steps kept clear of as static discs ({guard.transitions} "
+            f"changes), {self.inbox.injected} injected faults, {self.inbox.rejects.total} rejected payloads",
         )
         self.link.close()
 
@@ -499,20 +557,26 @@ class Agent:
 class _Link:
     """The agent's side of Zenoh: session, subscriptions, publishers, liveliness token."""
 
-    def __init__(self, args: argparse.Namespace, keys: Keys, me: str, role: str):
+    def __init__(
+        self, args: argparse.Namespace, keys: Keys, me: str, role: str, on_input: Any = None
+    ) -> None:
+        """``on_input``: called with each tick, pose and odometry of this robot stored (a Zenoh
+        thread, or the draining thread; the inbox's lock held), or None."""
         self.session = open_session(args)
         self.inbox = inbox = Inbox(keys, role, fault_plan(args))
-        # Realtime with relayed plans: the tracker sends this robot's pose and odometry just
-        # before the tick, batched on one link, so they are in when the tick is.  They are then
-        # taken from Zenoh's queues after the tick (Inbox.drain) instead of by a callback each:
-        # two wake-ups and GIL hand-overs a step fewer in the race to the deadline.  The digest
-        # of step k − 1 comes half a step before tick k, once the tracker has the commands of
+        # Realtime: the tracker sends this robot's pose and odometry just before the tick,
+        # batched on one link, so they are in when the tick is.  With relayed plans, or with
+        # delay compensation (whose tick's callback answers at once), they are then taken from
+        # Zenoh's queues after the tick (Inbox.drain) instead of by a callback each: two
+        # wake-ups and GIL hand-overs a step fewer in the race to the deadline.  The digest of
+        # step k − 1 comes half a step before tick k, once the tracker has the commands of
         # k − 1, and is decoded by callback then, while the cores are idle
         # (docs/design.md, "Relayed plans").
-        drained = self.drained = args.clock == "realtime" and args.exchange == "relay"
+        realtime = args.clock == "realtime"
+        drained = self.drained = realtime and (args.exchange == "relay" or bool(args.delay_compensation))
         self.subs = [
-            inbox.subscribe(self.session, keys.pose(me), Pose, keep=True, drained=drained),
-            inbox.subscribe(self.session, keys.odom(me), Odom, keep=True, drained=drained),
+            inbox.subscribe(self.session, keys.pose(me), Pose, keep=True, drained=drained, then=on_input),
+            inbox.subscribe(self.session, keys.odom(me), Odom, keep=True, drained=drained, then=on_input),
             # The neighbours' plans: each on its own key (mesh), or a step's plans at once in
             # the tracker's digest (relay: one message a step).
             inbox.subscribe(self.session, keys.digest, Digest, keep=True)
@@ -520,7 +584,7 @@ class _Link:
             else inbox.subscribe(self.session, keys.plan(), Plan, keep=True, remote=True),
             inbox.subscribe(self.session, keys.goal(me), Goal),
             inbox.subscribe(self.session, keys.link(), LinkState),
-            inbox.subscribe(self.session, keys.clock, Tick),
+            inbox.subscribe(self.session, keys.clock, Tick, then=on_input),
             inbox.watch_liveliness(self.session),
         ]
         if args.delay_compensation:
@@ -596,6 +660,27 @@ def _steer_ahead(
     known = {j: pl or last.get(j) for j, pl in plans.items()}
     ctrl.steer_ahead([starts[j] if pl is None else neighbour_of(pl) for j, pl in known.items()])
     return True
+
+
+@dataclass(frozen=True)
+class _Ready:
+    """A plan made a step ahead, waiting for its tick: what its command needs."""
+
+    step: int
+    x_hat: np.ndarray
+    """The plan's nominal state x̂ of ``step`` (4,) [m, m/s], world frame."""
+    v_hat: np.ndarray
+    """Its nominal input v̂ of ``step`` (2,) [m/s²]."""
+    K: np.ndarray
+    """The ancillary gain (2, 4) [1/s², 1/s]."""
+    command: Command
+    """The command of ``step``, its acceleration still to fill in."""
+
+
+def _tick_is(inbox: Inbox, k: int) -> bool:
+    """The newest tick is tick k, and not the stop."""
+    t = inbox.get(Tick, "tracker")
+    return t is not None and not t.stop and t.step == k
 
 
 def _outcome_at_least(inbox: Inbox, k: int) -> bool:

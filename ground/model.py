@@ -11,7 +11,8 @@ zero-order hold on the acceleration::
 The agent's tube MPC plans with it (:mod:`agent.tube`), and the robot side propagates the
 nominal state of a command's shifted candidate with it when a command misses its deadline
 (:func:`chain_input`): both take it from here, and so does an agent planning a step ahead,
-which predicts what its robot side applied.
+which predicts what its robot side applied.  The ancillary law that keeps the robot in its tube
+about the nominal state is here too (:func:`ancillary_law`).
 """
 
 from __future__ import annotations
@@ -55,4 +56,11 @@ def chain_input(x_next: Array, v_next: Array, m: int, x: Array, A: Array, B: Arr
     x_hat = np.asarray(x_next, dtype=float)
     for i in range(m):
         x_hat = A @ x_hat + B @ v_next[i]
-    return np.asarray(v_next[m] + K @ (np.asarray(x, dtype=float) - x_hat))
+    return ancillary_law(x, x_hat, v_next[m], K)
+
+
+def ancillary_law(x: Array, x_hat: Array, v_hat: Array, K: Array) -> Array:
+    """The ancillary law, the one place its sign is written: u = v̂ + K(x − x̂) (2,) [m/s²] for
+    the state ``x`` (4,) [m, m/s], the nominal state ``x_hat`` (4,) and input ``v_hat`` (2,) of
+    the same step, and the gain ``K`` (2, 4) [1/s², 1/s]."""
+    return np.asarray(v_hat + K @ (np.asarray(x, dtype=float) - x_hat))

@@ -2,7 +2,7 @@
 
 A command that misses its deadline is not applied.  The robot side then applies
 the ancillary law on the shifted candidate of the last command it applied,
-``u = v̂ + K(x − x̂)`` (:func:`agent.controller.chain_input`), and the agent,
+``u = v̂ + K(x − x̂)`` (:func:`ground.model.chain_input`), and the agent,
 told so by the next tick, takes the same candidate
 (:meth:`agent.controller.TubeMPC.rewind`).  The candidate is feasible by
 construction, so the theory's guarantees survive the miss: the tube error stays

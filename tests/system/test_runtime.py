@@ -212,9 +212,12 @@ def test_lockstep_run_with_delay_compensation_is_fleet_simulate_with_it(tmp_path
     _same_run(tmp_path / "run", tmp_path / "sim")
     run = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert run["delay_compensation"] is True and run["network"]["delay_compensation"] is True
-    # Every agent made every plan but the first a step ahead: one solve more than its steps.
+    # Every agent made every plan but the first a step ahead: one solve more than its steps; and
+    # put each of those commands from Zenoh's callback, as its tick came, not its main thread.
     solves = re.findall(r"\[agent r\d\] stopped after (\d+) steps: (\d+) solves", res.stderr)
     assert len(solves) == 3 and all(int(n) == int(k) + 1 for k, n in solves), solves
+    put = [int(n) for n in re.findall(r"(\d+) commands put on arrival", res.stderr)]
+    assert put == [int(k) - 1 for k, _ in solves], (put, solves)
 
 
 def test_lost_commands_with_delay_compensation_are_told_before_the_next_plans(tmp_path):
@@ -491,6 +494,10 @@ def test_realtime_run_with_delay_compensation_for_20_s(tmp_path, exchange):
     ), s
     assert all(r["tube_exits"] == 0 and r["reference_breaks"] == 0 for r in robots), s["robots"]
     assert all(r["qp_solves"] >= 190 for r in robots) and "braking and holding" not in res.stderr, s["robots"]
+    # The commands made ahead were put as their tick came, by Zenoh's callback (the tick's, which
+    # takes the pose and odometry batched before it), not by the agents' main threads.
+    put = [int(n) for n in re.findall(r"(\d+) commands put on arrival", res.stderr)]
+    assert len(put) == 3 and min(put) >= 180, put
 
 
 @pytest.mark.realtime
