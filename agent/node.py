@@ -429,7 +429,8 @@ class Agent:
         before the tick (half a step before; with delay compensation, with the outcome)."""
         args, inbox, me = self.args, self.inbox, self.me
         limit = args.timeout if self.lockstep else 0.3 * self.p.Ts
-        wait = inbox.drain_until if self.link.drained else inbox.wait
+        # (Mesh plans come by callback, which wakes a wait; only relay drains while it waits.)
+        wait = inbox.drain_until if self.link.drained and self.relay else inbox.wait
         if k > 0:
             plans_in = _relayed if self.relay else _plans_in
             wait(partial(plans_in, inbox, self.others, k - 1), limit)
