@@ -131,7 +131,11 @@ class Agent:
         self.answered: tuple[int, np.ndarray] | None = None
         """The step the callback answered and the acceleration (2,) [m/s²] it sent (under inbox.cond)."""
         self.on_arrival = 0
-        """Commands put by Zenoh's callback as their step's inputs arrived."""
+        """Commands made ahead and put as soon as their step's tick, pose and odometry were in
+        (:meth:`_answer`): by a Zenoh callback, or by the main thread when the tick came before
+        the plan was made, or while it drained the pose and odometry itself."""
+        self.by_callback = 0
+        """Of those, the commands put by a Zenoh callback."""
         self.link = _Link(args, self.keys, me, self.role, self._answer if self.dc else None)
         self.inbox = self.link.inbox
         self.others = [r for r in ids if r != me]
@@ -188,15 +192,17 @@ class Agent:
                 now = time.monotonic()
                 seen = {f"{t}/{r}": round(now - at, 1) for (t, r), at in inbox.arrived.items()}
                 alive = sorted(inbox.live)
+                put = self.answered is not None and self.answered[0] == k
             if now - self.silent_since >= args.timeout:
+                awaited = f"outcome of step {k} nor tick {k + 1}" if put else f"tick {k}"
                 if args.scripted and TRACKER in alive:  # the script holds the clock
                     if not self.held:
-                        log(self.role, f"no tick {k} for {args.timeout} s: held by the script, waiting")
+                        log(self.role, f"no {awaited} for {args.timeout} s: held by the script, waiting")
                     self.held = True
                     return None
                 log(
                     self.role,
-                    f"no tick {k} within {args.timeout} s; stopping (live {alive}; s since: {seen})",
+                    f"no {awaited} within {args.timeout} s; stopping (live {alive}; s since: {seen})",
                 )
                 return 1
             return None
@@ -309,9 +315,9 @@ class Agent:
             k + 1, ctrl.xi[0:4].copy(), ctrl.xi[4:6].copy(), design.K,
             command_message(me, k + 1, ctrl, out, a=np.zeros(2)),
         )  # fmt: skip
-        with inbox.cond:  # ready before the plan goes out: in lockstep the tick waits for it
+        with inbox.cond:  # ready before the plan goes out
             self.ready = ready
-            self._answer(None)  # its tick, pose and odometry may be in already (realtime, late)
+            self._answer(None)  # tick k + 1 may be in already (it does not wait for this plan)
         self.link.pub_plan.put(replace(plan_message(me, k + 1, ctrl, out), tube_ok=tube_ok).encode())
 
     def _told(self, k: int) -> bool:
@@ -338,8 +344,11 @@ class Agent:
         thread, inbox.cond held): once those of the step planned ahead are all in, put its
         command, the ancillary law applied to that pose and odometry, here and now.  The main
         thread is not woken for it; it does the rest of the step (:meth:`step`)."""
-        inbox, me, ready = self.inbox, self.me, self.ready
-        if ready is None or not _tick_is(inbox, ready.step):
+        ready = self.ready
+        if ready is None:  # (also while the link is being made: no inbox yet)
+            return
+        inbox, me = self.inbox, self.me
+        if not _tick_is(inbox, ready.step):
             return
         if self.link.drained:  # realtime: its pose and odometry came just before the tick
             inbox.drain()  # (their own calls of this find the tick and may answer first)
@@ -350,9 +359,11 @@ class Agent:
             return
         x = measured_state((pose.x, pose.y, pose.theta), (odom.vx, odom.vy), self.p.lookahead)
         a = ancillary_law(x, ready.x_hat, ready.v_hat, ready.K)
-        self.ready, self.answered = None, (ready.step, a)
         self.link.pub_cmd.put(replace(ready.command, ax=float(a[0]), ay=float(a[1])).encode())
+        self.ready, self.answered = None, (ready.step, a)  # (if the put failed, the main thread answers)
         self.on_arrival += 1
+        if threading.current_thread() is not threading.main_thread():
+            self.by_callback += 1
 
     def _follow_clock(self, tick: Tick) -> None:
         """Catch up with tick ``tick.step``, and take what it says the robot sides executed."""
@@ -548,7 +559,8 @@ class Agent:
             self.role,
             f"stopped after {self.k} steps: {c.solves} solves, {c.fallbacks} fallbacks, "
             f"{c.tube_exits} tube exits, {c.holds} blind holds, {c.unapplied} steps on the candidate, "
-            f"{c.ahead} steered ahead, {self.on_arrival} commands put on arrival, "
+            f"{c.ahead} steered ahead, {self.on_arrival} commands put on arrival "
+            f"({self.by_callback} by Zenoh's callback), "
             f"{guard.hazard_steps} neighbour-steps kept clear of as static discs ({guard.transitions} "
             f"changes), {self.inbox.injected} injected faults, {self.inbox.rejects.total} rejected payloads",
         )
