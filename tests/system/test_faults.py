@@ -480,13 +480,19 @@ def _agent_pid(launcher_pid: int, rid: str) -> int:
     return _child_pid(launcher_pid, "agent", rid)
 
 
-@pytest.mark.parametrize("topology", ["mesh", "star"])
-def test_killed_agent_is_braked_avoided_and_rejoins_when_restarted(tmp_path, topology):
+@pytest.mark.parametrize(
+    ("topology", "flags"),
+    [("mesh", []), ("star", []), ("mesh", ["--delay-compensation"])],
+    ids=["mesh", "star", "mesh-delay-compensation"],
+)
+def test_killed_agent_is_braked_avoided_and_rejoins_when_restarted(tmp_path, topology, flags):
     """SIGKILL r2 mid-run (lockstep): its robot is braked, r1 and r3 keep it clear as a static
     obstacle and carry on; a new r2 process joins from where the robot stands, and (unless
     Zenoh stalls, see below) all three get home; never a collision.  `fleet run` still fails,
     naming the killed process.  In the star the new process is a client of the tracker's
-    router, as the launcher started the first."""
+    router, as the launcher started the first.  With delay compensation the new process joins
+    the ticking clock the same way (its first steps plan from the measurement, then ahead), and
+    a tick that comes while it is still declaring its subscriptions is taken quietly."""
     hub = loopback(free_port())
     # Time enough after the rejoin, however late the new process comes up (lockstep runs fast).
     text = (SCENARIOS / "paper_three_robots.toml").read_text()
@@ -494,7 +500,7 @@ def test_killed_agent_is_braked_avoided_and_rejoins_when_restarted(tmp_path, top
     scenario.write_text(
         "\n".join("duration = 150.0" if ln.startswith("duration") else ln for ln in text.splitlines())
     )
-    launcher, lines = _launch(scenario, tmp_path, hub, "lockstep", ["--topology", topology])
+    launcher, lines = _launch(scenario, tmp_path, hub, "lockstep", ["--topology", topology, *flags])
     log: list[str] = []
     restarted = None
     try:
@@ -504,7 +510,7 @@ def test_killed_agent_is_braked_avoided_and_rejoins_when_restarted(tmp_path, top
         restarted = subprocess.Popen(
             # --timeout outlasts a Zenoh stall (below), so the new agent does not give up first.
             [sys.executable, "-m", "agent", "--scenario", str(scenario), "--robot", "r2", "--connect", hub,
-             "--timeout", "90", *(["--mode", "client"] if topology == "star" else [])],
+             "--timeout", "90", *(["--mode", "client"] if topology == "star" else []), *flags],
             cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
         )  # fmt: skip
         launcher.wait(timeout=300)
@@ -524,6 +530,10 @@ def test_killed_agent_is_braked_avoided_and_rejoins_when_restarted(tmp_path, top
     assert "r2: its agent is not alive; braking" in err
     assert "[agent r1] step" in err and "r2: not alive; kept clear of as a static obstacle" in err
     assert "r2: commands again" in err and "joined at step" in agent_err, agent_err[-2000:]
+    assert "Traceback" not in agent_err + err, agent_err[-2000:]
+    if flags:  # the new process planned ahead once it had joined
+        put = re.search(r"(\d+) commands put on arrival", agent_err)
+        assert put is not None and int(put[1]) > 0, agent_err[-2000:]
     # Zenoh 1.10.2 can stall every put for ~30 s when a peer joins a running mesh (routing
     # lock under peer churn, eclipse-zenoh/zenoh#2581; fix pending upstream).  Without such
     # a stall, everyone gets home.
