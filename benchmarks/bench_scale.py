@@ -1008,6 +1008,7 @@ def fleet_run(
         "clock": clock,
         "exchange": exchange or "default",
         "topology": topology or "default",
+        "delay_compensation": "--delay-compensation" in extra,
         "sim_s_requested": sim_s,
         "exit_code": rc,
         "verdict": verdict or (stderr_lines[-1] if stderr_lines else f"exit {rc}"),
@@ -1253,18 +1254,19 @@ def run(args: argparse.Namespace) -> int:
     if not args.no_fleet:
         with tempfile.TemporaryDirectory(prefix="fleet-bench-") as tmp_s:
             tmp = Path(tmp_s)
+            ahead = ("--delay-compensation",) if args.delay_compensation else ()
             log(
                 f"\n[4] fleet run (one process per robot, Zenoh on loopback, plans by {args.exchange}, "
-                f"{args.topology} topology); "
+                f"{args.topology} topology{', delay compensation' if ahead else ''}); "
                 f"run directories in {out}"
             )
             log(RUN_HEADER)
             for n in lock_sizes:
-                r = fleet_run(n, "lockstep", lock_s, out, tmp, log, args.exchange, args.topology)
+                r = fleet_run(n, "lockstep", lock_s, out, tmp, log, args.exchange, args.topology, extra=ahead)
                 runs.append(r)
                 print_run(r, log)
             for n in rt_sizes:
-                r = fleet_run(n, "realtime", rt_s, out, tmp, log, args.exchange, args.topology)
+                r = fleet_run(n, "realtime", rt_s, out, tmp, log, args.exchange, args.topology, extra=ahead)
                 runs.append(r)
                 print_run(r, log)
             if rt_sizes:
@@ -1272,7 +1274,7 @@ def run(args: argparse.Namespace) -> int:
                 # robot-step when it is not overloaded ([6]).
                 slow = fleet_run(
                     max(rt_sizes), "realtime", rt_s, out, tmp, log, args.exchange, args.topology,
-                    Ts=CAPACITY_TS,
+                    Ts=CAPACITY_TS, extra=ahead,
                 )  # fmt: skip
                 slow["purpose"] = "capacity"
                 runs.append(slow)

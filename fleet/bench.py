@@ -92,6 +92,10 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
         help="how the fleet runs' processes link (fleet run --topology; default star: the tracker a "
         "router, one link per process)",
     )  # fmt: skip
+    ap.add_argument(
+        "--delay-compensation", action="store_true",
+        help="the fleet runs plan a step ahead (fleet run --delay-compensation)",
+    )  # fmt: skip
     ap.add_argument("--no-fleet", action="store_true", help="skip the fleet runs (figures [4] to [6])")
     ap.add_argument(
         "--liveness", type=int, default=None, metavar="N",

@@ -161,6 +161,7 @@ def test_quick_fleet_runs(quick: tuple[subprocess.CompletedProcess[str], dict[st
         assert 0.0 <= r["miss_rate"] <= 1.0
         assert r["collisions"] == 0, what
         assert (r["exchange"], r["topology"]) == ("relay", "star"), what  # the defaults: large-fleet setup
+        assert r["delay_compensation"] is False, what
         for k in ("agent_p50", "agent_max", "agent_peak_max", "tracker", "supervisor"):
             positive(r["rss_mb"][k], f"{what}.rss_mb.{k}")
         assert r["rss_mb"]["agents_sampled"] == r["robots"]
@@ -515,6 +516,23 @@ def test_latency_floor_refuses_bad_input_in_one_line(args: list[str], field: str
     assert res.returncode == 2 and res.stdout == ""
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and field in lines[0], res.stderr
+
+
+def test_fleet_runs_plan_ahead_with_delay_compensation(tmp_path):
+    """``fleet bench --delay-compensation`` hands the flag to its fleet runs: the row says so, and
+    so does the fleet's own summary in the run's directory."""
+    out = tmp_path / "bench"
+    proc = subprocess.run(
+        [sys.executable, *_command(), "--quick", "--lockstep", "3", "--realtime", "", "--delay-compensation",
+         "--out", str(out), "--json", str(out / "b.json")],
+        cwd=ROOT, env=ENV, capture_output=True, text=True, encoding="utf-8", timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    runs = json.loads((out / "b.json").read_text())["fleet_runs"]
+    assert [(r["clock"], r["robots"], r["delay_compensation"]) for r in runs] == [("lockstep", 3, True)]
+    assert "error" not in runs[0] and runs[0]["collisions"] == 0, runs[0]
+    summary = json.loads((Path(runs[0]["out"]) / "summary.json").read_text())
+    assert summary["delay_compensation"] is True and summary["completed"], summary
 
 
 def test_the_sized_zenoh_runtime_keeps_a_router_forwarding(tmp_path):
