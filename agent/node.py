@@ -174,8 +174,8 @@ class Agent:
         self.behind = ""
         """What the robot side did instead of this agent's last commands: "" (applied them),
         "candidate" or "braked"; each episode is logged once."""
-        self.ahead: tuple[int, StepOutput] | None = None
-        """The plan made ahead for the next step: (its step, the controller's output)."""
+        self.ahead: _Ready | None = None
+        """The plan made ahead for the next step (the main thread's; ``ready`` is the callback's)."""
         self.reported = -1
         """The newest step whose outcome (what the robot sides did) has been taken."""
         self.sent: dict[int, StepOutput] = {}
@@ -227,17 +227,12 @@ class Agent:
             inbox.wait(lambda: set(self.others) <= inbox.live, args.timeout)
         x, answered = self._measure(k)
         ahead, self.ahead = self.ahead, None
-        if ahead is not None and ahead[0] == k and self.joined:
+        if ahead is not None and ahead.step == k and self.joined:
             # The plan of step k, made during step k − 1: apply it to x, the ancillary law,
             # unless Zenoh's callback did so already, on the same pose and odometry.
             assert x is not None
-            out = ahead[1]
-            if answered is not None and answered[0] == k:
-                a = answered[1]
-            else:
-                a = self.ctrl.ancillary(x)
-                self.link.pub_cmd.put(command_message(self.me, k, self.ctrl, out, a=a).encode())
-            self.x_est, self.a_prev, self.sent[k] = x, a, out
+            a = answered[1] if answered is not None and answered[0] == k else self._put(ahead, x)
+            self.x_est, self.a_prev, self.sent[k] = x, a, ahead.out
             inbox.prune(k - 2)
             self._plan_ahead(k, x, a)
             self.k += 1
@@ -310,10 +305,9 @@ class Agent:
         )
         out = ctrl.step(x_next, nbs, hazards, predicted=True)
         self.ran.append(k + 1)
-        self.ahead = (k + 1, out)
-        ready = _Ready(
+        self.ahead = ready = _Ready(
             k + 1, ctrl.xi[0:4].copy(), ctrl.xi[4:6].copy(), design.K,
-            command_message(me, k + 1, ctrl, out, a=np.zeros(2)),
+            command_message(me, k + 1, ctrl, out, a=np.zeros(2)), out,
         )  # fmt: skip
         with inbox.cond:  # ready before the plan goes out
             self.ready = ready
@@ -358,12 +352,18 @@ class Agent:
         if pose is None or odom is None:
             return
         x = measured_state((pose.x, pose.y, pose.theta), (odom.vx, odom.vy), self.p.lookahead)
-        a = ancillary_law(x, ready.x_hat, ready.v_hat, ready.K)
-        self.link.pub_cmd.put(replace(ready.command, ax=float(a[0]), ay=float(a[1])).encode())
+        a = self._put(ready, x)
         self.ready, self.answered = None, (ready.step, a)  # (if the put failed, the main thread answers)
         self.on_arrival += 1
         if threading.current_thread() is not threading.main_thread():
             self.by_callback += 1
+
+    def _put(self, ready: _Ready, x: np.ndarray) -> np.ndarray:
+        """Put the command of the plan made ahead, ``ready``, for the state ``x`` (4,) [m, m/s]
+        of its step; returns the acceleration u = v̂ + K(x − x̂) (2,) [m/s²] it carries."""
+        a = ancillary_law(x, ready.x_hat, ready.v_hat, ready.K)
+        self.link.pub_cmd.put(replace(ready.command, ax=float(a[0]), ay=float(a[1])).encode())
+        return a
 
     def _follow_clock(self, tick: Tick) -> None:
         """Catch up with tick ``tick.step``, and take what it says the robot sides executed."""
@@ -585,8 +585,9 @@ class _Link:
         # step k − 1 comes half a step before tick k, once the tracker has the commands of
         # k − 1, and is decoded by callback then, while the cores are idle
         # (docs/design.md, "Relayed plans").
-        realtime = args.clock == "realtime"
-        drained = self.drained = realtime and (args.exchange == "relay" or bool(args.delay_compensation))
+        drained = self.drained = args.clock == "realtime" and (
+            args.exchange == "relay" or bool(args.delay_compensation)
+        )
         self.subs = [
             inbox.subscribe(self.session, keys.pose(me), Pose, keep=True, drained=drained, then=on_input),
             inbox.subscribe(self.session, keys.odom(me), Odom, keep=True, drained=drained, then=on_input),
@@ -688,6 +689,8 @@ class _Ready:
     """The ancillary gain (2, 4) [1/s², 1/s]."""
     command: Command
     """The command of ``step``, its acceleration still to fill in."""
+    out: StepOutput
+    """The controller's output the plan came from."""
 
 
 def _tick_is(inbox: Inbox, k: int) -> bool:
