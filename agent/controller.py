@@ -29,6 +29,7 @@ import numpy as np
 
 from agent.coordination import (
     PARKED,
+    PARKED_RADIUS,
     RETURNING,
     UNDER_WAY,
     Hazard,
@@ -49,9 +50,6 @@ from ground.wire import BLIND, MAX_AGE
 TUBE_TOL = 2e-5
 """Tolerance of the tube check x − x̂ ∈ Z [m, m/s]: twice ProxSuite's eps_abs,
 since the solver may place x̂ on the boundary of Z up to its tolerance."""
-
-PARKED_RADIUS = 0.05
-"""A robot that has reached its goal counts as parked within this distance of it [m]."""
 
 
 @dataclass

@@ -35,6 +35,9 @@ SQRT2 = math.sqrt(2.0)
 
 UNDER_WAY, RETURNING, PARKED = 0, 1, 2
 """Precedence phases of :class:`NeighbourInfo` (lower goes first)."""
+PARKED_RADIUS = 0.05
+"""A robot that has reached its goal counts as parked within this distance of it [m] (its
+committed end point's distance; farther, it is returning)."""
 
 
 class ConvexObstacle(Protocol):

@@ -25,7 +25,7 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from agent.coordination import PARKED, RETURNING, NeighbourInfo, precedence
+from agent.coordination import PARKED, PARKED_RADIUS, RETURNING, NeighbourInfo, precedence
 from agent.sets import Array
 
 
@@ -145,6 +145,10 @@ class GridPlanner:
         return goal
 
 
+CORRIDOR_MARGIN = 0.05
+"""Extra half-width of the corridor of a robot that goes first, beyond r_i + r_j [m]."""
+
+
 @dataclass
 class Navigator:
     """Chooses the target of the goal term (shaping only; see module docstring).
@@ -170,11 +174,14 @@ class Navigator:
     rank: int = 0
     conflict_range: float = 0.35
     """Extra distance beyond r_i + r_j within which a higher robot is yielded to [m]."""
-    corridor_margin: float = 0.05
+    corridor_margin: float = CORRIDOR_MARGIN
     """Extra corridor half-width beyond r_i + r_j [m]."""
-    close_goals: float = 0.075
+    close_goals: float = CORRIDOR_MARGIN + PARKED_RADIUS
     """A parked robot does not yield to a returning one whose goal is within r_i + r_j + this of
-    its own [m] (see :meth:`target`)."""
+    its own [m] (see :meth:`target`).  The returning robot's corridor ends at its goal, r_i + r_j
+    + ``corridor_margin`` wide, and a parked robot stands anywhere within
+    :data:`~agent.coordination.PARKED_RADIUS` of its own: any closer pair of goals, and the end
+    of the corridor can cover the parked robot (docs/method.md §7, "Close goals")."""
     lookahead: float = 0.3
     """Carrot distance along the planned path [m]."""
     replan_steps: int = 10

@@ -9,6 +9,7 @@ import pytest
 
 from agent.coordination import (
     PARKED,
+    PARKED_RADIUS,
     RETURNING,
     UNDER_WAY,
     NeighbourInfo,
@@ -16,7 +17,7 @@ from agent.coordination import (
     shares,
     split_halfplanes,
 )
-from agent.navigator import GridPlanner, Navigator
+from agent.navigator import CORRIDOR_MARGIN, GridPlanner, Navigator
 from ground.scenario import Circle
 
 EPS = 0.0055
@@ -160,6 +161,39 @@ def test_a_robot_displaced_by_a_returning_one_keeps_yielding_to_it_until_it_has_
     # Had a been displaced first, it would go first, and b would yield to it.
     a_first = NeighbourInfo(**{**a.__dict__, "phase_age": 41})
     assert nav_b.target(np.array([-0.35, 0.0]), b_goal, [a_first])[1] == "yield"
+
+
+def test_a_parked_robot_holds_its_goal_against_one_returning_to_a_goal_whose_corridor_end_reaches_it():
+    """Close goals: the cycle that kept two robots of the shipped 32-robot swap from parking.
+    Their goals are on a ring 0.304 m apart, R + 7.7 cm with the compact footprint.  Parked a
+    few centimetres off its goal towards b's, a was inside the end of the corridor of b, which
+    was returning to its own goal; a yielded, became the returning one, displaced b in turn, and
+    the two traded places for the whole run.  A parked robot is anywhere within PARKED_RADIUS
+    of its goal and a corridor ends R + corridor_margin about the returning robot's goal, so up
+    to R + corridor_margin + PARKED_RADIUS between goals the parked robot holds its goal, and
+    b plans around it; farther, nothing changes."""
+    r = 0.1135
+    R = 2 * r
+    a_goal = np.array([0.0, 0.0])
+    u = np.array([1.0, 0.0])
+    for gap in (0.077, CORRIDOR_MARGIN + PARKED_RADIUS - 0.001):
+        b_goal = a_goal + (R + gap) * u
+        a_at = a_goal + (PARKED_RADIUS - 0.0005) * u  # still parked, nearest b's goal
+        # b returns to its goal from beyond it, its corridor ending at the goal.
+        b = NeighbourInfo("b", b_goal + 0.2 * u, r, rank=0, target=b_goal, goal=b_goal, phase=RETURNING,
+                          phase_age=40)  # fmt: skip
+        nav_a = Navigator(footprint=r, arena=(-1.0, 1.0, -1.0, 1.0), rank=5)
+        nav_a.phase, nav_a.phase_age = PARKED, 100
+        assert np.linalg.norm(a_at - b_goal) < R + nav_a.corridor_margin  # a is in the corridor's end
+        assert nav_a.target(a_at, a_goal, [b])[1] != "yield", gap
+    # A pair of goals farther apart: a parked robot in the corridor yields, as before.
+    b_goal = a_goal + (R + CORRIDOR_MARGIN + PARKED_RADIUS + 0.001) * u
+    b = NeighbourInfo(
+        "b", a_goal - 0.3 * u, r, rank=0, target=b_goal, goal=b_goal, phase=RETURNING, phase_age=40
+    )
+    nav_a = Navigator(footprint=r, arena=(-1.0, 1.0, -1.0, 1.0), rank=5)
+    nav_a.phase, nav_a.phase_age = PARKED, 100
+    assert nav_a.target(a_goal, a_goal, [b])[1] == "yield"
 
 
 def test_the_phase_age_counts_the_steps_in_a_phase_and_starts_again_when_displaced():
