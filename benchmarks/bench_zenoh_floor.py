@@ -1,18 +1,24 @@
 """The transport's floor: what a fleet's message pattern costs with no fleet code at all.
 
-    python benchmarks/bench_zenoh_floor.py [--robots 16] [--rate 25] [--seconds 20]
+    python benchmarks/bench_zenoh_floor.py [--robots 16] [--rate 25] [--seconds 20] [--cell 0]
 
 N processes (spawned), configured as ``fleet run`` configures its processes
 (``ground.net.NetConfig``: peer mode, multicast scouting off, the first listening on a
 loopback port, the others connecting to it and finding each other by gossip, a full mesh;
 or ``--topology star``: the first a router, the others its clients).  Each publishes one
-978-byte payload (a plan's size at N = 20) on ``floor/plan/<i>`` ``--rate`` times a second and
-subscribes to ``floor/plan/*``, as an agent in the mesh does.  How a process takes the samples:
+978-byte payload (a plan's size at N = 20) ``--rate`` times a second and subscribes to every
+other's, as an agent in the mesh does.  How a process takes the samples:
 
 * ``callback``: a Python callback that only counts (Zenoh runs it on a Python thread of its own);
 * ``decode``: the same callback decoding each payload as a :class:`ground.wire.Plan`;
 * ``drain``: no callback; the main thread takes the queued samples from a FIFO channel once
   per period (``ground.bus.Inbox.drain``'s way).
+
+With ``--cell G`` the processes stand on a ring in cells of G, as a subscription by place would
+put them: each publishes on ``floor/plan/c<cell>/r<i>`` and subscribes to its own cell and the
+two beside it (``floor/plan/c<cell>/*`` each), so it takes about 3 G − 1 plans a step instead of
+N − 1.  Without it, one cell holds everybody.  The ``plans`` column counts what a process took
+per publication of its own.
 
 The figure is the CPU of all N processes per robot-step (one publication per process), from
 ``/proc`` over a window after start-up, split into the main threads, the Python callback
@@ -24,9 +30,11 @@ messages or changing the transport.
 from __future__ import annotations
 
 import argparse
+import math
 import multiprocessing
 import os
 import platform
+import queue
 import sys
 import time
 from pathlib import Path
@@ -52,12 +60,25 @@ def _payload(i: int) -> bytes:
     ).encode()  # fmt: skip
 
 
+def cells_of(i: int, robots: int, cell: int) -> tuple[int, list[int], int]:
+    """Process ``i``'s cell, the cells it subscribes to (its own and the two beside it on the
+    ring, distinct) and how many publishers those hold, itself included.  ``cell`` 0: one cell."""
+    if cell <= 0:
+        return 0, [0], robots
+    count = -(-robots // cell)
+    mine = i // cell
+    subs = sorted({(mine + d) % count for d in (-1, 0, 1)})
+    return mine, subs, sum(min(cell, robots - c * cell) for c in subs)
+
+
 def _peer(
-    i: int, robots: int, hub: str, topology: str, mode: str, rate: float, ready: Any, go: Any, stop: Any
-) -> None:
+    i: int, robots: int, hub: str, topology: str, mode: str, rate: float, cell: int, ready: Any, go: Any,
+    stop: Any,
+) -> None:  # fmt: skip
     """One process: from ``go`` until ``stop``, publish at ``rate`` and take samples by
-    ``mode``; say on ``ready`` when its session is open, and again once it has heard every
-    one of the ``robots`` publishers (the mesh has linked up)."""
+    ``mode``; say on ``ready`` when its session is open, again once it has heard every
+    publisher of the cells it subscribes to (the mesh has linked up), and at the end how many
+    samples it took and how many it published."""
     os.environ["OMP_NUM_THREADS"] = "1"
     import zenoh
 
@@ -70,11 +91,14 @@ def _peer(
         cfg = NetConfig(listen=[loopback(0)], connect=[hub], mode="client" if topology == "star" else "peer")
     session = zenoh.open(cfg.zenoh())
     heard: set[str] = set()
+    mine, cells, expected = cells_of(i, robots, cell)
+    taken = [0]
 
     def took(key: str) -> None:
-        if len(heard) < robots:
+        taken[0] += 1
+        if len(heard) < expected:
             heard.add(key)
-            if len(heard) == robots:
+            if len(heard) == expected:
                 ready.put(("heard all", i))
 
     def count(sample: Any) -> None:
@@ -89,12 +113,16 @@ def _peer(
             pass
         took(k)
 
-    sub: Any
-    if mode == "drain":
-        sub = session.declare_subscriber("floor/plan/*", zenoh.handlers.FifoChannel(4096))
-    else:
-        sub = session.declare_subscriber("floor/plan/*", count if mode == "callback" else decoded)
-    pub = session.declare_publisher(f"floor/plan/r{i}")
+    subs: list[Any] = []
+    for c in cells:
+        if mode == "drain":
+            subs.append(session.declare_subscriber(f"floor/plan/c{c}/*", zenoh.handlers.FifoChannel(4096)))
+        else:
+            subs.append(
+                session.declare_subscriber(f"floor/plan/c{c}/*", count if mode == "callback" else decoded)
+            )
+    pub = session.declare_publisher(f"floor/plan/c{mine}/r{i}")
+    published = 0
     payload = _payload(i)
     ready.put(("open", i))
     go.wait(60)
@@ -103,17 +131,21 @@ def _peer(
         if stop.is_set():
             break
         pub.put(payload)
+        published += 1
         if mode == "drain":
-            for _ in range(4096):
-                s = sub.try_recv()
-                if s is None:
-                    break
-                s.payload.to_bytes()
-                took(str(s.key_expr))
+            for sub in subs:
+                for _ in range(4096):
+                    s = sub.try_recv()
+                    if s is None:
+                        break
+                    s.payload.to_bytes()
+                    took(str(s.key_expr))
         t_next += period
         stop.wait(max(0.0, t_next - time.monotonic()))  # the publication rate
-    sub.undeclare()
+    for sub in subs:
+        sub.undeclare()
     session.close()
+    ready.put(("took", i, taken[0], published))
 
 
 def _cpu(pids: list[int]) -> dict[str, float]:
@@ -128,14 +160,18 @@ def _cpu(pids: list[int]) -> dict[str, float]:
     return out
 
 
-def measure(robots: int, rate: float, seconds: float, mode: str, topology: str) -> dict[str, Any]:
+def measure(
+    robots: int, rate: float, seconds: float, mode: str, topology: str, cell: int = 0
+) -> dict[str, Any]:
     from ground.net import free_port, loopback
 
     ctx = multiprocessing.get_context("spawn")
     ready, go, stop = ctx.Queue(), ctx.Event(), ctx.Event()
     hub = loopback(free_port())
     procs = [
-        ctx.Process(target=_peer, args=(i, robots, hub, topology, mode, rate, ready, go, stop), daemon=True)
+        ctx.Process(
+            target=_peer, args=(i, robots, hub, topology, mode, rate, cell, ready, go, stop), daemon=True
+        )
         for i in range(robots)
     ]
     try:
@@ -154,6 +190,14 @@ def measure(robots: int, rate: float, seconds: float, mode: str, topology: str) 
         b, t1 = _cpu(pids), time.monotonic()
     finally:
         stop.set()
+        took: list[float] = []
+        for _ in procs:
+            try:
+                msg = ready.get(timeout=30)
+            except queue.Empty:
+                break
+            if msg[0] == "took" and msg[3] > 0:
+                took.append(msg[2] / msg[3])
         for p in procs:
             p.join(timeout=30)
             if p.is_alive():
@@ -161,7 +205,10 @@ def measure(robots: int, rate: float, seconds: float, mode: str, topology: str) 
     robot_steps = robots * rate * (t1 - t0)
     split = {k: 1e3 * (b[k] - a.get(k, 0.0)) / robot_steps for k in b}
     total = sum(split.values())
-    return {"mode": mode, "topology": topology, "ms_per_robot_step": total, "by_thread_ms": split}
+    return {
+        "mode": mode, "topology": topology, "cell": cell, "ms_per_robot_step": total, "by_thread_ms": split,
+        "plans_per_step": sum(took) / len(took) if len(took) == robots else math.nan,
+    }  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -171,15 +218,39 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--topology", choices=["mesh", "star"], default="mesh")
     ap.add_argument("--modes", default=",".join(MODES))
+    ap.add_argument("--cell", default="0", help="comma-separated cell sizes G, side by side (0: one cell)")
+    ap.add_argument("--runs", type=int, default=1, help="runs of every row, interleaved")
     args = ap.parse_args(argv)
+    modes = args.modes.split(",")
+    try:
+        cells = [int(c) for c in args.cell.split(",")]
+    except ValueError:
+        cells = [-1]
+    problem = next(
+        (f"--modes: {m!r} is not one of {', '.join(MODES)}" for m in modes if m not in MODES), None
+    )
+    if problem is None and (args.robots < 2 or args.rate <= 0 or args.seconds < 1 or args.runs < 1):
+        problem = (
+            "--robots, --rate, --seconds, --runs: need at least 2 robots, a positive rate, 1 s and 1 run"
+        )
+    if problem is None and not all(c >= 0 for c in cells):
+        problem = f"--cell: {args.cell!r} is not a comma-separated list of cell sizes (0 or more robots)"
+    if problem is not None:
+        print(f"bench_zenoh_floor: error: {problem}", file=sys.stderr)
+        return 2
     print(f"transport floor: {args.robots} processes, {args.topology}, {args.rate:g} publications/s each, "
           f"{args.seconds:g} s; nproc {os.cpu_count()}, {platform.processor() or platform.machine()}, "
           f"python {platform.python_version()}, load {os.getloadavg()[0]:.1f}", flush=True)  # fmt: skip
-    print(f"{'mode':<10} {'ms/robot-step':>13}  split", flush=True)
-    for mode in args.modes.split(","):
-        r = measure(args.robots, args.rate, args.seconds, mode, args.topology)
-        parts = ", ".join(f"{k} {v:.2f}" for k, v in sorted(r["by_thread_ms"].items(), key=lambda kv: -kv[1]))
-        print(f"{mode:<10} {r['ms_per_robot_step']:>13.2f}  {parts}", flush=True)
+    print(f"{'mode':<10}{'cell':>5}{'plans':>7} {'ms/robot-step':>13}  split", flush=True)
+    for _ in range(args.runs):
+        for cell in cells:
+            for mode in modes:
+                r = measure(args.robots, args.rate, args.seconds, mode, args.topology, cell)
+                parts = ", ".join(
+                    f"{k} {v:.2f}" for k, v in sorted(r["by_thread_ms"].items(), key=lambda kv: -kv[1])
+                )
+                row = f"{mode:<10}{cell:>5}{r['plans_per_step']:>7.1f} {r['ms_per_robot_step']:>13.2f}"
+                print(f"{row}  {parts}", flush=True)
     return 0
 
 

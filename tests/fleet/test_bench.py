@@ -505,12 +505,19 @@ def test_latency_floor_times_every_command_of_its_window():
 
 
 @pytest.mark.parametrize(
-    ("args", "field"), [(["--orders", "echo,nope"], "--orders"), (["--seconds", "0.5"], "--seconds"),
-                        (["--runs", "0"], "--runs")],
+    ("script", "args", "field"),
+    [("bench_latency_floor.py", ["--orders", "echo,nope"], "--orders"),
+     ("bench_latency_floor.py", ["--seconds", "0.5"], "--seconds"),
+     ("bench_latency_floor.py", ["--runs", "0"], "--runs"),
+     ("bench_reach.py", ["--reach", "0.3,-1"], "--reach"), ("bench_reach.py", ["--reach", "far"], "--reach"),
+     ("bench_reach.py", ["--scenarios", "nope.toml"], "--scenarios"),
+     ("bench_reach.py", ["--jobs", "0"], "--jobs"), ("bench_zenoh_floor.py", ["--cell", "0,-4"], "--cell"),
+     ("bench_zenoh_floor.py", ["--modes", "nope"], "--modes"),
+     ("bench_zenoh_floor.py", ["--robots", "1"], "--robots")],
 )  # fmt: skip
-def test_latency_floor_refuses_bad_input_in_one_line(args: list[str], field: str) -> None:
+def test_floor_benches_refuse_bad_input_in_one_line(script: str, args: list[str], field: str) -> None:
     res = subprocess.run(
-        [sys.executable, "benchmarks/bench_latency_floor.py", *args],
+        [sys.executable, f"benchmarks/{script}", *args],
         cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert res.returncode == 2 and res.stdout == ""
@@ -555,3 +562,64 @@ def test_the_sized_zenoh_runtime_keeps_a_router_forwarding(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["completed"] and summary["all_goals_reached"] and summary["collisions"] == 0, summary
     assert summary["network"]["topology"] == "star"
+
+
+def _rows(stdout: str, first: str) -> list[list[str]]:
+    """The table rows of a benchmark's output: the lines after the header line that starts with
+    ``first``, split on blanks."""
+    lines = stdout.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.split()[:1] == [first]) + 1
+    return [line.split() for line in lines[start:] if line.strip()]
+
+
+_REACH_COLUMNS = (
+    "scenario", "D", "known", "p99", "share", "rows", "steps", "cpu", "reached", "coll", "min_ref", "need",
+)  # fmt: skip
+"""The columns of ``bench_reach.py``'s table."""
+
+
+def test_reach_bench_keeps_the_references_apart_with_only_the_robots_the_split_rule_needs():
+    """``benchmarks/bench_reach.py`` shows each agent of ``fleet simulate`` only the robots whose
+    committed point is within a reach D of its own.  At D = 2 r + √2·ε·1.01 / s (s = ½, equal
+    priorities) every row the split rule would add against a robot left out is implied by the
+    ε box (:func:`agent.coordination.split_halfplanes`), so the references stay 2 r apart, as
+    with every robot known: the safety a subscription by place relies on.  The agents are
+    given fewer neighbours than n − 1, and with D = inf exactly n − 1."""
+    from agent.tube import synthesize
+    from ground.scenario import load_scenario
+
+    scenario = load_scenario(ROOT / "scenarios" / "swap_4.toml")
+    design = synthesize(scenario.controller, scenario.arena)
+    reach = 2 * design.footprint + math.sqrt(2) * design.params.epsilon * 1.01 / 0.5 + 1e-6
+    res = subprocess.run(
+        [sys.executable, "benchmarks/bench_reach.py", "--scenarios", "scenarios/swap_4.toml",
+         "--reach", f"{reach:.9f},inf", "--jobs", "2"],
+        cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr[-2000:]
+    rows = _rows(res.stdout, "scenario")
+    assert [r[0] for r in rows] == ["swap_4", "swap_4"], res.stdout
+    near, every = (dict(zip(_REACH_COLUMNS, r, strict=True)) for r in rows)
+    assert float(every["known"]) == 3 and float(every["share"]) == 1.0, res.stdout
+    assert float(near["known"]) < 3 * 0.9, res.stdout  # some robots were out of reach
+    for r in (near, every):
+        assert int(r["coll"]) == 0 and float(r["min_ref"]) >= float(r["need"]) - 1e-3, res.stdout
+        assert r["reached"] == "True", res.stdout
+
+
+def test_zenoh_floor_delivers_only_the_cells_a_process_subscribes_to():
+    """``benchmarks/bench_zenoh_floor.py --cell``: ten peers on a ring in cells of two, each
+    subscribing to its own cell and the two beside it, take six plans per publication of their
+    own (their own included); in one cell, all ten.  Counted by the processes themselves, so
+    this is Zenoh's key filtering seen from outside, not the bench's arithmetic."""
+    res = subprocess.run(
+        [sys.executable, "benchmarks/bench_zenoh_floor.py", "--robots", "10", "--cell", "0,2",
+         "--modes", "callback", "--seconds", "1"],
+        cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr[-2000:]
+    rows = _rows(res.stdout, "mode")
+    plans = {int(r[1]): float(r[2]) for r in rows}
+    assert set(plans) == {0, 2}, res.stdout
+    # A peer that linked up late misses a few of the first puts, never gets more than it subscribed to.
+    assert 9.0 <= plans[0] <= 10.0 and 5.4 <= plans[2] <= 6.0, res.stdout
