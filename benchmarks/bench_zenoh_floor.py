@@ -16,8 +16,8 @@ other's, as an agent in the mesh does.  How a process takes the samples:
 
 With ``--cell G`` the processes stand on a ring in cells of G, as a subscription by place would
 put them: each publishes on ``floor/plan/c<cell>/r<i>`` and subscribes to its own cell and the
-two beside it (``floor/plan/c<cell>/*`` each), so it takes about 3 G − 1 plans a step instead of
-N − 1.  Without it, one cell holds everybody.  The ``plans`` column counts what a process took
+two beside it (``floor/plan/c<cell>/*`` each), so it takes 3 G plans a step (its own among
+them) instead of N.  Without it, one cell holds everybody.  The ``plans`` column counts what a process took
 per publication of its own.
 
 The figure is the CPU of all N processes per robot-step (one publication per process), from
@@ -226,15 +226,16 @@ def main(argv: list[str] | None = None) -> int:
         cells = [int(c) for c in args.cell.split(",")]
     except ValueError:
         cells = [-1]
-    problem = next(
-        (f"--modes: {m!r} is not one of {', '.join(MODES)}" for m in modes if m not in MODES), None
-    )
-    if problem is None and (args.robots < 2 or args.rate <= 0 or args.seconds < 1 or args.runs < 1):
-        problem = (
-            "--robots, --rate, --seconds, --runs: need at least 2 robots, a positive rate, 1 s and 1 run"
-        )
-    if problem is None and not all(c >= 0 for c in cells):
-        problem = f"--cell: {args.cell!r} is not a comma-separated list of cell sizes (0 or more robots)"
+    checks = [
+        *((f"--modes: {m!r} is not one of {', '.join(MODES)}", m not in MODES) for m in modes),
+        ("--robots: at least 2 processes", args.robots < 2),
+        ("--rate: a finite rate, at least 1/600 a second", not 1 / 600 <= args.rate < math.inf),
+        ("--seconds: a finite window of at least 1 s", not 1 <= args.seconds < math.inf),
+        ("--runs: at least 1", args.runs < 1),
+        (f"--cell: {args.cell!r} is not a comma-separated list of cell sizes (0 or more robots)",
+         not all(c >= 0 for c in cells)),
+    ]  # fmt: skip
+    problem = next((why for why, bad in checks if bad), None)
     if problem is not None:
         print(f"bench_zenoh_floor: error: {problem}", file=sys.stderr)
         return 2

@@ -513,7 +513,12 @@ def test_latency_floor_times_every_command_of_its_window():
      ("bench_reach.py", ["--scenarios", "nope.toml"], "--scenarios"),
      ("bench_reach.py", ["--jobs", "0"], "--jobs"), ("bench_zenoh_floor.py", ["--cell", "0,-4"], "--cell"),
      ("bench_zenoh_floor.py", ["--modes", "nope"], "--modes"),
-     ("bench_zenoh_floor.py", ["--robots", "1"], "--robots")],
+     ("bench_zenoh_floor.py", ["--robots", "1"], "--robots"),
+     ("bench_zenoh_floor.py", ["--seconds", "nan"], "--seconds"),
+     ("bench_zenoh_floor.py", ["--seconds", "inf"], "--seconds"),
+     ("bench_zenoh_floor.py", ["--rate", "inf"], "--rate"),
+     ("bench_zenoh_floor.py", ["--rate", "0.001"], "--rate"),
+     ("bench_zenoh_floor.py", ["--runs", "0"], "--runs")],
 )  # fmt: skip
 def test_floor_benches_refuse_bad_input_in_one_line(script: str, args: list[str], field: str) -> None:
     res = subprocess.run(
