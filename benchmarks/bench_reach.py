@@ -1,6 +1,7 @@
 """How many plans an agent needs, and what the fleet does if it gets only those.
 
-    python benchmarks/bench_reach.py [--scenarios scenarios/swap_16.toml,...] [--reach 0.3,0.6,inf]
+    python benchmarks/bench_reach.py [--scenarios scenarios/swap_16.toml,...] [--reach 0.3,inf]
+        [--cell 0.3] [--jobs 2]
 
 In the peer mesh every agent takes every other agent's plan every step, so a fleet of n robots
 moves n (n − 1) plans a step and an agent's CPU per step grows with n (docs/performance.md).
@@ -24,6 +25,9 @@ It runs ``fleet simulate`` (one process, the scenario's seed) once per reach, wi
 * ``known``: neighbours an agent was given per step (mean and p99), and the mean as a share of
   n − 1.  That share is the least part of the mesh's plan messages a subscription of that reach
   would deliver (cells deliver more);
+* ``cells``: the other robots an agent would take with a subscription by place of square cells
+  of side ``--cell`` (its own cell and the eight around it), per step (mean), and as a share
+  of n − 1: what Zenoh would deliver, counted over every robot whichever D the run uses;
 * ``rows``: split-rule rows per agent-step, what the QP used;
 * ``cpu``: the run's CPU per robot-step [ms] (the process's: agents, plants and judge), the
   cost of the math alone at that reach;
@@ -53,11 +57,16 @@ sys.path.insert(0, str(ROOT))
 SCENARIOS = ("swap_16", "swap_32", "swap_48")
 REACH = (0.3, 0.45, 0.6, 0.9, math.inf)
 """Reaches D [m] tried by default; inf is every robot."""
+CELL = 0.3
+"""Side of the square cells a subscription by place is counted for [m] (``--cell``)."""
 
 
-def run_one(scenario_path: str, reach: float) -> dict[str, Any]:
+def run_one(scenario_path: str, reach: float, cell: float = CELL) -> dict[str, Any]:
     """``fleet simulate`` of the scenario with every agent shown only the robots whose last
-    committed point is within ``reach`` [m] of its own; the counts and the judge's figures."""
+    committed point is within ``reach`` [m] of its own; the counts and the judge's figures.
+    ``cell`` [m]: also count, of every other robot, those whose committed point lies in the
+    3 × 3 block of square cells of that side around the agent's own (world frame, cells
+    aligned on the origin)."""
     os.environ["OMP_NUM_THREADS"] = "1"
     import numpy as np
 
@@ -66,6 +75,7 @@ def run_one(scenario_path: str, reach: float) -> dict[str, Any]:
     from ground.scenario import load_scenario
 
     known: list[int] = []
+    in_cells: list[int] = []
     rows: list[int] = []
     step, split = controller.TubeMPC.step, controller.split_halfplanes
 
@@ -73,6 +83,10 @@ def run_one(scenario_path: str, reach: float) -> dict[str, Any]:
         c = self.last_point
         near = [nb for nb in neighbours if math.hypot(*(nb.last_point - c)) <= reach]
         known.append(len(near))
+        if neighbours:
+            mine = np.floor(c / cell)
+            theirs = np.floor(np.array([nb.last_point for nb in neighbours]) / cell)
+            in_cells.append(int(np.sum(np.all(np.abs(theirs - mine) <= 1, axis=1))))
         return step(self, x, near, hazards, predicted)
 
     def counted(*args: Any, **kwargs: Any) -> Any:
@@ -99,6 +113,9 @@ def run_one(scenario_path: str, reach: float) -> dict[str, Any]:
         "known_mean": float(kn.mean()),
         "known_p99": float(np.percentile(kn, 99)),
         "known_share": float(kn.mean() / (n - 1)),
+        "cell_m": cell,
+        "cells_mean": float(np.mean(in_cells)),
+        "cells_share": float(np.mean(in_cells) / (n - 1)),
         "rows_mean": float(np.mean(rows)),
         "steps": result.steps,
         "cpu_ms_per_robot_step": 1e3 * cpu / (n * result.steps),
@@ -110,7 +127,7 @@ def run_one(scenario_path: str, reach: float) -> dict[str, Any]:
     }
 
 
-def _run(job: tuple[str, float]) -> dict[str, Any]:
+def _run(job: tuple[str, float, float]) -> dict[str, Any]:
     return run_one(*job)
 
 
@@ -124,6 +141,8 @@ def _problem(args: argparse.Namespace) -> str | None:
         return "--reach: every reach must be a positive distance [m] (or inf)"
     if args.jobs < 1:
         return "--jobs: must be at least 1"
+    if not 0 < args.cell < math.inf:
+        return "--cell: the side of a cell must be a positive, finite distance [m]"
     from ground.scenario import ConfigError, load_scenario
 
     for path in args.scenarios.split(","):
@@ -146,13 +165,14 @@ def main(argv: list[str] | None = None) -> int:
         "--reach", default=",".join(f"{r:g}" for r in REACH), help="comma-separated reaches D [m]"
     )
     ap.add_argument("--jobs", type=int, default=2, help="runs at once (each one process)")
+    ap.add_argument("--cell", type=float, default=CELL, help="side of the counted cells [m]")
     args = ap.parse_args(argv)
     problem = _problem(args)
     if problem is not None:
         print(f"bench_reach: error: {problem}", file=sys.stderr)
         return 2
     reaches = [float(r) for r in args.reach.split(",")]
-    jobs = [(path, d) for path in args.scenarios.split(",") for d in reaches]
+    jobs = [(path, d, args.cell) for path in args.scenarios.split(",") for d in reaches]
     print(
         f"plans an agent needs: {len(jobs)} runs of fleet simulate; nproc {os.cpu_count()}, "
         f"{platform.processor() or platform.machine()}, python {platform.python_version()}, "
@@ -160,15 +180,16 @@ def main(argv: list[str] | None = None) -> int:
         flush=True,
     )
     print(
-        f"{'scenario':<10}{'D m':>6}{'known':>7}{'p99':>5}{'share':>7}{'rows':>6}{'steps':>7}"
-        f"{'cpu ms':>7}{'reached':>8}{'coll':>5}{'min ref':>8}{'need':>6}",
+        f"{'scenario':<10}{'D m':>6}{'known':>7}{'p99':>5}{'share':>7}{'cells':>7}{'share':>7}{'rows':>6}"
+        f"{'steps':>7}{'cpu ms':>7}{'reached':>8}{'coll':>5}{'min ref':>8}{'need':>6}",
         flush=True,
     )
     with multiprocessing.get_context("spawn").Pool(min(args.jobs, len(jobs))) as pool:
         for r in pool.imap(_run, jobs):  # in order, each as soon as it is done
             print(
                 f"{r['scenario']:<10}{r['reach_m']:>6g}{r['known_mean']:>7.1f}{r['known_p99']:>5.0f}"
-                f"{r['known_share']:>7.2f}{r['rows_mean']:>6.2f}{r['steps']:>7}"
+                f"{r['known_share']:>7.2f}{r['cells_mean']:>7.1f}{r['cells_share']:>7.2f}"
+                f"{r['rows_mean']:>6.2f}{r['steps']:>7}"
                 f"{r['cpu_ms_per_robot_step']:>7.2f}{r['all_reached']!s:>8}"
                 f"{r['collisions']:>5}{r['min_ref_m']:>8.3f}{r['required_ref_m']:>6.3f}",
                 flush=True,

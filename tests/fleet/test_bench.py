@@ -511,7 +511,8 @@ def test_latency_floor_times_every_command_of_its_window():
      ("bench_latency_floor.py", ["--runs", "0"], "--runs"),
      ("bench_reach.py", ["--reach", "0.3,-1"], "--reach"), ("bench_reach.py", ["--reach", "far"], "--reach"),
      ("bench_reach.py", ["--scenarios", "nope.toml"], "--scenarios"),
-     ("bench_reach.py", ["--jobs", "0"], "--jobs"), ("bench_zenoh_floor.py", ["--cell", "0,-4"], "--cell"),
+     ("bench_reach.py", ["--jobs", "0"], "--jobs"), ("bench_reach.py", ["--cell", "0"], "--cell"),
+     ("bench_zenoh_floor.py", ["--cell", "0,-4"], "--cell"),
      ("bench_zenoh_floor.py", ["--modes", "nope"], "--modes"),
      ("bench_zenoh_floor.py", ["--robots", "1"], "--robots"),
      ("bench_zenoh_floor.py", ["--seconds", "nan"], "--seconds"),
@@ -578,7 +579,8 @@ def _rows(stdout: str, first: str) -> list[list[str]]:
 
 
 _REACH_COLUMNS = (
-    "scenario", "D", "known", "p99", "share", "rows", "steps", "cpu", "reached", "coll", "min_ref", "need",
+    "scenario", "D", "known", "p99", "share", "cells", "cells_share", "rows", "steps", "cpu", "reached",
+    "coll", "min_ref", "need",
 )  # fmt: skip
 """The columns of ``bench_reach.py``'s table."""
 
@@ -589,7 +591,8 @@ def test_reach_bench_keeps_the_references_apart_with_only_the_robots_the_split_r
     priorities) every row the split rule would add against a robot left out is implied by the
     ε box (:func:`agent.coordination.split_halfplanes`), so the references stay 2 r apart, as
     with every robot known: the safety a subscription by place relies on.  The agents are
-    given fewer neighbours than n − 1, and with D = inf exactly n − 1."""
+    given fewer neighbours than n − 1, and with D = inf exactly n − 1.  Cells of side D count
+    at least the robots within D, and fewer than all."""
     from agent.tube import synthesize
     from ground.scenario import load_scenario
 
@@ -598,7 +601,7 @@ def test_reach_bench_keeps_the_references_apart_with_only_the_robots_the_split_r
     reach = 2 * design.footprint + math.sqrt(2) * design.params.epsilon * 1.01 / 0.5 + 1e-6
     res = subprocess.run(
         [sys.executable, "benchmarks/bench_reach.py", "--scenarios", "scenarios/swap_4.toml",
-         "--reach", f"{reach:.9f},inf", "--jobs", "2"],
+         "--reach", f"{reach:.9f},inf", "--cell", f"{reach:.9f}", "--jobs", "2"],
         cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert res.returncode == 0, res.stderr[-2000:]
@@ -607,6 +610,9 @@ def test_reach_bench_keeps_the_references_apart_with_only_the_robots_the_split_r
     near, every = (dict(zip(_REACH_COLUMNS, r, strict=True)) for r in rows)
     assert float(every["known"]) == 3 and float(every["share"]) == 1.0, res.stdout
     assert float(near["known"]) < 3 * 0.9, res.stdout  # some robots were out of reach
+    # Square cells of side D, the agent's and the eight around it, hold the disc of radius D
+    # about its point: a subscription by place of that size delivers every plan within D.
+    assert float(near["known"]) <= float(near["cells"]) < 3, res.stdout
     for r in (near, every):
         assert int(r["coll"]) == 0 and float(r["min_ref"]) >= float(r["need"]) - 1e-3, res.stdout
         assert r["reached"] == "True", res.stdout
