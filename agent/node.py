@@ -136,7 +136,9 @@ class Agent:
         the plan was made, or while it drained the pose and odometry itself."""
         self.by_callback = 0
         """Of those, the commands put by a Zenoh callback."""
-        self.link = _Link(args, self.keys, me, self.role, self._answer if self.dc else None)
+        self.link = _Link(
+            args, self.keys, me, self.role, self._answer if self.dc else None, tracked=spec.link == "sim"
+        )
         self.inbox = self.link.inbox
         self.others = [r for r in ids if r != me]
         self.starts = {
@@ -571,10 +573,13 @@ class _Link:
     """The agent's side of Zenoh: session, subscriptions, publishers, liveliness token."""
 
     def __init__(
-        self, args: argparse.Namespace, keys: Keys, me: str, role: str, on_input: Any = None
-    ) -> None:
+        self, args: argparse.Namespace, keys: Keys, me: str, role: str, on_input: Any = None,
+        tracked: bool = True,
+    ) -> None:  # fmt: skip
         """``on_input``: called with each tick, pose and odometry of this robot stored (a Zenoh
-        thread, or the draining thread; the inbox's lock held), or None."""
+        thread, or the draining thread; the inbox's lock held), or None.  ``tracked``: the
+        odometry comes from the tracker (a simulated robot), not from the robot's
+        ``epuck_link``."""
         self.session = open_session(args)
         self.inbox = inbox = Inbox(keys, role, fault_plan(args))
         # Realtime: the tracker sends this robot's pose and odometry just before the tick,
@@ -585,12 +590,16 @@ class _Link:
         # step k − 1 comes half a step before tick k, once the tracker has the commands of
         # k − 1, and is decoded by callback then, while the cores are idle
         # (docs/design.md, "Relayed plans").
+        # The odometry of a robot on an epuck_link comes from the link, once it has the pose: it
+        # is taken by callback, which answers the tick if it is the last in.
         drained = self.drained = args.clock == "realtime" and (
             args.exchange == "relay" or bool(args.delay_compensation)
         )
         self.subs = [
             inbox.subscribe(self.session, keys.pose(me), Pose, keep=True, drained=drained, then=on_input),
-            inbox.subscribe(self.session, keys.odom(me), Odom, keep=True, drained=drained, then=on_input),
+            inbox.subscribe(
+                self.session, keys.odom(me), Odom, keep=True, drained=drained and tracked, then=on_input
+            ),
             # The neighbours' plans: each on its own key (mesh), or a step's plans at once in
             # the tracker's digest (relay: one message a step).
             inbox.subscribe(self.session, keys.digest, Digest, keep=True)

@@ -30,14 +30,17 @@ Deadline (docs/design.md, "Missed deadlines"): step k starts when the
 link receives tick k on ``fleet/F/clock``, and its command must come within
 ``--deadline``·Ts (0.5 by default, as for simulated robots).  Without it, the
 link follows the shifted candidate of the last command it applied, with the
-ancillary law ``u = v̂ + K(x − x̂)`` on the state it measured at the tick, or
-stops the wheels when there is nothing left to follow or the agent is silent or
-dead (:class:`epuck_link.robot_side.LinkDeadline`).  A command that comes after its
+ancillary law ``u = v̂ + K(x − x̂)`` on the state of the step (the camera pose of
+seq k with the odometry sent for it, the agent's own measurement to the bit; the
+estimate at the tick while that pose has not come), or stops the wheels when there
+is nothing left to follow or the agent is silent or dead
+(:class:`epuck_link.robot_side.LinkDeadline`).  A command that comes after its
 deadline is not applied.  At each decision the link publishes an
 :class:`~ground.wire.Applied` report on ``fleet/F/applied/R``; the tracker puts it
-in the next tick, so the agent takes the same candidate and its neighbours skip
-the plan that was never executed.  Until the first tick (no clock on the
-network) commands are applied as they come.
+in the next tick (with ``--delay-compensation``, in the step's outcome first), so
+the agent takes the same candidate and its neighbours skip the plan that was never
+executed.  Until the first tick (no clock on the network) commands are applied as
+they come.
 
 Watchdog: without a command fresher than ``--watchdog`` seconds, or once the
 agent's liveliness token ``fleet/F/alive/R`` is gone, the wheels get zero speed
@@ -85,6 +88,9 @@ from ground.geometry import measured_state
 from ground.process import add_common_args, announce, fault_plan, log
 from ground.scenario import ConfigError, RobotSpec, Scenario, load_scenario
 from ground.wire import Command, Keys, LinkState, Odom, Pose, Tick
+
+MEASURED_KEPT = 4
+"""Camera poses whose measured state is kept for the deadline's rule (:attr:`Link.measured`)."""
 
 _OFF = {
     CANDIDATE: "following the shifted candidate of the last command applied",
@@ -209,6 +215,9 @@ class Link:
         """The first step planned from where the robot stands after the last outage (−1: none)."""
         self.camera: Pose | None = None
         """The newest camera pose."""
+        self.measured: dict[int, np.ndarray] = {}
+        """The state each recent camera pose gave with the odometry sent for it, by its seq
+        (4,) [px, vx, py, vy] in m, m/s, world frame: what the agent measured at that step."""
         self.tick_step = -1
         """The newest tick received (−1 before the first)."""
         self.truth = None
@@ -316,6 +325,13 @@ class Link:
             vx, vy = drive.velocity()
             self.pub_odom.put(Odom(robot=me, seq=pose.seq, t=pose.t, vx=vx, vy=vy).encode())
             self.odoms += 1
+            # The agent's measurement of this step, to the bit: the candidate's ancillary law
+            # uses it, so that an agent planning a step ahead predicts the input applied.
+            x = measured_state((pose.x, pose.y, pose.theta), (vx, vy), self.p.lookahead)
+            self.measured[pose.seq] = x
+            judge.measured(pose.seq, x)
+        while len(self.measured) > MEASURED_KEPT:
+            del self.measured[next(iter(self.measured))]  # the oldest
         decisions = []
         if tick is not self.seen_tick and tick is not None:
             self.seen_tick, self.tick_step = tick, tick.step
@@ -323,8 +339,11 @@ class Link:
             self._announce_link()
             inbox.release(tick.step)  # messages the fault plan delays
             inbox.prune(tick.step - 2)
-            if not tick.stop:  # the state at the tick: the camera pose of this step, and q
-                x_k = measured_state(drive.pose, drive.velocity(), self.p.lookahead)
+            if not tick.stop:  # the state of step k: its camera pose and the odometry sent with it,
+                # or without that pose (yet), the estimate at the tick
+                x_k = self.measured.get(tick.step)
+                if x_k is None:
+                    x_k = measured_state(drive.pose, drive.velocity(), self.p.lookahead)
                 decisions += judge.tick(tick.step, tick_at, x_k, cmd, live)
                 self._hold_extended()
         if cmd is not self.seen_cmd and cmd is not None:

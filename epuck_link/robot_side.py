@@ -123,7 +123,8 @@ class LinkDeadline:
         self.hold_until = -1
         """No command of this step or an earlier one is applied (after a late brake)."""
         self.x: np.ndarray | None = None
-        """The state measured at the tick (4,) [px, vx, py, vy] in m, m/s, world frame."""
+        """The state measured at step ``step`` (4,) [px, vx, py, vy] in m, m/s, world frame: the
+        agent's measurement (:meth:`measured`), or the estimate at the tick without it."""
 
     def relinked(self) -> int:
         """The link to the robot came back after an outage: the robot was uncontrolled, off its
@@ -136,6 +137,13 @@ class LinkDeadline:
             return 0
         self.hold_until = max(self.hold_until, self.step + 1)
         return self.hold_until + 1
+
+    def measured(self, k: int, x: np.ndarray) -> None:
+        """The state ``x`` (4,) [m, m/s] measured at step k (its camera pose, and the odometry
+        sent with it): if step k is undecided, its candidate is followed from it, not from the
+        estimate taken at the tick (the pose came after the tick)."""
+        if self.step == k and not self.decided:
+            self.x = x
 
     @property
     def wake_at(self) -> float:

@@ -206,8 +206,6 @@ def cmd_run(args: argparse.Namespace) -> int:
     clock = args.clock or ("realtime" if emulated else "lockstep")
     if emulated and clock != "realtime":
         return _bad("--clock: emulated robots move in wall time; use --clock realtime")
-    if args.delay_compensation and emulated:
-        return _bad("--delay-compensation: simulated robots only (the robots' links are emulators)")
     if args.delay_compensation and any(r.waypoints for r in scn.robots):
         return _bad("--delay-compensation: scenarios with missions run through the script API, without it")
     out = Path(args.out) if args.out else Path("out") / scn.name
@@ -440,7 +438,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--delay-compensation", action="store_true",
         help="plan a step ahead: each agent makes its plan of the next step during this one, and at "
         "the tick only applies it to its measurement, so no solve lies between a pose and its "
-        "command (simulated robots; docs/design.md, \"Delay compensation\")",
+        "command (docs/design.md, \"Delay compensation\")",
     )  # fmt: skip
     r.add_argument(
         "--start-agents", choices=STARTS, default=STARTS[0],

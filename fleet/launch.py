@@ -429,9 +429,7 @@ def start_fleet(
     hub, the router.  ``fork``: fork the agents from a fork server that imported their code once
     (:mod:`fleet.forkserver`) rather than start each as a new interpreter; None: as
     :data:`STARTS` says (on Linux).  ``delay_compensation``: every agent plans a step ahead
-    (simulated robots only; docs/design.md, "Delay compensation")."""
-    if delay_compensation and any((links or {}).get(r, "sim") == "emulator" for r in robots):
-        raise ValueError("delay_compensation: simulated robots only")
+    (docs/design.md, "Delay compensation")."""
     if ros_listen is not None and topology == "star":
         raise ValueError("ros_listen: in the star topology ROS 2 tools connect to the hub (the router)")
     if topology not in TOPOLOGIES:

@@ -89,7 +89,7 @@ def add_common_args(ap: argparse.ArgumentParser) -> None:
         "--delay-compensation", action="store_true",
         help="plan a step ahead: each agent makes its plan of step k + 1 during step k, from the "
         "prediction, and at tick k + 1 only applies the ancillary law to its measurement "
-        "(docs/design.md, \"Delay compensation\"; simulated robots)",
+        "(docs/design.md, \"Delay compensation\")",
     )  # fmt: skip
 
 

@@ -540,7 +540,8 @@ class Tick(_Executed, Message):
 class Outcome(_Executed, Message):
     """Tracker → agents, with delay compensation (docs/design.md, "Delay compensation"): what
     the robot sides did over step ``step``, sent as soon as it is decided (at the step's
-    deadline, or once every live agent's command is in), so that the agents make their plans
+    deadline, or once every live agent's command is in; with ``epuck_link`` robot sides, once
+    their :class:`Applied` reports of the step are in), so that the agents make their plans
     of step ``step + 1`` knowing which plans of step ``step`` are in force.  ``robot`` is the
     sender.  The next tick says the same again (:attr:`Tick.fallback`, :attr:`Tick.braked`)."""
 
@@ -711,11 +712,13 @@ class Wheels(Message):
 
 @dataclass(frozen=True)
 class Applied(Message):
-    """``epuck_link`` → tracker: what the robot side applied over step ``step``, decided at
-    that step's deadline (``--deadline``·Ts after the link received tick ``step``).
+    """``epuck_link`` → tracker: what the robot side applied over step ``step``, decided when
+    the step's command came in time, else at that step's deadline (``--deadline``·Ts after the
+    link received tick ``step``).
 
     The camera tracker, and the tracker of emulated robots, put it in the next tick
-    (:attr:`Tick.fallback`, :attr:`Tick.braked`), so that the agent takes the same
+    (:attr:`Tick.fallback`, :attr:`Tick.braked`; with delay compensation, in the step's
+    :class:`Outcome` first), so that the agent takes the same
     candidate and its neighbours skip the plan that was never executed, as with
     simulated robots (docs/design.md, "Missed deadlines")."""
 

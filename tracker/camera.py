@@ -11,7 +11,10 @@ simulated tracker's messages and keys, without Odom (on hardware ``epuck_link`` 
 odometry).  The tick's ``fallback`` and ``braked`` come from the links'
 :class:`ground.wire.Applied` reports of step k − 1 (:mod:`tracker.reports`; ``misses`` counts
 them); the same pose goes on the truth key too, as the supervisor's best ground truth on real
-robots.  Clocks:
+robots.  With ``--delay-compensation`` the :class:`ground.wire.Outcome` of step k follows tick k
+as soon as every link that reported the step before has reported step k (a link decides at once
+when its command came in time), or :data:`tracker.reports.OUTCOME_WAIT`·Ts after the links'
+``--deadline``; tick k + 1 says the same again (docs/design.md, "Delay compensation").  Clocks:
 
 * ``--video FILE``: frame i was captured at t = i / fps [s]; step k uses the last frame with
   t ≤ k·Ts and is published at wall time k·Ts / ``--rate`` after the start.  The end of the file
@@ -51,9 +54,9 @@ from ground.bus import Inbox, open_session, publisher
 from ground.geometry import wrap_angle
 from ground.process import add_common_args, announce, log
 from ground.scenario import CameraSpec, ConfigError, Scenario, load_scenario
-from ground.wire import Applied, Keys, Pose, Tick, Truth
+from ground.wire import Applied, Keys, Outcome, Pose, Tick, Truth
 from tracker.intrinsics import Intrinsics
-from tracker.reports import REPORT_WAIT, Reports
+from tracker.reports import OUTCOME_WAIT, REPORT_WAIT, Reports
 from tracker.vision import (
     CALIBRATION_FRAMES,
     CALIBRATION_TRIES,
@@ -97,6 +100,11 @@ def main(argv: list[str] | None = None) -> int:
         "--wait-agents", action="store_true", help="wait for every agent and the supervisor first"
     )
     ap.add_argument("--start-timeout", type=float, default=60.0, help="--wait-agents: wait limit [s]")
+    ap.add_argument(
+        "--deadline", type=float, default=0.5,
+        help="--delay-compensation: the links' command deadline after the tick, as a fraction of Ts "
+        "(their --deadline): a step's outcome waits for their reports of a miss until then",
+    )  # fmt: skip
     ap.add_argument("--calibration-frames", type=int, default=CALIBRATION_FRAMES,
                     help="without camera.homography: frames averaged for the calibration")  # fmt: skip
     args = ap.parse_args(argv)
@@ -147,10 +155,8 @@ def _checked(
     """The scenario, its camera, the robots' markers, the calibration file's homography if any,
     the lens intrinsics if any, and the opened frame source; ConfigError names the bad option
     (nothing is left open)."""
-    if args.delay_compensation:
-        raise ConfigError(
-            "--delay-compensation", "simulated robots only: the links report their steps too late for it"
-        )
+    if not 0 < args.deadline < 1:
+        raise ConfigError("--deadline", f"must be in (0, 1), got {args.deadline}")
     if args.exchange == "relay":
         raise ConfigError(
             "--exchange", "relay needs the simulated tracker; the camera tracker relays no plans"
@@ -258,6 +264,8 @@ class CameraRun:
         # monitor reads it on the truth key (not express: nobody waits on it).
         self.truths = {rid: publisher(session, keys.truth(rid), express=False) for rid in ids}
         self.clock = publisher(session, keys.clock)
+        self.outcome = publisher(session, keys.outcome) if args.delay_compensation else None
+        """Delay compensation: each step's outcome, from the links' reports, as soon as they are in."""
         self.video = isinstance(source, VideoSource)
         self.limit = args.steps
         if self.limit is None and not self.video:
@@ -314,6 +322,8 @@ class CameraRun:
                     braked=braked,
                 ).encode()
             )
+            if self.outcome is not None:
+                self._outcome(k, t_start + (k + 1) * pace)
             if k % PROGRESS_EVERY == 0 and k:
                 log(ROLE, f"step {k}")
             k += 1
@@ -323,6 +333,18 @@ class CameraRun:
             why = "signal"
         log(ROLE, f"run ended at step {k} ({why}); {self.late} late steps; {self.tracker.counts.summary()}")
         return code
+
+    def _outcome(self, k: int, next_tick: float) -> None:
+        """Delay compensation: the outcome of step k (its tick just went out), once the links'
+        reports of it are in, or :data:`~tracker.reports.OUTCOME_WAIT`·Ts after their deadline,
+        and never after the next tick is due (``next_tick`` [s, time.monotonic]); tick k + 1
+        says the same again."""
+        now = time.monotonic()
+        due = min(now + (self.args.deadline + OUTCOME_WAIT) * self.Ts, next_tick)
+        fallback, braked, missed = self.reports.for_outcome(self.inbox, k, max(0.0, due - now), _log)
+        self.misses += len(missed)
+        assert self.outcome is not None
+        self.outcome.put(Outcome(robot=ROLE, step=k, fallback=fallback, braked=braked).encode())
 
     def _frame(self, k: int) -> tuple[Frame | None, str]:
         """The frame of step k (None if there is none to use) and the source's state: "ok",

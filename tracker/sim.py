@@ -33,7 +33,9 @@ token tells the agents (``--scripted``) that the clock is held, not dead.
 emulators (:mod:`epuck_link.emulator`) driven by ``epuck_link`` processes: it observes each
 emulator's true pose on ``fleet/F/emu/R`` and publishes it, with the same bounded camera noise,
 as the robot's pose and truth.  This process then moves nothing: the links apply the commands
-and report what they did (:mod:`tracker.reports`), and the odometry comes from them.
+and report what they did (:mod:`tracker.reports`), and the odometry comes from them.  With
+``--delay-compensation`` the outcome of a step says what the links reported of it, as soon as
+the reports are in (or :data:`tracker.reports.OUTCOME_WAIT`·Ts after the deadline).
 """
 
 from __future__ import annotations
@@ -55,7 +57,7 @@ from ground.geometry import measured_state
 from ground.process import add_common_args, announce, fault_plan, log, seed_arg
 from ground.scenario import ConfigError, Scenario, home, load_scenario, settle_samples
 from ground.wire import SCRIPT, Applied, Command, Digest, Keys, Odom, Outcome, Plan, Pose, Script, Tick, Truth
-from tracker.reports import REPORT_WAIT, Reports
+from tracker.reports import OUTCOME_WAIT, REPORT_WAIT, Reports
 from tracker.world import Disturbance, EmulatedWorld, PoseNoise, SimulatedWorld
 
 ROLE = "tracker"
@@ -103,11 +105,6 @@ def main(argv: list[str] | None = None) -> int:
         scn = load_scenario(args.scenario)
         if args.source == "emulator" and args.clock != "realtime":
             raise ConfigError("--clock", "the emulated robots move in wall time; use realtime")
-        if args.source == "emulator" and args.delay_compensation:
-            raise ConfigError(
-                "--delay-compensation",
-                "simulated robots only: the links of emulated robots report their steps too late for it",
-            )
         if not 0 < args.deadline <= 1 - LAG_LIMIT:
             # Beyond, the rest of the step is too short for this process's own work, and each
             # tick would go out later than the last until the clock starts over.
@@ -374,11 +371,18 @@ class SimTracker:
                     self.heard.add(r)
             return [r for r in self.ids if r in inbox.live and (k == 0 or r in self.heard)]
 
-    def _links_reported(self, k: int) -> None:
+    def _links_reported(self, k: int, sent: float | None = None) -> None:
         """The links decided step k − 1 at their own deadlines: the tick says what they did, and
-        the digest leaves out the plans they did not execute."""
-        wait = REPORT_WAIT * self.p.Ts
-        self.on_chain, self.braked_map, late = self.reports.for_tick(self.inbox, k, wait, partial(log, ROLE))
+        the digest leaves out the plans they did not execute.  With ``sent`` (delay compensation:
+        when tick k − 1 went out [s]) the step's outcome says it first, as soon as the links'
+        reports are in, and tick k says the same again (:class:`tracker.reports.Reports`)."""
+        p, reports = self.p, self.reports
+        if sent is None:
+            take = partial(reports.for_tick, self.inbox, k, REPORT_WAIT * p.Ts)
+        else:
+            due = sent + (self.args.deadline + OUTCOME_WAIT) * p.Ts
+            take = partial(reports.for_outcome, self.inbox, k - 1, max(0.0, due - time.monotonic()))
+        self.on_chain, self.braked_map, late = take(partial(log, ROLE))
         for r, done in (*self.on_chain.items(), *self.braked_map.items()):
             remember_steps(self.sides[r].unexecuted, range(done + 1, k), k)  # only the recent part is kept
         if late:
@@ -408,6 +412,8 @@ class SimTracker:
         step k + 1."""
         p, inbox = self.p, self.inbox
         assert self.outcome is not None
+        if not self.world.drives:  # emulated robots: their links decided, and report it
+            self._links_reported(k + 1, sent)
         if self.relay is not None:
             # A plan made ahead came during the step before; one made from the measurement (at
             # step 0, after a brake) follows its command at once: wait for those of the commands

@@ -292,36 +292,16 @@ def test_simulate_refuses_delay_compensation_for_missions_in_one_line(tmp_path):
     assert not out.exists()
 
 
-@pytest.mark.parametrize(
-    "scenario, why",
-    [
-        ("patrol_two.toml", "scenarios with missions run through the script API, without it"),
-        ("emulated_two_robots.toml", "simulated robots only (the robots' links are emulators)"),
-    ],
-)
-def test_fleet_run_refuses_delay_compensation_where_it_does_not_run_in_one_line(tmp_path, scenario, why):
-    """Missions (the script API runs them) and emulated robots (their links report what they
-    applied half a step too late for the outcome) are refused before anything starts."""
+def test_fleet_run_refuses_delay_compensation_for_missions_in_one_line(tmp_path):
+    """Missions (the script API runs them) are refused before anything starts."""
     out = tmp_path / "out"
-    proc = fleet("run", SCENARIOS / scenario, "--out", out, "--delay-compensation")
-    no_traceback(proc)
-    assert proc.returncode == 2
-    assert proc.stderr.strip().splitlines() == [f"fleet: error: --delay-compensation: {why}"]
-    assert not out.exists()
-
-
-def test_the_emulator_tracker_refuses_delay_compensation_in_one_line():
-    proc = subprocess.run(
-        [sys.executable, "-m", "tracker", "--scenario", str(SCENARIOS / "emulated_two_robots.toml"),
-         "--source", "emulator", "--clock", "realtime", "--delay-compensation"],
-        cwd=ROOT, capture_output=True, text=True, timeout=60,
-    )  # fmt: skip
+    proc = fleet("run", SCENARIOS / "patrol_two.toml", "--out", out, "--delay-compensation")
     no_traceback(proc)
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == [
-        "tracker: error: --delay-compensation: simulated robots only: the links of emulated robots "
-        "report their steps too late for it"
+        "fleet: error: --delay-compensation: scenarios with missions run through the script API, without it"
     ]
+    assert not out.exists()
 
 
 def test_simulate_too_short_fails_and_names_robots(tmp_path):

@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 import zlib
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -337,16 +338,27 @@ def test_epuck_link_takes_the_command_only_by_its_deadline():
     assert judge.command(cmd(17), 11.31, True)[0] == COMMAND
     judge.tick(18, 11.4, x5, cmd(17), False)
     assert judge.expire(11.5, cmd(17), False)[0] == BRAKED
+    # The camera pose of step 5 came after its tick: the candidate follows from that
+    # measurement (the agent's own, from which an agent planning ahead predicts the input
+    # applied), not from the estimate at the tick; a measurement of another step, or one after
+    # the decision, changes nothing.
+    judge = LinkDeadline("r1", design.params, watchdog=0.5, deadline=0.05)
+    judge.tick(4, 10.0, x4, cmd(4), True)
+    judge.tick(5, 10.1, x4, cmd(4), True)
+    judge.measured(4, x4 + 1.0)
+    judge.measured(5, x5)
+    what, a, _ = judge.expire(10.16, cmd(4), True)
+    assert what == CANDIDATE and np.array_equal(a, chain_input(np.zeros(4), v_next, 0, x5, A, B, K))
+    assert not np.array_equal(a, chain_input(np.zeros(4), v_next, 0, x4, A, B, K))
+    judge.measured(5, x4)
+    assert judge.x is x5
 
 
-def test_a_tracker_tells_the_links_reports_in_the_next_tick():
-    """tracker.reports.Reports: tick k tells each robot's report of step k − 1 (its candidate,
-    or the brake); a braked report too late for its tick goes into the next one; a late report
-    of a step on the candidate is logged and counted, never told; a link that reported the
-    step before is waited for (bounded)."""
+def _reports_inbox() -> tuple[Any, Any]:
+    """A tracker's inbox, and ``put(robot, step, last, braked=False)``, which stores a link's
+    Applied report in it as its subscription would."""
     from ground.bus import Inbox
     from ground.wire import Applied, Keys
-    from tracker.reports import Reports
 
     keys = Keys("lab")
     inbox = Inbox(keys, "tracker")
@@ -355,6 +367,17 @@ def test_a_tracker_tells_the_links_reports_in_the_next_tick():
         msg = Applied(robot=robot, step=step, last=last, braked=braked)
         inbox._accept(keys.applied(robot), msg.encode(), Applied, True, 0.0)
 
+    return inbox, put
+
+
+def test_a_tracker_tells_the_links_reports_in_the_next_tick():
+    """tracker.reports.Reports: tick k tells each robot's report of step k − 1 (its candidate,
+    or the brake); a braked report too late for its tick goes into the next one; a late report
+    of a step on the candidate is logged and counted, never told; a link that reported a
+    recent step is waited for (bounded)."""
+    from tracker.reports import Reports
+
+    inbox, put = _reports_inbox()
     lines: list[str] = []
     inbox.live.update({"r1", "r2", "r3"})  # a braked robot counts as a miss while its agent lives
     reports = Reports(["r1", "r2", "r3"])
@@ -375,6 +398,37 @@ def test_a_tracker_tells_the_links_reports_in_the_next_tick():
     inbox.live.discard("r3")  # a dead agent's braked robot: told, not a miss
     put("r3", 8, 5, braked=True)
     assert reports.for_tick(inbox, 9, 0.0, lines.append) == ({}, {"r3": 5}, [])
+
+
+def test_with_delay_compensation_the_outcome_tells_the_links_reports_and_the_tick_repeats_it():
+    """tracker.reports.Reports.for_outcome: the outcome of step k tells the reports of step k
+    as soon as they are in; tick k + 1 says the same and counts no miss again; a report that
+    came after the outcome is taken with the next one: a brake is told then, a candidate is
+    logged and counted, never told."""
+    from tracker.reports import Reports
+
+    inbox, put = _reports_inbox()
+    lines: list[str] = []
+    inbox.live.update({"r1", "r2", "r3"})
+    reports = Reports(["r1", "r2", "r3"])
+    for r in ("r1", "r2", "r3"):
+        put(r, 4, 4)
+    assert reports.for_outcome(inbox, 4, 0.0, lines.append) == ({}, {}, [])
+    assert reports.for_tick(inbox, 5, 0.0, lines.append) == ({}, {}, [])
+    put("r1", 5, 5)
+    put("r2", 5, 4)  # on its candidate, in time for the outcome
+    assert reports.for_outcome(inbox, 5, 0.01, lines.append) == ({"r2": 4}, {}, ["r2"])  # r3's is late
+    assert reports.for_tick(inbox, 6, 0.0, lines.append) == ({"r2": 4}, {}, [])  # the same, no miss again
+    put("r3", 5, 4)  # on its candidate, after the outcome: never told
+    put("r1", 6, 5, braked=True)
+    put("r2", 6, 6)
+    assert reports.for_outcome(inbox, 6, 0.0, lines.append) == ({}, {"r1": 5}, ["r1"])
+    assert reports.untold == 1 and len(lines) == 1 and "r3's robot side followed its candidate" in lines[0]
+    put("r2", 7, 7)
+    put("r3", 6, 4, braked=True)  # braked, after the outcome of its step: told with the next
+    put("r1", 7, 5, braked=True)
+    assert reports.for_outcome(inbox, 7, 0.0, lines.append) == ({}, {"r1": 5, "r3": 4}, ["r1", "r3"])
+    assert reports.for_tick(inbox, 8, 0.0, lines.append) == ({}, {"r1": 5, "r3": 4}, [])
 
 
 def _in_the_way(design: object) -> list[NeighbourInfo]:

@@ -99,13 +99,18 @@ def test_fleet_run_refuses_real_and_mixed_links(tmp_path):
         assert res.returncode == 2 and len(lines) == 1 and lines[0].startswith(head), res.stderr
 
 
-def test_a_link_without_its_command_in_time_follows_the_candidate_and_the_tick_says_so(tmp_path):
+@pytest.mark.parametrize("ahead", [False, True], ids=["default", "delay-compensation"])
+def test_a_link_without_its_command_in_time_follows_the_candidate_and_the_tick_says_so(tmp_path, ahead):
     """Commands withheld on their way to epuck_link (r1: steps 60–63; r2: 10 % at random): at
     each step's deadline the link follows the shifted candidate of the last command it
     applied, reports it (fleet/F/applied/R), and the next tick says so, so the agent takes the
     same candidate and its neighbour skips the plan never executed.  The link, the agent, the
     supervisor and the tracker count the same steps; no tube is left, no committed reference
-    is broken, and the run ends safely with every goal."""
+    is broken, and the run ends safely with every goal.
+
+    With delay compensation the step's outcome says it first, within the step, and the agents
+    plan ahead: nearly every command is put by Zenoh's callback as the last of the step's pose,
+    odometry (from the link) and tick comes in."""
     plan = {"seed": 1, "rules": [
         {"key": "cmd/r1", "bursts": [[60, 64]], "to": ["epuck_link r1"]},
         {"key": "cmd/r2", "drop": 0.1, "to": ["epuck_link r2"]},
@@ -113,10 +118,13 @@ def test_a_link_without_its_command_in_time_follows_the_candidate_and_the_tick_s
     faults = tmp_path / "faults.json"
     faults.write_text(json.dumps(plan))
     out = tmp_path / "out"
-    res = _fleet("run", str(SCENARIO), "--out", str(out), "--faults", str(faults))
+    res = _fleet(
+        "run", str(SCENARIO), "--out", str(out), "--faults", str(faults), *ahead * ["--delay-compensation"]
+    )
     assert res.returncode == 0, res.stderr[-3000:]
     s = json.loads((out / "summary.json").read_text())
     assert s["completed"] and s["collisions"] == 0 and s["all_goals_reached"]
+    assert s.get("delay_compensation", False) is ahead
     err = res.stderr
     link = dict(re.findall(r"\[epuck_link (r\d)\] stopped: .*?, (\d+) steps on the candidate", err))
     agent = dict(re.findall(r"\[agent (r\d)\] stopped after .*?, (\d+) steps on the candidate", err))
@@ -133,6 +141,11 @@ def test_a_link_without_its_command_in_time_follows_the_candidate_and_the_tick_s
     assert s["deadline_misses"] == int(link["r1"]) + int(link["r2"]) + braked
     for rid, r in s["robots"].items():
         assert r["tube_exits"] == 0 and r["reference_breaks"] == 0 and r["qp_failures"] == 0, (rid, r)
+    puts = dict(re.findall(r"\[agent (r\d)\] stopped after .*? \((\d+) by Zenoh's callback\)", err))
+    if ahead:  # every step but the first planned ahead, and its command put on arrival
+        assert set(puts) == {"r1", "r2"} and all(int(n) >= 0.9 * s["steps"] for n in puts.values()), puts
+    else:
+        assert puts == {"r1": "0", "r2": "0"}, puts
 
 
 def test_a_robot_whose_link_is_cut_drives_on_and_is_kept_clear_of(tmp_path):

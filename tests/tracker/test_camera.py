@@ -368,19 +368,26 @@ def _lines(stream: Any, into: queue.Queue[str]) -> None:
 
 
 @pytest.mark.slow
-def test_video_through_the_tracker_process_matches_the_trajectories(tmp_path, video):
+@pytest.mark.parametrize("ahead", [False, True], ids=["default", "delay-compensation"])
+def test_video_through_the_tracker_process_matches_the_trajectories(tmp_path, video, ahead):
     """``python -m tracker --source camera --video`` over Zenoh on loopback: every pose's
-    (t, x, y, θ) matches the trajectory at t; the corrupt frame's step is skipped."""
+    (t, x, y, θ) matches the trajectory at t; the corrupt frame's step is skipped.
+
+    With ``--delay-compensation``, stand-ins for the robots' links report each step at its
+    tick (r2 followed its candidate at step 5, r3 braked at step 9): each step's outcome tells
+    its reports, the next tick says the same, and each miss is counted once."""
     import zenoh
 
     from ground.net import NetConfig, free_port, loopback
-    from ground.wire import Keys, Pose, Tick, decode
+    from ground.wire import Applied, Keys, Outcome, Pose, Tick, decode
 
     scn = write_scenario(tmp_path / "s.toml", scenario_dict())
     hub = loopback(free_port())
+    # At 5× the video's pace a step lasts 20 ms; planning ahead, the outcome waits for the
+    # links' reports within the step, so that run keeps the real pace.
     cmd = [sys.executable, "-m", "tracker", "--scenario", str(scn), "--source", "camera",
-           "--video", str(video), "--rate", "5", "--listen", hub, "--fleet", "camtest",
-           "--wait-agents", "--start-timeout", "60"]  # fmt: skip
+           "--video", str(video), "--rate", "1" if ahead else "5", "--listen", hub, "--fleet", "camtest",
+           "--wait-agents", "--start-timeout", "60", *ahead * ["--delay-compensation"]]  # fmt: skip
     proc = subprocess.Popen(cmd, cwd=ROOT, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     out: queue.Queue[str] = queue.Queue()
     err: queue.Queue[str] = queue.Queue()
@@ -393,8 +400,17 @@ def test_video_through_the_tracker_process_matches_the_trajectories(tmp_path, vi
     keys = Keys("camtest")
     poses: list[Pose] = []
     ticks: list[Tick] = []
+    outcomes: list[Outcome] = []
     stopped = threading.Event()
     lock = threading.Lock()
+    links: dict[str, Any] = {}
+
+    def report(step: int) -> None:
+        """What each stand-in link applied over ``step``: (last applied, braked)."""
+        said = {"r1": (step, False), "r2": (4, False) if step == 5 else (step, False)}
+        said["r3"] = (8, True) if step == 9 else (step, False)
+        for r, (last, braked) in said.items():
+            links[r].put(Applied(robot=r, step=step, last=last, braked=braked).encode())
 
     def on_pose(sample: Any) -> None:
         msg = decode(sample.payload.to_bytes(), Pose, robot=keys.robot_of(str(sample.key_expr)))
@@ -407,6 +423,12 @@ def test_video_through_the_tracker_process_matches_the_trajectories(tmp_path, vi
             ticks.append(tick)
         if tick.stop:
             stopped.set()
+        elif ahead:
+            report(tick.step)
+
+    def on_outcome(sample: Any) -> None:
+        with lock:
+            outcomes.append(decode(sample.payload.to_bytes(), Outcome))
 
     session = None
     handles: list[Any] = []
@@ -415,9 +437,11 @@ def test_video_through_the_tracker_process_matches_the_trajectories(tmp_path, vi
         assert ready["event"] == "ready" and ready["role"] == "tracker" and ready["source"] == "camera"
         assert ready["robots"] == ["r1", "r2", "r3"] and ready["pid"] == proc.pid
         session = zenoh.open(NetConfig(listen=[loopback(0)], connect=[hub]).zenoh())
+        links.update({r: session.declare_publisher(keys.applied(r)) for r in ("r1", "r2", "r3")})
         handles += [
             session.declare_subscriber(keys.pose(), on_pose),
             session.declare_subscriber(keys.clock, on_tick),
+            session.declare_subscriber(keys.outcome, on_outcome),
         ]
         # Stand in for the agents and the supervisor the tracker waits for.
         handles += [
@@ -426,7 +450,7 @@ def test_video_through_the_tracker_process_matches_the_trajectories(tmp_path, vi
         assert stopped.wait(timeout=120), "no stop tick"
         assert proc.wait(timeout=60) == 0
     finally:
-        for h in handles:
+        for h in (*handles, *links.values()):
             h.undeclare()
         if session is not None:
             session.close()
@@ -440,6 +464,16 @@ def test_video_through_the_tracker_process_matches_the_trajectories(tmp_path, vi
     steps = math.ceil(frames / (0.1 * FPS))  # Ts = 0.1 s: step k shows frame ⌊1.5 k⌋
     with lock:
         assert [t.step for t in ticks] == list(range(steps + 1)) and ticks[-1].stop and not ticks[-2].stop
+        told = {o.step: (o.fallback, o.braked) for o in outcomes}
+        said = {t.step - 1: (t.fallback, t.braked) for t in ticks[1:]}
+        if ahead:
+            assert sorted(told) == list(range(steps)) and len(outcomes) == steps, sorted(told)
+            assert told[5] == ({"r2": 4}, {}) and told[9] == ({}, {"r3": 8}), (told[5], told[9])
+            assert all(v == ({}, {}) for j, v in told.items() if j not in (5, 9)), told
+            assert said == told  # each tick says what the outcome of the step before told
+            assert ticks[-1].misses == 2  # each miss counted once
+        else:
+            assert outcomes == [] and all(v == ({}, {}) for v in said.values())
         assert all(t.t == pytest.approx(0.1 * t.step) and t.robot == "tracker" for t in ticks)
         skipped = round(CORRUPT_FRAME / (0.1 * FPS))
         assert math.floor(skipped * 0.1 * FPS) == CORRUPT_FRAME
