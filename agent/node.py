@@ -155,8 +155,12 @@ class Agent:
         self.a_prev = np.zeros(2)
         self.blind = 0
         self.goal_seen: Goal | None = None
-        self.pending: Goal | None = None
-        """A goal a query gave and the agent accepted, to take at the next step (under inbox.cond)."""
+        self.pending: list[tuple[int, Goal]] = []
+        """Goals queries gave and the agent accepted, in order, each with the first step whose
+        plan takes it (under inbox.cond): the step after the newest tick when it came, or with
+        delay compensation the one after that, since that step's plan may be under way already
+        (made ahead), as ``fleet simulate`` takes a goal given at sample k at the plan of step
+        k + 1.  Only the newest goal per step is kept."""
         self.held = False
         """The clock has been held past --timeout (scripted; logged once a hold)."""
         self.links: dict[str, LinkState | None] = {}
@@ -470,9 +474,10 @@ class Agent:
         if goal is not None and goal is not self.goal_seen:
             self._take_goal(goal, k)
         with self.inbox.cond:
-            asked, self.pending = self.pending, None
-        if asked is not None:
-            self._set_goal(asked.goal, k)
+            asked = [g for due, g in self.pending if due <= k]
+            self.pending = [(due, g) for due, g in self.pending if due > k]
+        if asked:
+            self._set_goal(asked[-1].goal, k)
 
     def _state(self, k: int, pose: Pose | None, odom: Odom | None) -> np.ndarray | None:
         """The state to plan from at step k: measured, or the nominal model's prediction while
@@ -548,7 +553,11 @@ class Agent:
             with inbox.cond:
                 problem = self._goal_problem(goal)
                 if problem is None:
-                    self.pending = goal
+                    tick = inbox.get(Tick, TRACKER)
+                    due = (-1 if tick is None else tick.step) + 1 + self.dc
+                    if self.pending and self.pending[-1][0] == due:
+                        self.pending.pop()  # the newer goal for the same step replaces it
+                    self.pending.append((due, goal))
             if problem is not None:
                 log(self.role, f"goal {goal.goal.round(3).tolist()} rejected: {problem}")
             query.reply(self.keys.goal(self.me), goal_reply(problem))

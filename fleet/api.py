@@ -13,9 +13,9 @@
 
 A script works at the level of goals: the tube MPC drives.  It sees the fleet one sample at a
 time (sample k is the state at t = k·Ts, before step k is planned); goals it gives at sample k
-are taken by the agents at step k.  Every wait runs the fleet's clock: on lockstep a wait of
-``timeout`` seconds is ``timeout / Ts`` steps of simulated time, however long they take on this
-machine; on realtime it is wall time.
+are taken by the agents at step k (with ``delay_compensation``, at step k + 1).  Every wait
+runs the fleet's clock: on lockstep a wait of ``timeout`` seconds is ``timeout / Ts`` steps of
+simulated time, however long they take on this machine; on realtime it is wall time.
 
 * **Arrived** is the project's one definition of settled (:func:`ground.scenario.settled_since`):
   the robot's true controlled point has stayed within :data:`ground.scenario.GOAL_TOLERANCE` of
@@ -129,6 +129,7 @@ class Fleet:
         seed: int | None = None,
         processes: bool = True,
         out: str | Path | None = None,
+        delay_compensation: bool = False,
         **run_options: Any,
     ) -> Fleet:
         """Start the fleet of ``scenario`` (a TOML file) and return it, at sample 0.
@@ -141,7 +142,9 @@ class Fleet:
         run's directory (summary.json; default out/<scenario name>).  ``run_options`` go to
         ``fleet run`` (``exchange``, ``topology``, ``lease``, ``viewer``, ``faults``, ``hub``,
         ``ros2``, ``ros_domain``, ``ros_listen``, ``fork``: :data:`fleet.script.RUN_OPTIONS`).
-        Bad input raises :class:`ground.scenario.ConfigError` naming the field."""
+        ``delay_compensation``: every plan is made a step ahead (docs/method.md §5), on either
+        side; a goal given at sample k is then taken by the plans of step k + 1 on, the first
+        made after it.  Bad input raises :class:`ground.scenario.ConfigError` naming the field."""
         from ground.scenario import ConfigError
 
         if clock not in CLOCKS:
@@ -150,7 +153,11 @@ class Fleet:
         if processes:
             from fleet.script import ProcessFleet
 
-            fleet = cls(ProcessFleet.launch(scenario, scn, clock, seed, out, **run_options))
+            fleet = cls(
+                ProcessFleet.launch(
+                    scenario, scn, clock, seed, out, delay_compensation=delay_compensation, **run_options
+                )
+            )
         else:
             if clock != "lockstep":
                 raise ConfigError("clock", "the in-process simulator runs on lockstep only")
@@ -158,7 +165,7 @@ class Fleet:
                 raise ConfigError(
                     next(iter(run_options)), "is an option of a process fleet; processes=False takes none"
                 )
-            fleet = cls(SimulatedFleet(scn, seed, out))
+            fleet = cls(SimulatedFleet(scn, seed, out, ahead=delay_compensation))
         missions = {r.id: r.waypoints for r in scn.robots if r.waypoints}
         if missions:  # the scenario's: from sample 0
             try:
@@ -467,14 +474,15 @@ class SimulatedFleet:
     def processes(self) -> dict[str, int]:
         return {}  # one process: the script's
 
-    def __init__(self, scn: Scenario, seed: int | None, out: str | Path | None):
+    def __init__(self, scn: Scenario, seed: int | None, out: str | Path | None, ahead: bool = False):
+        """``ahead``: plans made a step ahead (delay compensation; :class:`fleet.simulate.Simulation`)."""
         from agent.tube import validated_design
         from fleet.simulate import Simulation
 
         self.scenario = scn
         design = validated_design(scn)
         self.footprint = float(design.footprint)
-        self.sim = Simulation(scn, seed=seed, design=design)
+        self.sim = Simulation(scn, seed=seed, design=design, ahead=ahead)
         self.seed = self.sim.seed
         self.out: Path | None = Path(out) if out is not None else Path("out") / scn.name
         self._events: list[Event] = []
@@ -522,11 +530,14 @@ class SimulatedFleet:
 
 def run_scenario(
     scenario: str | Path, processes: bool, seed: int | None = None, out: str | Path | None = None,
-    clock: str = "lockstep", **run_options: Any,
+    clock: str = "lockstep", delay_compensation: bool = False, **run_options: Any,
 ) -> tuple[dict[str, Any] | None, str | None]:  # fmt: skip
     """Run a scenario as ``fleet simulate`` (``processes=False``) or ``fleet run`` do, through a
     script: its robots' missions from sample 0, the run ending once every robot has arrived or
     at the scenario's duration.  (summary, verdict): the verdict is None if the run passed."""
-    with Fleet.launch(scenario, clock=clock, seed=seed, processes=processes, out=out, **run_options) as fleet:
+    with Fleet.launch(
+        scenario, clock=clock, seed=seed, processes=processes, out=out, delay_compensation=delay_compensation,
+        **run_options,
+    ) as fleet:  # fmt: skip
         fleet.wait_arrived(timeout=fleet.scenario.duration)
     return fleet.summary, fleet.verdict

@@ -127,8 +127,6 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     scn = load_scenario(args.scenario)
     design = validated_design(scn)
-    if args.delay_compensation and any(r.waypoints for r in scn.robots):
-        return _bad("--delay-compensation: scenarios with missions run through the script API, without it")
     out = Path(args.out) if args.out else Path("out") / scn.name
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -137,7 +135,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     if any(r.waypoints for r in scn.robots):  # missions: run by a script (fleet.api)
         from fleet.api import run_scenario
 
-        got, why = run_scenario(args.scenario, processes=False, seed=args.seed, out=out)
+        ahead = args.delay_compensation
+        got, why = run_scenario(args.scenario, False, seed=args.seed, out=out, delay_compensation=ahead)
         assert got is not None
         summary = got
     else:
@@ -206,8 +205,6 @@ def cmd_run(args: argparse.Namespace) -> int:
     clock = args.clock or ("realtime" if emulated else "lockstep")
     if emulated and clock != "realtime":
         return _bad("--clock: emulated robots move in wall time; use --clock realtime")
-    if args.delay_compensation and any(r.waypoints for r in scn.robots):
-        return _bad("--delay-compensation: scenarios with missions run through the script API, without it")
     out = Path(args.out) if args.out else Path("out") / scn.name
     out.mkdir(parents=True, exist_ok=True)
     if any(r.waypoints for r in scn.robots):  # missions: run by a script (fleet.api)
@@ -220,6 +217,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             clock=clock, viewer=args.viewer, hub=args.listen, faults=args.faults, exchange=args.exchange,
             lease=args.lease, topology=args.topology, ros2=ros2, ros_domain=args.ros_domain,
             ros_listen=args.ros_listen, fork=args.start_agents == "fork",
+            delay_compensation=args.delay_compensation,
         )  # fmt: skip
         code, verdict = (1, why) if why else (0, "ok")
     else:

@@ -91,9 +91,10 @@ class ProcessFleet:
     @classmethod
     def launch(
         cls, path: str | Path, scn: Scenario, clock: str, seed: int | None, out: str | Path | None,
-        **options: Any,
+        delay_compensation: bool = False, **options: Any,
     ) -> ProcessFleet:  # fmt: skip
-        """Start the processes of ``fleet run`` for a script, and join them."""
+        """Start the processes of ``fleet run`` for a script, and join them (``delay_compensation``:
+        every agent plans a step ahead)."""
         from agent.tube import validated_design
         from fleet.launch import LaunchError, start_fleet
 
@@ -107,7 +108,7 @@ class ProcessFleet:
         try:
             launched = start_fleet(
                 str(Path(path).resolve()), [r.id for r in scn.robots], run_dir, seed, clock=clock,
-                scripted=True, stderr=log, **options,
+                scripted=True, stderr=log, delay_compensation=delay_compensation, **options,
             )  # fmt: skip
         except LaunchError as e:
             log.close()

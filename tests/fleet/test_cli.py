@@ -281,29 +281,6 @@ def test_simulate_with_delay_compensation_says_so_and_keeps_the_figures(tmp_path
     assert all(r["reached_goal"] and r["tube_exits"] == 0 for r in s["robots"].values())
 
 
-def test_simulate_refuses_delay_compensation_for_missions_in_one_line(tmp_path):
-    out = tmp_path / "out"
-    proc = fleet("simulate", SCENARIOS / "patrol_two.toml", "--out", out, "--delay-compensation")
-    no_traceback(proc)
-    assert proc.returncode == 2
-    assert proc.stderr.strip().splitlines() == [
-        "fleet: error: --delay-compensation: scenarios with missions run through the script API, without it"
-    ]
-    assert not out.exists()
-
-
-def test_fleet_run_refuses_delay_compensation_for_missions_in_one_line(tmp_path):
-    """Missions (the script API runs them) are refused before anything starts."""
-    out = tmp_path / "out"
-    proc = fleet("run", SCENARIOS / "patrol_two.toml", "--out", out, "--delay-compensation")
-    no_traceback(proc)
-    assert proc.returncode == 2
-    assert proc.stderr.strip().splitlines() == [
-        "fleet: error: --delay-compensation: scenarios with missions run through the script API, without it"
-    ]
-    assert not out.exists()
-
-
 def test_simulate_too_short_fails_and_names_robots(tmp_path):
     f = tmp_path / "short.toml"
     f.write_text(scenario_toml(duration=2.0, name="short"))

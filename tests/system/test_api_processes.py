@@ -42,13 +42,18 @@ def _script(fleet: Fleet) -> list[tuple[float, float, float]]:
     return [fleet.poses()[r] for r in fleet.ids]
 
 
-def test_the_same_script_gives_the_same_run_in_process_and_as_processes(tmp_path):
+@pytest.mark.parametrize("ahead", [False, True], ids=["default", "delay-compensation"])
+def test_the_same_script_gives_the_same_run_in_process_and_as_processes(tmp_path, ahead):
     """Bit for bit: every true pose of every sample, the final measured poses, the events and
-    the summary's figures; the processes are ended when the block ends."""
+    the summary's figures; the processes are ended when the block ends.  With delay
+    compensation too: a goal given at sample k is taken by the plans of step k + 1 on, on both
+    sides, whenever the agent's plan of step k is made."""
     runs = {}
     for processes in (False, True):
         out = tmp_path / ("processes" if processes else "in_process")
-        with Fleet.launch(TWO, clock="lockstep", seed=4, processes=processes, out=out) as fleet:
+        with Fleet.launch(
+            TWO, clock="lockstep", seed=4, processes=processes, out=out, delay_compensation=ahead
+        ) as fleet:
             final = _script(fleet)
             # The events of the steps a process fleet has judged by now (a plan's fallback
             # may come a step after its sample), in one order.
@@ -66,6 +71,7 @@ def test_the_same_script_gives_the_same_run_in_process_and_as_processes(tmp_path
     for key in ("steps", "collisions", "min_distance_m", "min_reference_separation_m", "all_goals_reached"):
         assert s0 is not None and s1 is not None and s0[key] == s1[key], key
     assert s1 is not None and s1["exit_codes"] == dict.fromkeys(s1["processes"], 0)
+    assert s0.get("delay_compensation", False) is s1.get("delay_compensation", False) is ahead
     assert (tmp_path / "processes" / "fleet.log").read_text().count("stopped after") == 2
 
 
@@ -244,15 +250,19 @@ def test_an_interrupted_wait_leaves_the_fleet_usable(tmp_path):
         _kill_all(list(pids.values()))
 
 
-def test_fleet_run_follows_the_missions_as_fleet_simulate_does(tmp_path):
+@pytest.mark.parametrize("ahead", [False, True], ids=["default", "delay-compensation"])
+def test_fleet_run_follows_the_missions_as_fleet_simulate_does(tmp_path, ahead):
     """A scenario with missions, as processes: the same steps, figures and waypoints as the
-    in-process simulator, every process exiting 0."""
+    in-process simulator, every process exiting 0; with delay compensation too (the first
+    waypoints, given at sample 0, are taken by the plans of step 1 on, on both sides)."""
     from fleet.cli import main
 
     patrol = str(ROOT / "scenarios" / "patrol_two.toml")
-    assert main(["simulate", patrol, "--out", str(tmp_path / "sim")]) == 0
-    assert main(["run", patrol, "--out", str(tmp_path / "run")]) == 0
+    flag = ["--delay-compensation"] if ahead else []
+    assert main(["simulate", patrol, "--out", str(tmp_path / "sim"), *flag]) == 0
+    assert main(["run", patrol, "--out", str(tmp_path / "run"), *flag]) == 0
     sim, run = (json.loads((tmp_path / d / "summary.json").read_text()) for d in ("sim", "run"))
+    assert sim.get("delay_compensation", False) is run.get("delay_compensation", False) is ahead
     assert run["waypoints_reached"] == sim["waypoints_reached"] == {"r1": 5, "r2": 5}
     for key in ("steps", "min_distance_m", "min_reference_separation_m", "all_goals_reached"):
         assert run[key] == sim[key], key
