@@ -22,10 +22,10 @@ identity        may publish (put)                                       liveline
 ==============  ======================================================  =====================
 robot ``R``     ``F/plan/R`` ``F/cmd/R`` ``F/odom/R`` ``F/wheels/R``     ``F/alive/R``
                 ``F/emu/R`` ``F/applied/R`` ``F/link/R``
-``tracker``     ``F/pose/*`` ``F/truth/*`` ``F/clock``                  —
-                (and ``F/odom/*``, ``F/digest`` and ``F/outcome`` with
+``tracker``     ``F/pose/*`` ``F/truth/*`` ``F/clock`` ``F/outcome``     —
+                (and ``F/odom/*`` and ``F/digest`` with
                 ``sim_tracker``: the simulated tracker plays every
-                robot's side, relays plans and tells the outcomes)
+                robot's side and relays plans)
 ``supervisor``  —                                                       ``F/alive/supervisor``
 ``operator``    ``F/goal/*``                                            ``F/alive/script``
 ==============  ======================================================  =====================
@@ -255,7 +255,7 @@ def acl_json(
                 "key_exprs": key_exprs}  # fmt: skip
 
     everything = f"{k.root}/**"
-    tracker_puts = [k.pose(), k.truth(), k.clock] + ([k.odom(), k.digest, k.outcome] if sim_tracker else [])
+    tracker_puts = [k.pose(), k.truth(), k.clock, k.outcome] + ([k.odom(), k.digest] if sim_tracker else [])
     rules = [
         rule("subscribe", ["declare_subscriber", "declare_liveliness_subscriber", "liveliness_query"],
              "ingress", [everything]),

@@ -571,9 +571,9 @@ def test_acl_grants_exactly_the_documented_rights() -> None:
                                                 K.emu("r1"), K.applied("r1"), K.link("r1")]  # fmt: skip
     assert rules["token-r1"] == {"id": "token-r1", "messages": ["liveliness_token"], "flows": ["ingress"],
                                  "permission": "allow", "key_exprs": [K.alive("r1")]}  # fmt: skip
-    assert rules["publish-tracker"]["key_exprs"] == [K.pose(), K.truth(), K.clock]
+    assert rules["publish-tracker"]["key_exprs"] == [K.pose(), K.truth(), K.clock, K.outcome]
     sim = {r["id"]: r for r in acl_json(["r1"], sim_tracker=True)["rules"]}
-    sim_puts = [K.pose(), K.truth(), K.clock, K.odom(), K.digest, K.outcome]
+    sim_puts = [K.pose(), K.truth(), K.clock, K.outcome, K.odom(), K.digest]
     assert sim["publish-tracker"]["key_exprs"] == sim_puts
     ingress_puts = [r for r in acl["rules"] if "put" in r["messages"] and "ingress" in r["flows"]]
     assert sorted(r["id"] for r in ingress_puts) == ["publish-operator", "publish-r1", "publish-r2",
@@ -607,7 +607,7 @@ def test_acl_grants_exactly_the_documented_rights() -> None:
     assert grants == {
         "r1": robot,
         "r2": {(f, m, key.replace("r1", "r2")) for f, m, key in robot},
-        "tracker": {("ingress", "put", key) for key in (K.pose(), K.truth(), K.clock)},
+        "tracker": {("ingress", "put", key) for key in (K.pose(), K.truth(), K.clock, K.outcome)},
         "supervisor": {("ingress", "liveliness_token", K.alive("supervisor"))},
         "operator": {
             ("ingress", "put", K.goal()),  # fleet goal
