@@ -10,8 +10,8 @@ robot-steps between them, is the marginal CPU per robot-step: start-up and shut-
   per robot, a tracker and a supervisor, talking over Zenoh on loopback.
 * ``fleet run`` with its defaults and Zenoh's runtime sized down to one worker thread and a
   transmit thread (:data:`ZENOH_RUNTIME`), beside the defaults: what Zenoh's own threads cost.
-* ``fleet run --delay-compensation``: the defaults, each agent planning a step ahead (one
-  message more a step: the tracker's outcome).
+* ``fleet run --no-delay-compensation``: each agent solving its plan after the tick instead of
+  a step ahead (one message less a step: no outcome from the tracker).
 * ``fleet run --ros2``: the defaults plus the fleet's ROS 2 face (``python -m ros2_link``), a
   process of its own that observes the fleet and republishes it as ROS 2 messages.  Its CPU
   is its role's ("ros2") in the split, set against the whole fleet's and the agents'; and the
@@ -63,7 +63,7 @@ CONFIGS: dict[str, list[str]] = {
     "fleet run (defaults)": [],
     ZENOH_SIZED_ROW: [],
     "fleet run --ros2": ["--ros2"],
-    "fleet run --delay-compensation": ["--delay-compensation"],
+    "fleet run --no-delay-compensation": ["--no-delay-compensation"],
     "fleet run --exchange relay --topology star": ["--exchange", "relay", "--topology", "star"],
 }
 """``fleet run``'s flags by row label; ``--ros2`` next to the defaults it is compared with."""

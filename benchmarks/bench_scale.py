@@ -1008,7 +1008,7 @@ def fleet_run(
         "clock": clock,
         "exchange": exchange or "default",
         "topology": topology or "default",
-        "delay_compensation": "--delay-compensation" in extra,
+        "delay_compensation": "--no-delay-compensation" not in extra,
         "sim_s_requested": sim_s,
         "exit_code": rc,
         "verdict": verdict or (stderr_lines[-1] if stderr_lines else f"exit {rc}"),
@@ -1254,10 +1254,10 @@ def run(args: argparse.Namespace) -> int:
     if not args.no_fleet:
         with tempfile.TemporaryDirectory(prefix="fleet-bench-") as tmp_s:
             tmp = Path(tmp_s)
-            ahead = ("--delay-compensation",) if args.delay_compensation else ()
+            ahead = ("--delay-compensation",) if args.delay_compensation else ("--no-delay-compensation",)
             log(
                 f"\n[4] fleet run (one process per robot, Zenoh on loopback, plans by {args.exchange}, "
-                f"{args.topology} topology{', delay compensation' if ahead else ''}); "
+                f"{args.topology} topology{'' if args.delay_compensation else ', no delay compensation'}); "
                 f"run directories in {out}"
             )
             log(RUN_HEADER)

@@ -53,15 +53,15 @@ START_LAUNCHES = 3
 
 def targets(
     cpu_rows: list[dict[str, Any]], rt: dict[int, dict[str, Any]], sizes: dict[str, int],
-    starts: dict[str, list[float]] | None = None, ahead: dict[int, dict[str, Any]] | None = None,
+    starts: dict[str, list[float]] | None = None, beside: dict[int, dict[str, Any]] | None = None,
 ) -> list[dict[str, Any]]:  # fmt: skip
     """The four targets from the measured rows: ``cpu_rows`` (fleet simulate first, then fleet
     run's defaults), ``rt`` the realtime runs by fleet size, ``sizes`` which size each target
     is judged at ("cpu", "realtime", "latency", "ready"), ``starts`` the side-by-side launch
-    times [s] by how the agents were started ("fork", "spawn"), ``ahead`` the realtime runs of
-    targets 2's and 3's sizes with ``--delay-compensation``, beside the defaults' (their misses
-    and latency go in those targets' detail; the verdicts are the defaults')."""
-    ahead = ahead or {}
+    times [s] by how the agents were started ("fork", "spawn"), ``beside`` the realtime runs of
+    targets 2's and 3's sizes with ``--no-delay-compensation``, beside the defaults' (their
+    misses and latency go in those targets' detail; the verdicts are the defaults')."""
+    beside = beside or {}
     miss_rate = _harnesses()[0].GOAL_MISS_RATE_32  # target 2 is the realtime goal [5] for 32 robots
     out: list[dict[str, Any]] = []
     sim, run = cpu_rows[0], cpu_rows[1]
@@ -83,8 +83,8 @@ def targets(
         ok, measured, detail = False, math.nan, {"error": r.get("verdict", "not run")}
     keys = ("miss_rate", "deadline_misses", "steps", "collisions")
     others = {str(m): {k: x.get(k) for k in keys} for m, x in rt.items() if m not in (n, sizes["latency"])}
-    if n in ahead:
-        detail["delay_compensation"] = {k: ahead[n].get(k) for k in keys}
+    if n in beside:
+        detail["no_delay_compensation"] = {k: beside[n].get(k) for k in keys}
     out.append({
         "target": 2, "what": f"realtime, {n} robots: share of robot-steps that missed the deadline",
         "goal": f"< {miss_rate:g}, 0 collisions", "measured": measured, "met": ok,
@@ -93,9 +93,9 @@ def targets(
     r = rt.get(sizes["latency"], {})
     p99 = r.get("latency", {}).get("pose_to_command_ms", {}).get("p99", math.nan)
     detail = dict(r.get("latency", {}))
-    if sizes["latency"] in ahead:
-        a = ahead[sizes["latency"]]
-        detail["delay_compensation"] = {
+    if sizes["latency"] in beside:
+        a = beside[sizes["latency"]]
+        detail["no_delay_compensation"] = {
             **{k: a.get(k) for k in ("deadline_misses", "miss_rate", "collisions")},
             **a.get("latency", {}),
         }
@@ -153,14 +153,14 @@ def run(args: argparse.Namespace) -> int:
                 n, "realtime", rt_s, out, Path(tmp_s), print, exchange=None, topology=None
             )
             scale.print_run(rt[n], print)
-        ahead: dict[int, dict[str, Any]] = {}
+        beside: dict[int, dict[str, Any]] = {}
         for n in sorted({sizes["realtime"], sizes["latency"]}):
-            print(f"[2], [3] beside them: {n} robots, realtime, --delay-compensation", flush=True)
-            ahead[n] = scale.fleet_run(
+            print(f"[2], [3] beside them: {n} robots, realtime, --no-delay-compensation", flush=True)
+            beside[n] = scale.fleet_run(
                 n, "realtime", rt_s, out, Path(tmp_s), print, exchange=None, topology=None,
-                extra=("--delay-compensation",), tag=f"realtime_{n}_delay_compensation",
+                extra=("--no-delay-compensation",), tag=f"realtime_{n}_no_delay_compensation",
             )  # fmt: skip
-            scale.print_run(ahead[n], print)
+            scale.print_run(beside[n], print)
         n = sizes["ready"]
         launches = 1 if quick else START_LAUNCHES
         print(f"[4] start-up side by side: {n} robots, lockstep, {launches} launches each, interleaved",
@@ -174,20 +174,20 @@ def run(args: argparse.Namespace) -> int:
                 )  # fmt: skip
                 starts[how].append(row.get("ready_s", math.nan))
                 print(f"  agents {how}: ready in {starts[how][-1]:.2f} s", flush=True)
-    result = targets(cpu_rows, rt, sizes, starts, ahead)
+    result = targets(cpu_rows, rt, sizes, starts, beside)
     print("\ntarget  goal                      measured   met   what")
     for t in result:
         met = "yes" if t["met"] else "NO"
         print(f"  {t['target']}     {t['goal']:<25} {t['measured']:>9.4g}   {met:<4}  {t['what']}")
-    dc2 = result[1]["detail"].get("delay_compensation")
-    if dc2:
-        print(f"  2 with --delay-compensation: {dc2['miss_rate']:.4g} of the robot-steps missed the "
-              f"deadline, {dc2['collisions']} collisions")  # fmt: skip
-    p2c = result[2]["detail"].get("delay_compensation", {}).get("pose_to_command_ms")
+    nd2 = result[1]["detail"].get("no_delay_compensation")
+    if nd2:
+        print(f"  2 with --no-delay-compensation: {nd2['miss_rate']:.4g} of the robot-steps missed the "
+              f"deadline, {nd2['collisions']} collisions")  # fmt: skip
+    p2c = result[2]["detail"].get("no_delay_compensation", {}).get("pose_to_command_ms")
     if p2c:
-        over = result[2]["measured"] / p2c["p99"]
-        print(f"  3 with --delay-compensation: pose -> command p99 {p2c['p99']:.1f} ms "
-              f"(p50 {p2c['p50']:.1f}); the defaults' p99 over it: {over:.2f}")  # fmt: skip
+        over = p2c["p99"] / result[2]["measured"]
+        print(f"  3 with --no-delay-compensation: pose -> command p99 {p2c['p99']:.1f} ms "
+              f"(p50 {p2c['p50']:.1f}); its p99 over the defaults': {over:.2f}")  # fmt: skip
     side = result[3]["detail"]["side_by_side"]
     if "spawn_over_fork" in side:
         print(f"  start-up, medians: agents forked {side['median_s']['fork']:.2f} s, spawned "

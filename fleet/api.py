@@ -13,7 +13,7 @@
 
 A script works at the level of goals: the tube MPC drives.  It sees the fleet one sample at a
 time (sample k is the state at t = k·Ts, before step k is planned); goals it gives at sample k
-are taken by the agents at step k (with ``delay_compensation``, at step k + 1).  Every wait
+are taken by the agents at step k + 1 (without ``delay_compensation``, at step k).  Every wait
 runs the fleet's clock: on lockstep a wait of ``timeout`` seconds is ``timeout / Ts`` steps of
 simulated time, however long they take on this machine; on realtime it is wall time.
 
@@ -129,7 +129,7 @@ class Fleet:
         seed: int | None = None,
         processes: bool = True,
         out: str | Path | None = None,
-        delay_compensation: bool = False,
+        delay_compensation: bool = True,
         **run_options: Any,
     ) -> Fleet:
         """Start the fleet of ``scenario`` (a TOML file) and return it, at sample 0.
@@ -142,9 +142,10 @@ class Fleet:
         run's directory (summary.json; default out/<scenario name>).  ``run_options`` go to
         ``fleet run`` (``exchange``, ``topology``, ``lease``, ``viewer``, ``faults``, ``hub``,
         ``ros2``, ``ros_domain``, ``ros_listen``, ``fork``: :data:`fleet.script.RUN_OPTIONS`).
-        ``delay_compensation``: every plan is made a step ahead (docs/method.md §5), on either
-        side; a goal given at sample k is then taken by the plans of step k + 1 on, the first
-        made after it.  Bad input raises :class:`ground.scenario.ConfigError` naming the field."""
+        ``delay_compensation`` (the default, as ``fleet run``'s): every plan is made a step
+        ahead (docs/method.md §5), on either side; a goal given at sample k is then taken by the
+        plans of step k + 1 on, the first made after it.  Bad input raises
+        :class:`ground.scenario.ConfigError` naming the field."""
         from ground.scenario import ConfigError
 
         if clock not in CLOCKS:
@@ -530,7 +531,7 @@ class SimulatedFleet:
 
 def run_scenario(
     scenario: str | Path, processes: bool, seed: int | None = None, out: str | Path | None = None,
-    clock: str = "lockstep", delay_compensation: bool = False, **run_options: Any,
+    clock: str = "lockstep", delay_compensation: bool = True, **run_options: Any,
 ) -> tuple[dict[str, Any] | None, str | None]:  # fmt: skip
     """Run a scenario as ``fleet simulate`` (``processes=False``) or ``fleet run`` do, through a
     script: its robots' missions from sample 0, the run ending once every robot has arrived or

@@ -93,8 +93,9 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
         "router, one link per process)",
     )  # fmt: skip
     ap.add_argument(
-        "--delay-compensation", action="store_true",
-        help="the fleet runs plan a step ahead (fleet run --delay-compensation)",
+        "--delay-compensation", action=argparse.BooleanOptionalAction, default=True,
+        help="the fleet runs plan a step ahead, as fleet run does by default; --no-delay-compensation "
+        "runs them with fleet run --no-delay-compensation",
     )  # fmt: skip
     ap.add_argument("--no-fleet", action="store_true", help="skip the fleet runs (figures [4] to [6])")
     ap.add_argument(

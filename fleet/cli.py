@@ -392,9 +392,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", help="output directory (default out/<scenario name>)")
     s.add_argument("--seed", type=seed_arg, help="override the scenario's [simulation] seed")
     s.add_argument(
-        "--delay-compensation", action="store_true",
+        "--delay-compensation", action=argparse.BooleanOptionalAction, default=True,
         help="make each plan a step ahead, from the predicted state, and apply it to the measurement "
-        "at once (docs/method.md §5)",
+        "at once (the default, as fleet run's); --no-delay-compensation plans each step from its "
+        "measurement (docs/method.md §5)",
     )  # fmt: skip
     s.set_defaults(func=cmd_simulate)
     r = sub.add_parser("run", help="run the fleet as separate processes over Zenoh (lockstep clock)")
@@ -433,10 +434,11 @@ def build_parser() -> argparse.ArgumentParser:
         "lightest for large realtime fleets; docs/design.md, \"Topology\")",
     )  # fmt: skip
     r.add_argument(
-        "--delay-compensation", action="store_true",
-        help="plan a step ahead: each agent makes its plan of the next step during this one, and at "
-        "the tick only applies it to its measurement, so no solve lies between a pose and its "
-        "command (docs/design.md, \"Delay compensation\")",
+        "--delay-compensation", action=argparse.BooleanOptionalAction, default=True,
+        help="plan a step ahead (the default): each agent makes its plan of the next step during this "
+        "one, and at the tick only applies it to its measurement, so no solve lies between a pose "
+        "and its command; --no-delay-compensation solves each step's plan after its tick "
+        "(docs/design.md, \"Delay compensation\")",
     )  # fmt: skip
     r.add_argument(
         "--start-agents", choices=STARTS, default=STARTS[0],

@@ -394,7 +394,7 @@ def start_fleet(
     ros_domain: int | None = None,
     ros_listen: str | None = None,
     fork: bool | None = None,
-    delay_compensation: bool = False,
+    delay_compensation: bool = True,
 ) -> Launched:
     """Start the fleet of ``scenario`` (its robots ``robots``), writing to ``out``, and return
     once every process is ready.  Raises :class:`LaunchError` if one does not start, once the
@@ -451,7 +451,7 @@ def start_fleet(
         exchange,
         *(["--faults", faults] if faults else []),
         *(["--lease", repr(lease)] if lease is not None else []),
-        *(["--delay-compensation"] if delay_compensation else []),
+        "--delay-compensation" if delay_compensation else "--no-delay-compensation",
     ]
     seed_args = [] if seed is None else ["--seed", str(seed)]
     hub_mode = ["--mode", "router"] if topology == "star" else []

@@ -91,7 +91,7 @@ class ProcessFleet:
     @classmethod
     def launch(
         cls, path: str | Path, scn: Scenario, clock: str, seed: int | None, out: str | Path | None,
-        delay_compensation: bool = False, **options: Any,
+        delay_compensation: bool = True, **options: Any,
     ) -> ProcessFleet:  # fmt: skip
         """Start the processes of ``fleet run`` for a script, and join them (``delay_compensation``:
         every agent plans a step ahead)."""

@@ -86,10 +86,11 @@ def add_common_args(ap: argparse.ArgumentParser) -> None:
         "agent one digest of a step's plans (docs/design.md, \"Relayed plans\")",
     )  # fmt: skip
     ap.add_argument(
-        "--delay-compensation", action="store_true",
-        help="plan a step ahead: each agent makes its plan of step k + 1 during step k, from the "
-        "prediction, and at tick k + 1 only applies the ancillary law to its measurement "
-        "(docs/design.md, \"Delay compensation\")",
+        "--delay-compensation", action=argparse.BooleanOptionalAction, default=True,
+        help="plan a step ahead (the default): each agent makes its plan of step k + 1 during step k, "
+        "from the prediction, and at tick k + 1 only applies the ancillary law to its measurement; "
+        "--no-delay-compensation solves each step's plan after its tick (docs/design.md, \"Delay "
+        "compensation\")",
     )  # fmt: skip
 
 

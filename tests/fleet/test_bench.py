@@ -161,7 +161,7 @@ def test_quick_fleet_runs(quick: tuple[subprocess.CompletedProcess[str], dict[st
         assert 0.0 <= r["miss_rate"] <= 1.0
         assert r["collisions"] == 0, what
         assert (r["exchange"], r["topology"]) == ("relay", "star"), what  # the defaults: large-fleet setup
-        assert r["delay_compensation"] is False, what
+        assert r["delay_compensation"] is True, what  # as fleet run's default
         for k in ("agent_p50", "agent_max", "agent_peak_max", "tracker", "supervisor"):
             positive(r["rss_mb"][k], f"{what}.rss_mb.{k}")
         assert r["rss_mb"]["agents_sampled"] == r["robots"]
@@ -285,7 +285,7 @@ def test_cpu_figures_cover_a_window_shorter_than_the_sampling_period() -> None:
 
 def test_cpu_harness_splits_a_fleets_cpu_by_process_and_thread(tmp_path):
     """``fleet bench --cpu 3``: the marginal CPU per robot-step of ``fleet run`` (defaults,
-    ``--ros2``, ``--delay-compensation`` and relay + star) next to ``fleet simulate``'s, from two
+    ``--ros2``, ``--no-delay-compensation`` and relay + star) next to ``fleet simulate``'s, from two
     run lengths, with its split by process role and by thread.  A fleet of processes costs more
     than the one-process simulator (it does the same math and talks besides).  The split of three
     robots' short runs is mostly start-up noise, so only its parts and their accounting are
@@ -303,7 +303,7 @@ def test_cpu_harness_splits_a_fleets_cpu_by_process_and_thread(tmp_path):
     sim, *fleets = d["rows"]
     ros2 = importlib.util.find_spec("rosbags") is not None  # the ros2 extra, in the test extras
     labels = ["fleet run (defaults)", "fleet run (defaults), Zenoh sized down",
-              *(["fleet run --ros2"] if ros2 else []), "fleet run --delay-compensation",
+              *(["fleet run --ros2"] if ros2 else []), "fleet run --no-delay-compensation",
               "fleet run --exchange relay --topology star"]  # fmt: skip
     assert sim["config"] == "fleet simulate" and [r["config"] for r in fleets] == labels
     for r in d["rows"]:
@@ -450,13 +450,13 @@ def test_targets_quick_prints_and_writes_every_target(tmp_path):
     assert t[2]["met"] == (r3["miss_rate"] < 1e-3 and r3["supervisor_complete"])
     assert t[3]["measured"] == r3["latency"]["pose_to_command_ms"]["p99"]
     assert t[3]["met"] == (t[3]["measured"] <= 5.0)
-    # Beside it, the same fleet planning a step ahead: its latency, for the same poses.
-    ahead = t[3]["detail"]["delay_compensation"]
-    positive(ahead["pose_to_command_ms"]["p99"], "delay_compensation p99")
-    assert ahead["pose_to_command_ms"]["n"] > 0 and ahead["collisions"] == 0
-    assert "3 with --delay-compensation: pose -> command p99" in res.stdout
-    assert t[2]["detail"]["delay_compensation"]["collisions"] == 0  # --quick: one size for both
-    assert "2 with --delay-compensation:" in res.stdout
+    # Beside it, the same fleet solving each plan after its tick: its latency, for the same poses.
+    beside = t[3]["detail"]["no_delay_compensation"]
+    positive(beside["pose_to_command_ms"]["p99"], "no_delay_compensation p99")
+    assert beside["pose_to_command_ms"]["n"] > 0 and beside["collisions"] == 0
+    assert "3 with --no-delay-compensation: pose -> command p99" in res.stdout
+    assert t[2]["detail"]["no_delay_compensation"]["collisions"] == 0  # --quick: one size for both
+    assert "2 with --no-delay-compensation:" in res.stdout
     positive(t[4]["measured"], "ready_s")
     assert t[4]["measured"] == r3["ready_s"] and t[4]["met"] == (r3["ready_s"] <= 5.0)
     for k in ("agent_p50", "agent_pss_p50", "tracker", "supervisor"):
@@ -531,21 +531,21 @@ def test_floor_benches_refuse_bad_input_in_one_line(script: str, args: list[str]
     assert len(lines) == 1 and field in lines[0], res.stderr
 
 
-def test_fleet_runs_plan_ahead_with_delay_compensation(tmp_path):
-    """``fleet bench --delay-compensation`` hands the flag to its fleet runs: the row says so, and
-    so does the fleet's own summary in the run's directory."""
+def test_fleet_runs_solve_after_the_tick_without_delay_compensation(tmp_path):
+    """``fleet bench --no-delay-compensation`` hands the flag to its fleet runs: the row says so,
+    and so does the fleet's own summary in the run's directory."""
     out = tmp_path / "bench"
     proc = subprocess.run(
-        [sys.executable, *_command(), "--quick", "--lockstep", "3", "--realtime", "", "--delay-compensation",
-         "--out", str(out), "--json", str(out / "b.json")],
+        [sys.executable, *_command(), "--quick", "--lockstep", "3", "--realtime", "",
+         "--no-delay-compensation", "--out", str(out), "--json", str(out / "b.json")],
         cwd=ROOT, env=ENV, capture_output=True, text=True, encoding="utf-8", timeout=300,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     runs = json.loads((out / "b.json").read_text())["fleet_runs"]
-    assert [(r["clock"], r["robots"], r["delay_compensation"]) for r in runs] == [("lockstep", 3, True)]
+    assert [(r["clock"], r["robots"], r["delay_compensation"]) for r in runs] == [("lockstep", 3, False)]
     assert "error" not in runs[0] and runs[0]["collisions"] == 0, runs[0]
     summary = json.loads((Path(runs[0]["out"]) / "summary.json").read_text())
-    assert summary["delay_compensation"] is True and summary["completed"], summary
+    assert "delay_compensation" not in summary and summary["completed"], summary
 
 
 def test_the_sized_zenoh_runtime_keeps_a_router_forwarding(tmp_path):

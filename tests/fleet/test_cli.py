@@ -269,13 +269,14 @@ def test_simulate_seed_is_recorded_and_deterministic(tmp_path, two_robot_run):
     assert figures(a) != figures(default)
 
 
-def test_simulate_with_delay_compensation_says_so_and_keeps_the_figures(tmp_path, two_robot_run):
-    """``--delay-compensation``: the run and its summary say so, and where constraint (a) never
-    binds the safety figures are those of the default (docs/method.md §5)."""
+def test_simulate_without_delay_compensation_says_so_and_keeps_the_figures(tmp_path, two_robot_run):
+    """By default every plan is made a step ahead and the summary says so; with
+    ``--no-delay-compensation`` it does not, and where constraint (a) never binds the safety
+    figures are the same (docs/method.md §5)."""
     _, default = two_robot_run
-    proc, s = simulate(SCENARIOS / "paper_two_robots.toml", tmp_path / "dc", "--delay-compensation")
+    proc, s = simulate(SCENARIOS / "paper_two_robots.toml", tmp_path / "nd", "--no-delay-compensation")
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert s["delay_compensation"] is True and "delay_compensation" not in default
+    assert default["delay_compensation"] is True and "delay_compensation" not in s
     assert s["steps"] == default["steps"] and s["collisions"] == 0
     assert s["min_reference_separation_m"] == pytest.approx(default["min_reference_separation_m"], abs=1e-9)
     assert all(r["reached_goal"] and r["tube_exits"] == 0 for r in s["robots"].values())

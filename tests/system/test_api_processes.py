@@ -42,7 +42,7 @@ def _script(fleet: Fleet) -> list[tuple[float, float, float]]:
     return [fleet.poses()[r] for r in fleet.ids]
 
 
-@pytest.mark.parametrize("ahead", [False, True], ids=["default", "delay-compensation"])
+@pytest.mark.parametrize("ahead", [False, True], ids=["solve-after-tick", "delay-compensation"])
 def test_the_same_script_gives_the_same_run_in_process_and_as_processes(tmp_path, ahead):
     """Bit for bit: every true pose of every sample, the final measured poses, the events and
     the summary's figures; the processes are ended when the block ends.  With delay
@@ -250,7 +250,7 @@ def test_an_interrupted_wait_leaves_the_fleet_usable(tmp_path):
         _kill_all(list(pids.values()))
 
 
-@pytest.mark.parametrize("ahead", [False, True], ids=["default", "delay-compensation"])
+@pytest.mark.parametrize("ahead", [False, True], ids=["solve-after-tick", "delay-compensation"])
 def test_fleet_run_follows_the_missions_as_fleet_simulate_does(tmp_path, ahead):
     """A scenario with missions, as processes: the same steps, figures and waypoints as the
     in-process simulator, every process exiting 0; with delay compensation too (the first
@@ -258,7 +258,7 @@ def test_fleet_run_follows_the_missions_as_fleet_simulate_does(tmp_path, ahead):
     from fleet.cli import main
 
     patrol = str(ROOT / "scenarios" / "patrol_two.toml")
-    flag = ["--delay-compensation"] if ahead else []
+    flag = ["--delay-compensation"] if ahead else ["--no-delay-compensation"]
     assert main(["simulate", patrol, "--out", str(tmp_path / "sim"), *flag]) == 0
     assert main(["run", patrol, "--out", str(tmp_path / "run"), *flag]) == 0
     sim, run = (json.loads((tmp_path / d / "summary.json").read_text()) for d in ("sim", "run"))

@@ -150,6 +150,22 @@ def test_lockstep_run_and_simulate_give_identical_safety_figures(three, tmp_path
     assert set(json.loads((out / "summary.json").read_text())["robots"]) == {"r1", "r2", "r3"}
 
 
+def test_lockstep_run_solving_after_the_tick_is_fleet_simulate_so(tmp_path):
+    """``--no-delay-compensation`` (the paper's order: each plan solved after its tick, then the
+    command): a lockstep run is ``fleet simulate --no-delay-compensation`` to the last bit, and
+    neither summary says it planned ahead."""
+    scn = str(SCENARIOS / "paper_three_robots.toml")
+    res = _fleet("run", scn, "--out", str(tmp_path / "run"), "--no-delay-compensation")
+    assert res.returncode == 0, res.stderr[-2000:]
+    sim = _fleet("simulate", scn, "--out", str(tmp_path / "sim"), "--no-delay-compensation")
+    assert sim.returncode == 0, sim.stderr[-2000:]
+    _same_run(tmp_path / "run", tmp_path / "sim")
+    run = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert "delay_compensation" not in run and "delay_compensation" not in run["network"]
+    solves = re.findall(r"\[agent r\d\] stopped after (\d+) steps: (\d+) solves", res.stderr)
+    assert len(solves) == 3 and all(a == b for a, b in solves), solves  # no plan made ahead
+
+
 def test_lockstep_runs_are_deterministic_with_agents_forked_or_spawned(three, tmp_path):
     """A second lockstep run, its agents each a new interpreter (``--start-agents spawn``) where
     the first forked them from the fork server (the default), is the same run to the last bit."""
@@ -355,8 +371,18 @@ def test_star_topology_links_every_process_to_the_tracker_only_and_gives_the_sam
         return d
 
     star_summary = json.loads((tmp_path / "star" / "summary.json").read_text())
-    assert star_summary["network"] == {"topology": "star", "exchange": "relay", "lease_s": 1.0}
-    assert mesh["network"] == {"topology": "mesh", "exchange": "mesh", "lease_s": 10.0}
+    assert star_summary["network"] == {
+        "topology": "star",
+        "exchange": "relay",
+        "lease_s": 1.0,
+        "delay_compensation": True,
+    }
+    assert mesh["network"] == {
+        "topology": "mesh",
+        "exchange": "mesh",
+        "lease_s": 10.0,
+        "delay_compensation": True,
+    }
     assert strip(star_summary) == strip(mesh)
 
 
@@ -436,8 +462,9 @@ def test_nothing_listens_beyond_loopback(tmp_path):
 @pytest.mark.realtime
 @pytest.mark.parametrize("exchange", ["mesh", "relay"])
 def test_realtime_run_of_three_robots_for_20_s(tmp_path, exchange):
-    """Wall-clock steps at Ts for 20 s: safe, with deadline misses counted and reported, and
-    each taken on the candidate.  With relay the agents take their own pose and odometry from
+    """Wall-clock steps at Ts for 20 s, each plan solved after its tick
+    (``--no-delay-compensation``): safe, with deadline misses counted and reported, and each
+    taken on the candidate.  With relay the agents take their own pose and odometry from
     Zenoh's queues, and the digest by callback."""
     text = (SCENARIOS / "paper_three_robots.toml").read_text()
     lines = [("duration = 20.0" if ln.startswith("duration") else ln) for ln in text.splitlines()]
@@ -445,8 +472,9 @@ def test_realtime_run_of_three_robots_for_20_s(tmp_path, exchange):
     scn.write_text("\n".join(lines) + "\n")
     t0 = time.monotonic()
     res = _fleet(
-        "run", str(scn), "--out", str(tmp_path / "out"), "--clock", "realtime", "--exchange", exchange
-    )
+        "run", str(scn), "--out", str(tmp_path / "out"), "--clock", "realtime", "--exchange", exchange,
+        "--no-delay-compensation",
+    )  # fmt: skip
     wall = time.monotonic() - t0
     s = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert (s["clock"], s["completed"], s["steps"]) == ("realtime", True, 200), res.stderr[-3000:]
@@ -708,8 +736,10 @@ def test_sigterm_to_fleet_run_stops_every_process(tmp_path):
 
 @pytest.mark.realtime
 def test_realtime_digest_comes_half_a_step_before_its_tick(tmp_path):
-    """Realtime relay: the digest of step k − 1 goes out once the tracker has taken the
-    commands of k − 1, not with tick k, so the agents decode it while the cores are idle.
+    """Realtime relay, each plan solved after its tick (``--no-delay-compensation``; planning
+    ahead, the digest goes with the step's outcome instead): the digest of step k − 1 goes out
+    once the tracker has taken the commands of k − 1, not with tick k, so the agents decode it
+    while the cores are idle.
     Seen from outside: an observer on the hub takes both keys; the digest leads the tick by
     half a step at the median (at least 0.2·Ts is asked, for a loaded machine).  The
     digest sent with the tick, as before, leads it by a fraction of a millisecond."""
@@ -745,7 +775,7 @@ def test_realtime_digest_comes_half_a_step_before_its_tick(tmp_path):
 
     launcher = subprocess.Popen(
         [sys.executable, "-m", "fleet.cli", "run", str(scn), "--out", str(tmp_path / "out"), "--listen", hub,
-         "--clock", "realtime", "--exchange", "relay"],
+         "--clock", "realtime", "--exchange", "relay", "--no-delay-compensation"],
         cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     session = zenoh.open(NetConfig(connect=[hub]).zenoh())

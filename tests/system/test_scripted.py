@@ -3,12 +3,12 @@
 This test plays the script: its own Zenoh session on the fleet's hub (loopback, scouting off),
 the script's liveliness token, the permits on ``fleet/F/script`` and the goals as queries on
 ``fleet/F/goal/R``.  Checked from outside: the tracker publishes no tick of a step before the
-step's permit; a goal sent at sample k is acknowledged and carried by the plan of step k, not
-before; a goal in an obstacle or on another robot's goal is refused with the reason and changes
-nothing; two robots trade goals in one batch; a stop ends the run with every process exiting 0
-and a summary; a hold longer than the agents' ``--timeout`` ends nothing; and a script that
-leaves without a stop ends the run.  Every wait is bounded and waits on a message, a log line or
-a process, never on a clock.
+step's permit; a goal sent at sample k is acknowledged and carried by the plan of step k + 1,
+not before (the agents plan a step ahead, by default); a goal in an obstacle or on another
+robot's goal is refused with the reason and changes nothing; two robots trade goals in one
+batch; a stop ends the run with every process exiting 0 and a summary; a hold longer than the
+agents' ``--timeout`` ends nothing; and a script that leaves without a stop ends the run.
+Every wait is bounded and waits on a message, a log line or a process, never on a clock.
 """
 
 from __future__ import annotations
@@ -241,13 +241,14 @@ def test_a_script_steps_a_lockstep_fleet_and_gives_acknowledged_goals(tmp_path):
         for k in range(3):
             player.step(k)
 
-        # Sample 3: a goal for r1, acknowledged; its plan of step 3 carries it, that of step 2 not.
+        # Sample 3: a goal for r1, acknowledged; its plan of step 4 carries it, that of step 3
+        # not: planning ahead (the default), the plan of step 3 was made during step 2.
         player.sample(3)
         new = (0.5, 0.4)
         assert player.goal("r1", new) == ("ok", {"ok": True})
         player.permit(3)
-        assert np.array_equal(player.plan("r1", 3).goal, new)
-        assert np.array_equal(player.plan("r1", 2).goal, HOME["r1"])
+        assert np.array_equal(player.plan("r1", 4).goal, new)
+        assert np.array_equal(player.plan("r1", 3).goal, HOME["r1"])
 
         # Sample 4: refused with the reason, and nothing changes: a goal inside the disc, one on
         # r2's goal, a payload that is no goal, and a goal for r2 sent to r1.
@@ -266,15 +267,15 @@ def test_a_script_steps_a_lockstep_fleet_and_gives_acknowledged_goals(tmp_path):
         assert np.array_equal(player.plan("r2", 4).goal, HOME["r2"])
 
         # Sample 5: r1 and r2 trade goals.  Alone, each would park on the other's goal; in one
-        # batch each is checked against the other's new goal, and both are taken at step 5.
+        # batch each is checked against the other's new goal, and both are taken at step 6.
         player.sample(5)
         kind, answer = player.goal("r1", HOME["r2"])
         assert kind == "ok" and answer["ok"] is False and "r2's goal" in answer["reason"], answer
         assert player.goal("r1", HOME["r2"], batch={"r2": new}) == ("ok", {"ok": True})
         assert player.goal("r2", new, batch={"r1": HOME["r2"]}) == ("ok", {"ok": True})
         player.permit(5)
-        assert np.array_equal(player.plan("r1", 5).goal, HOME["r2"])
-        assert np.array_equal(player.plan("r2", 5).goal, new)
+        assert np.array_equal(player.plan("r1", 6).goal, HOME["r2"])
+        assert np.array_equal(player.plan("r2", 6).goal, new)
 
         for k in range(6, 9):
             player.step(k)

@@ -478,9 +478,11 @@ def test_a_robot_cannot_publish_for_another_during_a_whole_run(net: Net, exchang
     m = re.search(r"run ended at step (\d+); \d+ deadline misses, (\d+) rejected payloads", " ".join(ended))
     assert m is not None, seen
     steps, tracker_rejects = int(m[1]), int(m[2])
-    assert all(e["robot"] == VICTIM and 0 <= e["step"] < steps for e in plans + cmds), seen
-    for got in (plans, cmds):
-        assert sorted(e["step"] for e in got) == list(range(steps)), seen
+    assert all(e["robot"] == VICTIM for e in plans + cmds), seen
+    # One command a step; and one plan, with the plan of the stop step too, made during the last
+    # step (the agents plan a step ahead by default).
+    assert sorted(e["step"] for e in cmds) == list(range(steps)), seen
+    assert sorted(e["step"] for e in plans) == list(range(steps + 1)), seen
     # Nobody rejected a payload, so nothing of the attack reached a decoder unnoticed either.
     assert tracker_rejects == 0, seen
     for name in fleet:

@@ -368,7 +368,7 @@ def _lines(stream: Any, into: queue.Queue[str]) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("ahead", [False, True], ids=["default", "delay-compensation"])
+@pytest.mark.parametrize("ahead", [False, True], ids=["solve-after-tick", "delay-compensation"])
 def test_video_through_the_tracker_process_matches_the_trajectories(tmp_path, video, ahead):
     """``python -m tracker --source camera --video`` over Zenoh on loopback: every pose's
     (t, x, y, θ) matches the trajectory at t; the corrupt frame's step is skipped.
@@ -387,7 +387,8 @@ def test_video_through_the_tracker_process_matches_the_trajectories(tmp_path, vi
     # links' reports within the step, so that run keeps the real pace.
     cmd = [sys.executable, "-m", "tracker", "--scenario", str(scn), "--source", "camera",
            "--video", str(video), "--rate", "1" if ahead else "5", "--listen", hub, "--fleet", "camtest",
-           "--wait-agents", "--start-timeout", "60", *ahead * ["--delay-compensation"]]  # fmt: skip
+           "--wait-agents", "--start-timeout", "60",
+           "--delay-compensation" if ahead else "--no-delay-compensation"]  # fmt: skip
     proc = subprocess.Popen(cmd, cwd=ROOT, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     out: queue.Queue[str] = queue.Queue()
     err: queue.Queue[str] = queue.Queue()
