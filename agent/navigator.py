@@ -182,6 +182,11 @@ class Navigator:
     + ``corridor_margin`` wide, and a parked robot stands anywhere within
     :data:`~agent.coordination.PARKED_RADIUS` of its own: any closer pair of goals, and the end
     of the corridor can cover the parked robot (docs/method.md §7, "Close goals")."""
+    close_goals_patience: int = 600
+    """Steps a robot may return to its goal before the close-goals rule lapses for it [steps]:
+    from then on, a parked robot at a close goal yields to it as to any robot that goes first.
+    A goal enclosed by parked robots at close goals (the interior of a grid of goals spaced
+    barely over R) is reachable no other way (docs/method.md §7, "Close goals")."""
     lookahead: float = 0.3
     """Carrot distance along the planned path [m]."""
     replan_steps: int = 10
@@ -278,6 +283,7 @@ class Navigator:
             if (
                 self.phase == PARKED
                 and nb.phase == RETURNING
+                and nb.phase_age < self.close_goals_patience
                 and nb.goal is not None
                 and math.hypot(nb.goal[0] - goal[0], nb.goal[1] - goal[1]) < R + self.close_goals
             ):

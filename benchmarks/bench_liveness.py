@@ -24,6 +24,7 @@ import os
 os.environ["OMP_NUM_THREADS"] = "1"  # before proxsuite (libgomp) is imported
 
 import argparse
+import functools
 import json
 import multiprocessing
 import platform
@@ -37,8 +38,9 @@ import numpy as np
 SCHEMA = 1
 
 
-def one(seed: int) -> dict[str, Any]:
-    """Run hard scene ``seed`` in this process; its figures."""
+def one(seed: int, ahead: bool = True) -> dict[str, Any]:
+    """Run hard scene ``seed`` in this process, with every plan made a step ahead as ``fleet
+    simulate`` makes them by default (``ahead`` False: each from its measurement); its figures."""
     from agent.tube import validated_design
     from fleet.scenes import hard_scene
     from fleet.simulate import run
@@ -52,7 +54,7 @@ def one(seed: int) -> dict[str, Any]:
         design = validated_design(scn)
     except ConfigError as e:
         return {"seed": seed, "name": data["name"], "family": family, "refused": str(e)}
-    res = run(scn, design=design)
+    res = run(scn, design=design, ahead=ahead)
     s = res.summary()
     robots = s["robots"]
     eff = [r["path_length_m"] / r["straight_line_m"] for r in robots.values() if r["straight_line_m"] > 0.05]
@@ -103,7 +105,8 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     json_path = Path(args.json) if args.json else out / "liveness.json"
-    print(f"fleet bench --liveness: {n} hard scenes from seed {seed0}, {jobs} processes", flush=True)
+    order = "" if getattr(args, "delay_compensation", True) else ", each plan from its measurement"
+    print(f"fleet bench --liveness: {n} hard scenes from seed {seed0}, {jobs} processes{order}", flush=True)
     print(f"machine: nproc {os.cpu_count()}, {platform.processor() or platform.machine()}; "
           f"python {platform.python_version()}; load average {os.getloadavg()}", flush=True)  # fmt: skip
     t0 = time.perf_counter()
@@ -113,8 +116,9 @@ def run(args: argparse.Namespace) -> int:
     if here not in sys.path:
         sys.path.insert(0, here)  # spawn hands the workers this process's sys.path
     ctx = multiprocessing.get_context("spawn")
+    ahead = bool(getattr(args, "delay_compensation", True))
     with ctx.Pool(jobs) as pool:
-        for r in pool.imap_unordered(one, range(seed0, seed0 + n)):
+        for r in pool.imap_unordered(functools.partial(one, ahead=ahead), range(seed0, seed0 + n)):
             rows.append(r)
             what = r.get("refused") or f"{r['home']}/{r['robots']} home, {r['collisions']} collisions"
             print(f"  [{len(rows):>3}/{n}] {r['name']}: {what}", flush=True)
@@ -134,6 +138,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--jobs", type=int, default=2, help="processes (default 2)")
     ap.add_argument("--out", default="out/bench", help="directory of the JSON (default out/bench)")
     ap.add_argument("--json", default=None, help="where the JSON goes (default OUT/liveness.json)")
+    ap.add_argument(
+        "--delay-compensation", action=argparse.BooleanOptionalAction, default=True,
+        help="plans made a step ahead, as fleet simulate makes them by default",
+    )  # fmt: skip
     return run(ap.parse_args(argv))
 
 

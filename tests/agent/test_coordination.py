@@ -19,6 +19,7 @@ from agent.coordination import (
 )
 from agent.navigator import CORRIDOR_MARGIN, GridPlanner, Navigator
 from ground.scenario import Circle
+from ground.wire import MAX_AGE
 
 EPS = 0.0055
 
@@ -194,6 +195,28 @@ def test_a_parked_robot_holds_its_goal_against_one_returning_to_a_goal_whose_cor
     nav_a = Navigator(footprint=r, arena=(-1.0, 1.0, -1.0, 1.0), rank=5)
     nav_a.phase, nav_a.phase_age = PARKED, 100
     assert nav_a.target(a_goal, a_goal, [b])[1] == "yield"
+
+
+def test_the_close_goals_rule_lapses_for_a_robot_that_has_waited_its_patience():
+    """A goal enclosed by parked robots at close goals (the interior of a grid of goals spaced
+    barely over R) is reachable only if one of them steps aside: a robot displaced from it once
+    (it yielded to one that went first) waited for ever, every neighbour holding its own goal
+    under the close-goals rule.  The rule therefore holds only while the returning robot has
+    been returning for less than the navigator's patience; from then on the parked robot in its
+    corridor yields to it, as to any robot that goes first."""
+    r = 0.1135
+    R = 2 * r
+    a_goal, u = np.array([0.0, 0.0]), np.array([1.0, 0.0])
+    b_goal = a_goal + (R + 0.0105) * u  # the grid scene's spacing: R + 1 cm
+    a_at = a_goal + (PARKED_RADIUS - 0.0005) * u
+    patience = Navigator(footprint=r, arena=(-1.0, 1.0, -1.0, 1.0)).close_goals_patience
+    for age, yields in ((0, False), (patience - 1, False), (patience, True), (MAX_AGE, True)):
+        b = NeighbourInfo("b", b_goal + 0.2 * u, r, rank=0, target=b_goal, goal=b_goal, phase=RETURNING,
+                          phase_age=age)  # fmt: skip
+        nav_a = Navigator(footprint=r, arena=(-1.0, 1.0, -1.0, 1.0), rank=5)
+        nav_a.phase, nav_a.phase_age = PARKED, 100
+        assert (nav_a.target(a_at, a_goal, [b])[1] == "yield") is yields, age
+    assert 0 < patience < MAX_AGE  # an age the plans can carry
 
 
 def test_the_phase_age_counts_the_steps_in_a_phase_and_starts_again_when_displaced():
