@@ -30,7 +30,7 @@ from ground.bus import GOAL_REPLY_TIMEOUT, Inbox, ask_goal
 from ground.geometry import Array
 from ground.net import NetConfig, SecureConfigError, load_config
 from ground.scenario import ConfigError, Scenario
-from ground.wire import SCRIPT, Goal, Keys, Plan, Pose, Script, Tick, Truth
+from ground.wire import MAX_BATCH, SCRIPT, Goal, Keys, Plan, Pose, Script, Tick, Truth
 from supervisor.judge import SOLVED
 
 RUN_OPTIONS = (
@@ -74,6 +74,12 @@ class ProcessFleet:
         self.k = -1
         """The newest complete sample."""
         self._goals = {r.id: np.array(r.goal, dtype=float) for r in scn.robots}
+        self._given: dict[str, tuple[int, Array]] = {}
+        """The goals this script gave, by robot, with the sample each was given at.  Until its
+        robot's plans carry it (planning ahead, from the plan of the step after next, which
+        may still be on its way when the next sample is in), an agent checking a goal against
+        that robot's newest plan would see the goal before: so it goes in the batch of every
+        goal given at the next sample too (:meth:`send`)."""
         self.footprint = 0.0
         self._events: list[Any] = []
         self._dead: set[str] = set()
@@ -200,8 +206,11 @@ class ProcessFleet:
         """Each goal as a query to its agent, with the rest of the batch; robot → reason for
         each refusal.  If one is refused, the accepted ones are given back their goals."""
         refused, accepted = {}, []
+        recent = {r: g for r, (at, g) in self._given.items() if at >= self.k - 1 and r not in goals}
         for rid, g in goals.items():
-            batch = {r: np.asarray(q, dtype=float) for r, q in goals.items() if r != rid}
+            batch = {**recent, **{r: np.asarray(q, dtype=float) for r, q in goals.items()}}
+            del batch[rid]
+            batch = dict(list(batch.items())[-MAX_BATCH:])  # this call's own goals last, all kept
             ok, why = self._ask(rid, np.asarray(g, dtype=float), batch)
             if ok:
                 accepted.append(rid)
@@ -214,6 +223,7 @@ class ProcessFleet:
         if not refused:
             for rid, g in goals.items():
                 self._goals[rid] = np.asarray(g, dtype=float).copy()
+                self._given[rid] = (self.k, self._goals[rid])
         return refused
 
     @property

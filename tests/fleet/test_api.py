@@ -271,3 +271,42 @@ def test_a_goal_ringed_by_obstacles_is_refused(tmp_path):
         assert info.value.robot == "r1" and fleet.goals() == before
         fleet.goto({"r1": (0.6, -0.5)})
         assert fleet.wait_arrived(["r1"], timeout=60)
+
+
+def test_a_goal_given_at_the_last_sample_goes_in_the_next_goals_batch():
+    """A process fleet plans a step ahead, so the plan that carries a goal given at sample k may
+    still be on its way when sample k + 1 is in: an agent checking a goal given then against
+    that robot's newest plan would see the goal before, and could refuse a goal the script's
+    own records accept (or accept one they refuse), depending on timing.  So each goal's batch
+    carries the other robots' goals given at the last sample too, in place of their plans';
+    older ones are in the plans already.  (A real loopback session; the queries recorded.)"""
+    import zenoh
+
+    from fleet.script import ProcessFleet
+    from ground.net import NetConfig, free_port, loopback
+    from ground.scenario import load_scenario
+    from ground.wire import Keys
+
+    scn = load_scenario(SWAP4)
+    session = zenoh.open(NetConfig(listen=[loopback(free_port())]).zenoh())
+    fleet = ProcessFleet(scn, session, Keys("batchtest"))
+    asked: list[tuple[str, tuple[float, ...], dict[str, tuple[float, ...]]]] = []
+
+    def ask(rid, goal, batch):
+        asked.append((rid, tuple(goal), {r: tuple(g) for r, g in batch.items()}))
+        return True, ""
+
+    fleet._ask = ask  # type: ignore[method-assign]
+    try:
+        a, g, b = (0.3, 0.2), (0.0, 0.3), (-0.3, -0.2)
+        fleet.k = 5
+        assert fleet.send({"r1": np.array(g)}) == {}
+        fleet.k = 6  # the next sample: r1's plan with g may not be in yet
+        assert fleet.send({"r2": np.array(a), "r3": np.array(b)}) == {}
+        assert asked[1:] == [("r2", a, {"r1": g, "r3": b}), ("r3", b, {"r1": g, "r2": a})]
+        fleet.k = 8  # r1's plans carry g by now; r2's and r3's goals of sample 6 too
+        assert fleet.send({"r4": np.array(a)}) == {}
+        assert asked[-1] == ("r4", a, {})
+    finally:
+        fleet.close()
+        session.close()
