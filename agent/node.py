@@ -26,7 +26,8 @@ script), which the agent answers with a msgpack map, ``{"ok": true}`` or ``{"ok"
 "reason": "<one line>"}`` (a payload that is not a valid Goal for this robot is counted with the
 rejected payloads and answered as an error, ``reply_err``, with the same map).  Either way the
 goal is checked against the walls, the obstacles and the other robots' goals (those of the goal's
-``batch`` in place of theirs), and an accepted one is taken at the agent's next step.
+``batch`` in place of theirs), and an accepted one is taken by the first plan the agent makes
+after it (planning ahead, the plan of the step after next: :attr:`Agent.pending`).
 ``--scripted``: a script may hold the clock for as long as it likes; no tick for ``--timeout``
 then ends the agent only once the tracker is gone too (its liveliness token).
 """

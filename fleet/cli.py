@@ -2,12 +2,12 @@
 
 * ``fleet design [SCENARIO.toml] [--preset paper|epuck] [--json]`` prints the
   tube design and exits 1 if it is inadmissible.
-* ``fleet simulate SCENARIO.toml [--out DIR] [--seed N] [--delay-compensation]`` runs the
+* ``fleet simulate SCENARIO.toml [--out DIR] [--seed N] [--no-delay-compensation]`` runs the
   whole fleet in one process (:mod:`fleet.simulate`), writes ``DIR/summary.json`` and exits 0
   only if the run completed with zero collisions and every robot reached its goal.
 * ``fleet run SCENARIO.toml [--out DIR] [--clock C] [--exchange E] [--seed N] [--viewer]
   [--listen ENDPOINT] [--lease S] [--topology T] [--start-agents fork|spawn]
-  [--delay-compensation] [--ros2 [--ros-domain N] [--ros-listen E]]``
+  [--no-delay-compensation] [--ros2 [--ros-domain N] [--ros-listen E]]``
   runs the fleet as processes over Zenoh (with ``--ros2``, ROS 2 sees it too: docs/ros2.md).
 * ``fleet goal SCENARIO.toml --robot ID X Y --connect ENDPOINT`` gives a
   running agent a new goal.

@@ -527,7 +527,7 @@ def start_fleet(
                 server.close()
     lease_s = NetConfig.lease if lease is None else lease
     network: dict[str, Any] = {"topology": topology, "exchange": exchange, "lease_s": lease_s}
-    if delay_compensation:  # only then: a default run's summary stays as it was
+    if delay_compensation:  # as fleet simulate's summary says it (absent in the paper's order)
         network["delay_compensation"] = True
     if ros2:
         network["ros_endpoint"] = ros_endpoint

@@ -337,10 +337,15 @@ class CameraRun:
     def _outcome(self, k: int, next_tick: float) -> None:
         """Delay compensation: the outcome of step k (its tick just went out), once the links'
         reports of it are in, or :data:`~tracker.reports.OUTCOME_WAIT`·Ts after their deadline,
-        and never after the next tick is due (``next_tick`` [s, time.monotonic]); tick k + 1
-        says the same again."""
+        and not after the next tick is due (``next_tick`` [s, time.monotonic]) unless that
+        leaves less than the :data:`~tracker.reports.REPORT_WAIT`·Ts a tick waits for them
+        (a step that went out late); tick k + 1 says the same again.  The links' deadline is
+        in wall time: a video played faster than real time (``--rate`` above 1) leaves their
+        misses too late for the outcome, to be logged as untold."""
         now = time.monotonic()
-        due = min(now + (self.args.deadline + OUTCOME_WAIT) * self.Ts, next_tick)
+        due = min(
+            now + (self.args.deadline + OUTCOME_WAIT) * self.Ts, max(next_tick, now + REPORT_WAIT * self.Ts)
+        )
         fallback, braked, missed = self.reports.for_outcome(self.inbox, k, max(0.0, due - now), _log)
         self.misses += len(missed)
         assert self.outcome is not None

@@ -261,7 +261,7 @@ def test_lost_commands_with_delay_compensation_are_told_before_the_next_plans(tm
     faults = tmp_path / "faults.json"
     faults.write_text(json.dumps(plan))
     runs, errs = {}, {}
-    for name, flags in (("ahead", ["--delay-compensation"]), ("default", [])):
+    for name, flags in (("ahead", ["--delay-compensation"]), ("default", ["--no-delay-compensation"])):
         res = _fleet("run", str(scn), "--out", str(tmp_path / name), "--faults", str(faults), *flags)
         assert res.returncode == 0, res.stderr[-3000:]
         runs[name], errs[name] = json.loads((tmp_path / name / "summary.json").read_text()), res.stderr
