@@ -85,7 +85,7 @@ from epuck_link.transport import (
 from epuck_link.unicycle import make_inner_loop, unicycle_from_wheels
 from ground.bus import Inbox, open_session, publisher
 from ground.geometry import measured_state
-from ground.process import add_common_args, announce, fault_plan, log
+from ground.process import DEADLINE, add_common_args, announce, fault_plan, log
 from ground.scenario import ConfigError, RobotSpec, Scenario, load_scenario
 from ground.wire import Command, Keys, LinkState, Odom, Pose, Tick
 
@@ -111,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--rate", type=float, default=MIN_RATE, help=f"inner-loop rate [Hz], ≥ {MIN_RATE:.0f}")
     ap.add_argument(
-        "--deadline", type=float, default=0.5,
+        "--deadline", type=float, default=DEADLINE,
         help="a step's command is due this long after its tick, as a fraction of Ts (as the tracker's)",
     )  # fmt: skip
     args = ap.parse_args(argv)

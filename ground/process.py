@@ -51,6 +51,12 @@ def domain_arg(text: str) -> int:
     return n
 
 
+DEADLINE = 0.5
+"""A step's command is due this long after its tick, as a fraction of Ts: the default ``--deadline``
+of the robot sides (the simulated tracker, ``epuck_link``) and of the camera tracker, which waits
+for the links' reports of a miss until then (docs/design.md, "Missed deadlines")."""
+
+
 def add_common_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--scenario", required=True, help="scenario TOML file")
     ap.add_argument("--fleet", default="lab", help="fleet name in the Zenoh keys (default lab)")

@@ -12,7 +12,7 @@ odometry).  The tick's ``fallback`` and ``braked`` come from the links'
 :class:`ground.wire.Applied` reports of step k − 1 (:mod:`tracker.reports`; ``misses`` counts
 them); the same pose goes on the truth key too, as the supervisor's best ground truth on real
 robots.  With ``--delay-compensation`` the :class:`ground.wire.Outcome` of step k follows tick k
-as soon as every link that reported the step before has reported step k (a link decides at once
+as soon as every link that reported a recent step has reported step k (a link decides at once
 when its command came in time), or :data:`tracker.reports.OUTCOME_WAIT`·Ts after the links'
 ``--deadline``; tick k + 1 says the same again (docs/design.md, "Delay compensation").  Clocks:
 
@@ -52,7 +52,7 @@ import numpy as np
 
 from ground.bus import Inbox, open_session, publisher
 from ground.geometry import wrap_angle
-from ground.process import add_common_args, announce, log
+from ground.process import DEADLINE, add_common_args, announce, log
 from ground.scenario import CameraSpec, ConfigError, Scenario, load_scenario
 from ground.wire import Applied, Keys, Outcome, Pose, Tick, Truth
 from tracker.intrinsics import Intrinsics
@@ -101,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--start-timeout", type=float, default=60.0, help="--wait-agents: wait limit [s]")
     ap.add_argument(
-        "--deadline", type=float, default=0.5,
+        "--deadline", type=float, default=DEADLINE,
         help="--delay-compensation: the links' command deadline after the tick, as a fraction of Ts "
         "(their --deadline): a step's outcome waits for their reports of a miss until then",
     )  # fmt: skip

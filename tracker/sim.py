@@ -54,7 +54,7 @@ import numpy as np
 from epuck_link.robot_side import BRAKED, CANDIDATE, RobotSide
 from ground.bus import Inbox, open_session, publisher, remember_steps
 from ground.geometry import measured_state
-from ground.process import add_common_args, announce, fault_plan, log, seed_arg
+from ground.process import DEADLINE, add_common_args, announce, fault_plan, log, seed_arg
 from ground.scenario import ConfigError, Scenario, home, load_scenario, settle_samples
 from ground.wire import SCRIPT, Applied, Command, Digest, Keys, Odom, Outcome, Plan, Pose, Script, Tick, Truth
 from tracker.reports import OUTCOME_WAIT, REPORT_WAIT, Reports
@@ -92,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--deadline",
         type=float,
-        default=0.5,
+        default=DEADLINE,
         help="realtime: command deadline after the tick, as a fraction of Ts",
     )
     ap.add_argument(
