@@ -14,7 +14,9 @@ and no process but the hub listens (docs/design.md, "Topology").
 
 from __future__ import annotations
 
+import itertools
 import json
+import os
 import socket
 import string
 from dataclasses import dataclass, field
@@ -24,11 +26,49 @@ from typing import Any
 LOOPBACK = "127.0.0.1"
 
 
+EPHEMERAL_RANGE = Path("/proc/sys/net/ipv4/ip_local_port_range")
+"""Where Linux keeps the range it draws ephemeral ports from (each connection's own end, and
+every ``bind`` to port 0)."""
+FIXED_PORTS = (10000, 32767)
+"""Ports :func:`free_port` picks from when the ephemeral range cannot be read: below Linux's
+default range (32768–60999), above the well-known and most registered services."""
+_picks = itertools.count()
+"""How many ports this process has picked: each pick starts its search further on."""
+
+
+def _fixed_ports() -> tuple[int, int]:
+    """The ports outside the kernel's ephemeral range that :func:`free_port` picks from."""
+    try:
+        lo, _ = (int(v) for v in EPHEMERAL_RANGE.read_text().split())
+    except (OSError, ValueError):
+        return FIXED_PORTS
+    if lo - 1 - FIXED_PORTS[0] >= 1000:
+        return FIXED_PORTS[0], lo - 1
+    return FIXED_PORTS
+
+
 def free_port(host: str = LOOPBACK) -> int:
-    """A TCP port that is free on ``host`` right now."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((host, 0))
-        return int(s.getsockname()[1])
+    """A TCP port that is free on ``host`` right now, for a process started next to listen on.
+
+    The port lies below the kernel's ephemeral range. A port the kernel itself handed out and
+    took back (``bind`` to port 0) would go back to that range, where the next connection any
+    process opens, or the next listener on port 0 (every peer of a fleet has one), may take it
+    before the process it was meant for has bound it. Below the range only another
+    :func:`free_port` can, and the search starts from a place set by the process id and how
+    many ports this process has picked, so two processes, or two picks in one process, start
+    apart. Raises OSError if no port of the range is free."""
+    lo, hi = _fixed_ports()
+    span = hi - lo + 1
+    start = (os.getpid() * 7919 + next(_picks) * 104729) % span
+    for i in range(span):  # bounded: each port of the range once
+        port = lo + (start + i) % span
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            try:
+                s.bind((host, port))
+            except OSError:
+                continue
+            return port
+    raise OSError(f"no free TCP port on {host} in {lo}..{hi}")
 
 
 MODES = ("peer", "client", "router")

@@ -1,0 +1,57 @@
+"""``ground.net.free_port``: the port a launcher hands to a process it starts next."""
+
+from __future__ import annotations
+
+import socket
+from pathlib import Path
+
+import pytest
+
+from ground import net
+
+
+def _ephemeral() -> tuple[int, int]:
+    lo, hi = (int(v) for v in Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split())
+    return lo, hi
+
+
+def test_free_ports_lie_outside_the_kernels_ephemeral_range_and_can_be_listened_on():
+    lo, hi = _ephemeral()
+    ports = [net.free_port() for _ in range(20)]
+    assert not [p for p in ports if lo <= p <= hi]
+    assert len(set(ports)) == len(ports)  # none bound in between, yet every pick differs
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((net.LOOPBACK, ports[0]))
+        s.listen()
+
+
+def _listen_on_three_in_a_row() -> tuple[int, list[socket.socket]]:
+    """Listeners on ports b, b + 1 and b + 2, with b + 3 free just now."""
+    for _ in range(50):  # bounded: a row of four free ports is common below the ephemeral range
+        base, held = net.free_port(), []
+        try:
+            for port in range(base, base + 3):
+                s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+                held.append(s)
+                s.bind((net.LOOPBACK, port))
+                s.listen()
+            with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+                probe.bind((net.LOOPBACK, base + 3))
+            return base, held
+        except OSError:
+            for s in held:
+                s.close()
+    raise AssertionError("no four free ports in a row")
+
+
+def test_ports_someone_listens_on_are_skipped_and_a_full_range_raises(monkeypatch):
+    base, held = _listen_on_three_in_a_row()
+    try:
+        monkeypatch.setattr(net, "_fixed_ports", lambda: (base, base + 3))
+        assert [net.free_port() for _ in range(4)] == [base + 3] * 4
+        monkeypatch.setattr(net, "_fixed_ports", lambda: (base, base + 2))
+        with pytest.raises(OSError, match="no free TCP port"):
+            net.free_port()
+    finally:
+        for s in held:
+            s.close()
