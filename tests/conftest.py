@@ -12,6 +12,15 @@ two cores, a second heavy test beside one of them starves its processes, and the
 disturbances the tube was not sized for. So under ``pytest -n 2`` a ``realtime`` test holds an
 exclusive lock on a file while every other test holds it shared: it waits for the other worker's
 current test to end, and no test starts beside it.
+
+Each such wait idles a worker for the rest of the other's test, up to a minute. So the
+``realtime`` tests are collected first, in their order, and a worker keeps the exclusive lock
+from one ``realtime`` test to the next. ``pytest -n``'s load scheduling hands each worker a
+run of consecutive tests to start with (a quarter of its share: over a hundred), so one worker
+takes them all and runs them one after another, and the suite waits once, not once per
+``realtime`` test. (Grouping them with ``xdist_group`` would say so more directly, but
+pytest-xdist 3.8 cannot group under pytest 9.2: the id it would mark no longer names the
+test.)
 """
 
 from __future__ import annotations
@@ -22,6 +31,7 @@ import sys
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+from typing import IO
 
 import pytest
 
@@ -31,21 +41,38 @@ if str(HERE) not in sys.path:
 SYSTEM = HERE / "system"
 
 
+def _realtime(item: pytest.Item | None) -> bool:
+    return item is not None and item.get_closest_marker("realtime") is not None
+
+
+@pytest.hookimpl(trylast=True)  # after deselection and pytest's own reordering by fixture
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     for item in items:
         if SYSTEM in Path(str(item.path)).resolve().parents:
             item.add_marker(pytest.mark.slow)
+    items.sort(key=lambda item: not _realtime(item))  # stable: the realtime tests first, in order
+
+
+_kept: list[IO[str]] = []
+"""The lock file whose exclusive lock one ``realtime`` test passes to the next."""
 
 
 @pytest.hookimpl(wrapper=True)
 def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[object]:
     """Shared lock around each test's setup, call and teardown (module fixtures included),
-    exclusive for a ``realtime`` one (see the module docstring)."""
-    root = hashlib.sha256(str(item.config.rootpath).encode()).hexdigest()[:12]
-    path = Path(tempfile.gettempdir()) / f"fleet-tests-{root}.lock"
-    with path.open("a") as f:
-        fcntl.flock(f, fcntl.LOCK_EX if item.get_closest_marker("realtime") else fcntl.LOCK_SH)
-        try:
-            return (yield)
-        finally:
+    exclusive for a ``realtime`` one, and kept for the next if that is ``realtime`` too (see
+    the module docstring)."""
+    if _kept:
+        f = _kept.pop()  # the previous test was realtime and so is this one: the lock is held
+    else:
+        root = hashlib.sha256(str(item.config.rootpath).encode()).hexdigest()[:12]
+        f = (Path(tempfile.gettempdir()) / f"fleet-tests-{root}.lock").open("a")
+        fcntl.flock(f, fcntl.LOCK_EX if _realtime(item) else fcntl.LOCK_SH)
+    try:
+        return (yield)
+    finally:
+        if _realtime(item) and _realtime(nextitem):
+            _kept.append(f)
+        else:
             fcntl.flock(f, fcntl.LOCK_UN)
+            f.close()
