@@ -4,8 +4,9 @@ Every message is a msgpack map ``{"schema": SCHEMA_VERSION, "type": <name>, ...f
 Arrays travel as ``{"dtype": "<f8", "shape": [...], "data": <raw bytes>}``, about
 ten times cheaper than nested lists.  Decoding is strict: anything malformed
 (garbage bytes, another schema version, a missing or unknown field, a wrong
-type, NaN or infinity, a wrong or huge shape, a plan that claims another
-robot's id) raises :class:`WireError` with a short reason, and nothing else.
+type, NaN or infinity, an array value beyond :data:`MAX_MAGNITUDE`, a wrong or huge
+shape, a plan that claims another robot's id) raises :class:`WireError` with a short
+reason, and nothing else: no exception of another kind, and no warning.
 A process counts the rejection (:class:`RejectCounter`) and carries on.
 
 Keys, for a fleet named ``F`` and a robot id ``R``:
@@ -68,7 +69,12 @@ MAX_BATCH = 64
 _DTYPES = {"<f8": np.float64, "<f4": np.float32}
 _ITEMSIZE = {"<f8": 8, "<f4": 4}
 _ARRAY_KEYS = frozenset({"dtype", "shape", "data"})
-_SUM = np.add.reduce
+MAX_MAGNITUDE = 1e9
+"""Largest magnitude of an array element [SI units]: far beyond any position, speed, input or
+gain the fleet sends, and far enough below overflow that squares and sums of such values stay
+finite."""
+_MAX = np.maximum.reduce
+_MIN = np.minimum.reduce
 
 
 class WireError(ValueError):
@@ -180,10 +186,11 @@ def decode_array(obj: Any, name: str, shape: tuple[int | None, ...]) -> NDArray[
     a = np.frombuffer(data, dtype=dt)
     if dt is not np.float64:
         a = a.astype(np.float64)
-    # Any NaN or ±inf makes the sum non-finite (so may an overflowing sum of
-    # values near 1e308, which no position or speed is): one reduction, no temporaries.
-    if not math.isfinite(_SUM(a)):
-        raise WireError(f"{name}: non-finite value")
+    # NaN fails both comparisons (minimum and maximum propagate it) and ±inf one of them: two
+    # reductions, no temporaries, and no floating-point warning, which a sum of hostile values
+    # gives as it overflows.
+    if count and not (_MIN(a) >= -MAX_MAGNITUDE and _MAX(a) <= MAX_MAGNITUDE):
+        raise WireError(f"{name}: a value not finite or beyond ±{MAX_MAGNITUDE:g}")
     return a.reshape(shp)
 
 
