@@ -45,7 +45,6 @@ def _realtime(item: pytest.Item | None) -> bool:
     return item is not None and item.get_closest_marker("realtime") is not None
 
 
-@pytest.hookimpl(trylast=True)  # after deselection and pytest's own reordering by fixture
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     for item in items:
         if SYSTEM in Path(str(item.path)).resolve().parents:
