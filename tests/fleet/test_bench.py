@@ -140,8 +140,9 @@ def test_quick_wire(quick: tuple[subprocess.CompletedProcess[str], dict[str, Any
     w = d["wire"]
     assert set(w["per_message_us"]) == {"plan", "pose", "odom", "tick", "cmd"}
     for name, m in w["per_message_us"].items():
-        for k in ("bytes", "encode", "decode"):
+        for k in ("bytes", "encode", "decode", "unpack"):
             positive(m[k], f"wire.{name}.{k}")
+        assert m["unpack"] < m["decode"], name  # the strict decoder parses, then checks
     per = w["agent_codec_ms_per_step"]
     assert [float(per[n]) for n in ("3", "8", "16", "32")] == sorted(
         float(per[n]) for n in ("3", "8", "16", "32")
