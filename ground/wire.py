@@ -184,13 +184,13 @@ def decode_array(obj: Any, name: str, shape: tuple[int | None, ...]) -> NDArray[
     if type(data) is not bytes or len(data) != count * _ITEMSIZE[code]:
         raise WireError(f"{name}: data length does not match shape {tuple(shp)}")
     a = np.frombuffer(data, dtype=dt)
-    if dt is not np.float64:
-        a = a.astype(np.float64)
     # NaN fails both comparisons (minimum and maximum propagate it) and ±inf one of them: two
     # reductions, no temporaries, and no floating-point warning, which a sum of hostile values
-    # gives as it overflows.
+    # gives as it overflows. Checked as sent: casting a signalling NaN warns too.
     if count and not (_MIN(a) >= -MAX_MAGNITUDE and _MAX(a) <= MAX_MAGNITUDE):
         raise WireError(f"{name}: a value not finite or beyond ±{MAX_MAGNITUDE:g}")
+    if dt is not np.float64:
+        a = a.astype(np.float64)
     return a.reshape(shp)
 
 

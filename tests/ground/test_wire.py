@@ -171,6 +171,8 @@ BAD = [
     ), Plan, "nominal"),
     ("NaN in float32", lambda: _mutate(_plan(), committed={"dtype": "<f4", "shape": [2, 2],
      "data": np.array([0, 0, np.nan, 0], "<f4").tobytes()}), Plan, "committed"),
+    ("signalling NaN in float32", lambda: _mutate(_plan(), committed={"dtype": "<f4", "shape": [2, 2],
+     "data": np.array([0, 0, 0x7F800001, 0], "<u4").tobytes()}), Plan, "committed"),
     ("sum overflows", lambda: _mutate(_plan(), committed=encode_array(np.full((20, 2), 1e308))), Plan,
      "committed"),
     ("+inf and -inf", lambda: _mutate(_plan(), committed=encode_array(
