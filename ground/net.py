@@ -32,19 +32,23 @@ every ``bind`` to port 0)."""
 FIXED_PORTS = (10000, 32767)
 """Ports :func:`free_port` picks from when the ephemeral range cannot be read: below Linux's
 default range (32768–60999), above the well-known and most registered services."""
+MIN_SPAN = 1000
+"""Fewest ports a range outside the ephemeral one must hold to be used."""
 _picks = itertools.count()
 """How many ports this process has picked: each pick starts its search further on."""
 
 
-def _fixed_ports() -> tuple[int, int]:
-    """The ports outside the kernel's ephemeral range that :func:`free_port` picks from."""
+def _fixed_ports() -> tuple[int, int] | None:
+    """The ports outside the kernel's ephemeral range that :func:`free_port` picks from: the
+    larger of the gaps below it (from 10000) and above it, or None if neither holds
+    :data:`MIN_SPAN` ports."""
     try:
-        lo, _ = (int(v) for v in EPHEMERAL_RANGE.read_text().split())
+        lo, hi = (int(v) for v in EPHEMERAL_RANGE.read_text().split())
     except (OSError, ValueError):
         return FIXED_PORTS
-    if lo - 1 - FIXED_PORTS[0] >= 1000:
-        return FIXED_PORTS[0], lo - 1
-    return FIXED_PORTS
+    below, above = (FIXED_PORTS[0], lo - 1), (hi + 1, 65535)
+    best = max(below, above, key=lambda r: r[1] - r[0])
+    return best if best[1] - best[0] + 1 >= MIN_SPAN else None
 
 
 def free_port(host: str = LOOPBACK) -> int:
@@ -56,8 +60,14 @@ def free_port(host: str = LOOPBACK) -> int:
     before the process it was meant for has bound it. Below the range only another
     :func:`free_port` can, and the search starts from a place set by the process id and how
     many ports this process has picked, so two processes, or two picks in one process, start
-    apart. Raises OSError if no port of the range is free."""
-    lo, hi = _fixed_ports()
+    apart. Above the range if there is more room there; the kernel's own pick if neither side
+    holds :data:`MIN_SPAN` ports. Raises OSError if no port of the range is free."""
+    fixed = _fixed_ports()
+    if fixed is None:  # the ephemeral range leaves no room: the kernel's pick, with its race
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            s.bind((host, 0))
+            return int(s.getsockname()[1])
+    lo, hi = fixed
     span = hi - lo + 1
     start = (os.getpid() * 7919 + next(_picks) * 104729) % span
     for i in range(span):  # bounded: each port of the range once

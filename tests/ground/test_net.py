@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import socket
-from pathlib import Path
 
 import pytest
 
@@ -11,7 +10,12 @@ from ground import net
 
 
 def _ephemeral() -> tuple[int, int]:
-    lo, hi = (int(v) for v in Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split())
+    try:
+        lo, hi = (int(v) for v in net.EPHEMERAL_RANGE.read_text().split())
+    except (OSError, ValueError):
+        pytest.skip("the kernel's ephemeral port range cannot be read here")
+    if net._fixed_ports() is None:
+        pytest.skip(f"the ephemeral range {lo}..{hi} leaves no room outside it")
     return lo, hi
 
 
@@ -55,3 +59,17 @@ def test_ports_someone_listens_on_are_skipped_and_a_full_range_raises(monkeypatc
     finally:
         for s in held:
             s.close()
+
+
+@pytest.mark.parametrize(
+    ("ephemeral", "expected"),
+    [("32768\t60999", (10000, 32767)), ("10500 60999", (61000, 65535)), ("1024 40000", (40001, 65535)),
+     ("5000 64999", None), ("garbage", net.FIXED_PORTS)],
+)  # fmt: skip
+def test_the_ports_picked_from_are_the_larger_gap_beside_the_ephemeral_range(
+    ephemeral, expected, tmp_path, monkeypatch
+):
+    f = tmp_path / "ip_local_port_range"
+    f.write_text(ephemeral + "\n")
+    monkeypatch.setattr(net, "EPHEMERAL_RANGE", f)
+    assert net._fixed_ports() == expected
