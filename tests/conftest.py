@@ -6,12 +6,12 @@ Every test under ``tests/system/`` is marked ``slow``, as are the few slow tests
 alone.  The helper modules beside this file (``procfs``, ``netns_util``, ``fuzzing``) are
 importable from every test directory.
 
-Tests marked ``realtime`` run fleets on the wall clock, and what they assert (no tube left,
-every deadline met, counts that agree) holds while each step's computing fits its budget. On
-two cores, a second heavy test beside one of them starves its processes, and the delays act as
-disturbances the tube was not sized for. So under ``pytest -n 2`` a ``realtime`` test holds an
-exclusive lock on a file while every other test holds it shared: it waits for the other worker's
-current test to end, and no test starts beside it.
+Tests marked ``realtime`` run fleets (or a robot's link) on the wall clock, and what they
+assert (no tube left, every deadline met, counts that agree) holds while each step's computing
+fits its budget. On two cores, a second heavy test beside one of them starves its processes,
+and the delays act as disturbances the tube was not sized for. So under ``pytest -n 2`` a
+``realtime`` test holds an exclusive lock on a file while every other test holds it shared: it
+waits for the other worker's current test to end, and no test starts beside it.
 
 Each such wait idles a worker for the rest of the other's test, up to a minute. So the
 ``realtime`` tests are collected first, in their order, and a worker keeps the exclusive lock
@@ -20,7 +20,9 @@ run of consecutive tests to start with (a quarter of its share: over a hundred),
 takes them all and runs them one after another, and the suite waits once, not once per
 ``realtime`` test. (Grouping them with ``xdist_group`` would say so more directly, but
 pytest-xdist 3.8 cannot group under pytest 9.2: the id it would mark no longer names the
-test.)
+test.) A small selection, or ``--lf`` and ``--ff``, which reorder after this, may share them
+between the workers again: slower, never wrong. A module with tests of both kinds sets its
+module fixtures up twice (``tests/system/test_multihost.py``).
 """
 
 from __future__ import annotations
