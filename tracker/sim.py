@@ -73,6 +73,10 @@ PROGRESS_EVERY = 50
 HOLD_POLL = 1.0
 """Scripted lockstep: how often [s] a held step looks again at what may end the hold, besides
 being woken by it."""
+SCRIPT_GRACE = 1.0
+"""Scripted: how long [s] a tracker whose agents are all gone waits for the script's token to go
+too, to name the cause. A killed script's fork server ends its agents at once, and their
+tokens may go a few milliseconds before the script's."""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -345,7 +349,11 @@ class SimTracker:
         if self.ahead:
             self._outcome(k, answering, sent)
         if not live & set(ids):
-            log(ROLE, f"step {k}: no agent alive; stopping the run")
+            why = None
+            if self.scripted:  # woken by the liveliness change, at the latest after SCRIPT_GRACE
+                inbox.wait(lambda: self._script_ended() is not None, SCRIPT_GRACE)
+                why = self._script_ended()
+            log(ROLE, f"step {k}: {why or 'no agent alive'}; stopping the run")
             return k + 1
         # Agents send the command before the plan of a step (with delay compensation, the plan
         # made ahead came during the step before); the early stop below judges the plans of this
