@@ -12,7 +12,10 @@ other's, as an agent in the mesh does.  How a process takes the samples:
 * ``callback``: a Python callback that only counts (Zenoh runs it on a Python thread of its own);
 * ``decode``: the same callback decoding each payload as a :class:`ground.wire.Plan`;
 * ``drain``: no callback; the main thread takes the queued samples from a FIFO channel once
-  per period (``ground.bus.Inbox.drain``'s way).
+  per period (``ground.bus.Inbox.drain``'s way);
+* ``direct``: the counting callback run by Zenoh's own receiving thread
+  (``zenoh.handlers.Callback(..., indirect=False)``, unstable in zenoh-python 1.x), with no
+  hand-over to a Python thread of its own.
 
 With ``--cell G`` the processes stand on a ring in cells of G, as a subscription by place would
 put them: each publishes on ``floor/plan/c<cell>/r<i>`` and subscribes to its own cell and the
@@ -25,6 +28,12 @@ The figure is the CPU of all N processes per robot-step (one publication per pro
 threads and Zenoh's runtime threads.  Compare it with ``fleet bench --cpu``: the part of a
 fleet's cost that no change to the fleet's own code can remove, short of sending fewer
 messages or changing the transport.
+
+With ``--math`` each run also measures ``fleet simulate`` on the shipped swap of N robots, the
+math alone, as ``fleet bench --cpu`` does (``bench_cpu.marginal_rows``), and each row prints
+(math + floor) / math: the least target 1 ratio that a fleet sending at most this row's messages
+could reach.  It is a lower bound: the fleet's tracker and supervisor, and each agent's tick,
+command and outcome, add messages that the floor does not send.
 """
 
 from __future__ import annotations
@@ -44,7 +53,20 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-MODES = ("callback", "decode", "drain")
+MODES = ("callback", "decode", "drain", "direct")
+MATH_LENGTHS = (6.0, 46.0)
+"""``fleet simulate``'s two runs for ``--math`` [simulated s], as ``fleet bench --cpu`` runs them."""
+
+
+def least_ratio(math_ms: float, floor_ms: float) -> float:
+    """The least ``fleet run`` / ``fleet simulate`` ratio (target 1) of a fleet that does the math
+    (``math_ms`` per robot-step, all of ``fleet simulate``) and sends at least the floor's
+    messages (``floor_ms`` per robot-step): CPU adds, so (math + floor) / math."""
+    if not (math_ms > 0 and floor_ms >= 0):
+        raise ValueError(
+            f"the math must cost something and the floor nothing negative ({math_ms}, {floor_ms})"
+        )
+    return (math_ms + floor_ms) / math_ms
 
 
 def _payload(i: int) -> bytes:
@@ -117,6 +139,9 @@ def _peer(
     for c in cells:
         if mode == "drain":
             subs.append(session.declare_subscriber(f"floor/plan/c{c}/*", zenoh.handlers.FifoChannel(4096)))
+        elif mode == "direct":
+            direct = zenoh.handlers.Callback(count, indirect=False)
+            subs.append(session.declare_subscriber(f"floor/plan/c{c}/*", direct))
         else:
             subs.append(
                 session.declare_subscriber(f"floor/plan/c{c}/*", count if mode == "callback" else decoded)
@@ -212,6 +237,8 @@ def measure(
 
 
 def main(argv: list[str] | None = None) -> int:
+    from bench_cpu import SCENES, marginal_rows
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--robots", type=int, default=16)
     ap.add_argument("--rate", type=float, default=25.0, help="publications per process per second")
@@ -220,6 +247,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--modes", default=",".join(MODES))
     ap.add_argument("--cell", default="0", help="comma-separated cell sizes G, side by side (0: one cell)")
     ap.add_argument("--runs", type=int, default=1, help="runs of every row, interleaved")
+    ap.add_argument(
+        "--math", action="store_true", help="measure fleet simulate beside, each run: the floor's ratio"
+    )
     args = ap.parse_args(argv)
     modes = args.modes.split(",")
     try:
@@ -234,6 +264,8 @@ def main(argv: list[str] | None = None) -> int:
         ("--runs: at least 1", args.runs < 1),
         (f"--cell: {args.cell!r} is not a comma-separated list of cell sizes (0 or more robots)",
          not all(c >= 0 for c in cells)),
+        (f"--robots: --math needs a shipped swap, of {', '.join(map(str, sorted(SCENES)))} robots",
+         args.math and args.robots not in SCENES),
     ]  # fmt: skip
     problem = next((why for why, bad in checks if bad), None)
     if problem is not None:
@@ -242,8 +274,13 @@ def main(argv: list[str] | None = None) -> int:
     print(f"transport floor: {args.robots} processes, {args.topology}, {args.rate:g} publications/s each, "
           f"{args.seconds:g} s; nproc {os.cpu_count()}, {platform.processor() or platform.machine()}, "
           f"python {platform.python_version()}, load {os.getloadavg()[0]:.1f}", flush=True)  # fmt: skip
-    print(f"{'mode':<10}{'cell':>5}{'plans':>7} {'ms/robot-step':>13}  split", flush=True)
+    ratio = "least ratio" if args.math else ""
+    print(f"{'mode':<10}{'cell':>5}{'plans':>7} {'ms/robot-step':>13}{ratio:>12}  split", flush=True)
     for _ in range(args.runs):
+        math_ms = math.nan
+        if args.math:
+            (sim,) = marginal_rows(args.robots, MATH_LENGTHS, 0, {"fleet simulate": ["simulate"]})
+            math_ms = sim["ms_per_robot_step"]
         for cell in cells:
             for mode in modes:
                 r = measure(args.robots, args.rate, args.seconds, mode, args.topology, cell)
@@ -251,6 +288,8 @@ def main(argv: list[str] | None = None) -> int:
                     f"{k} {v:.2f}" for k, v in sorted(r["by_thread_ms"].items(), key=lambda kv: -kv[1])
                 )
                 row = f"{mode:<10}{cell:>5}{r['plans_per_step']:>7.1f} {r['ms_per_robot_step']:>13.2f}"
+                if args.math:
+                    row += f"{least_ratio(math_ms, r['ms_per_robot_step']):>12.2f}"
                 print(f"{row}  {parts}", flush=True)
     return 0
 

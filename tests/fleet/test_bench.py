@@ -635,3 +635,21 @@ def test_zenoh_floor_delivers_only_the_cells_a_process_subscribes_to():
     assert set(plans) == {0, 2}, res.stdout
     # A peer that linked up late misses a few of the first puts, never gets more than it subscribed to.
     assert 9.0 <= plans[0] <= 10.0 and 5.4 <= plans[2] <= 6.0, res.stdout
+
+
+def test_zenoh_floor_sets_the_math_beside_the_floor():
+    """``bench_zenoh_floor.py --math`` measures ``fleet simulate`` of the same robots in the same
+    run and prints, per row, (math + floor) / math: recomputed here from the two printed figures,
+    so a ratio that dropped or doubled either part fails."""
+    res = subprocess.run(
+        [sys.executable, "benchmarks/bench_zenoh_floor.py", "--robots", "8", "--cell", "0",
+         "--modes", "callback", "--seconds", "2", "--math"],
+        cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr[-2000:]
+    (sim,) = [line.split() for line in res.stdout.splitlines() if line.strip().startswith("fleet simulate:")]
+    math_ms = float(sim[2])
+    (row,) = [r for r in _rows(res.stdout, "mode") if r[0] == "callback"]
+    floor_ms, ratio = float(row[3]), float(row[4])
+    assert math_ms > 0 and floor_ms > 0, res.stdout
+    assert ratio == pytest.approx((math_ms + floor_ms) / math_ms, abs=0.01 + 0.01 * ratio), res.stdout
