@@ -59,6 +59,8 @@ waits for room that only the transmit task, queued on that same worker, would ma
 only: the saving is within this machine's drift, so ``fleet run`` leaves Zenoh's sizes alone."""
 POLL = 0.05
 """Seconds between two samples of the fleet's threads."""
+LENGTHS = (6.0, 46.0)
+"""The two run lengths [simulated s] whose difference is measured, by default."""
 CONFIGS: dict[str, list[str]] = {
     "fleet run (defaults)": [],
     ZENOH_SIZED_ROW: [],
@@ -317,7 +319,10 @@ def run(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cpu", type=int, default=16, metavar="N", help="robots: 3, 8, 16 or 32 (default 16)")
-    ap.add_argument("--cpu-s", default="6,46", metavar="S,S", help="the two durations [s] (default 6,46)")
+    lengths = ",".join(f"{s:g}" for s in LENGTHS)
+    ap.add_argument(
+        "--cpu-s", default=lengths, metavar="S,S", help=f"the two durations [s] (default {lengths})"
+    )
     ap.add_argument("--seed", type=int, default=0, help="seed of every run (default 0)")
     ap.add_argument("--out", default="out/bench", help="directory of the JSON (default out/bench)")
     ap.add_argument("--json", default=None, help="where the JSON goes (default OUT/cpu.json)")

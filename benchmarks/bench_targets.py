@@ -129,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
     sizes = {"cpu": small or 16, "realtime": small or 32, "latency": small or 16, "ready": small or 16}
     rt_sizes = [small] if small else [16, 32, 48]
     rt_s = args.realtime_s if args.realtime_s is not None else (3.0 if quick else 60.0)
-    lengths = (2.0, 12.0) if quick else (6.0, 46.0)
+    lengths = (2.0, 12.0) if quick else cpu.LENGTHS
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     json_path = Path(args.json) if args.json else out / "targets.json"

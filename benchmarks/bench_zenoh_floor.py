@@ -54,8 +54,6 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 MODES = ("callback", "decode", "drain", "direct")
-MATH_LENGTHS = (6.0, 46.0)
-"""``fleet simulate``'s two runs for ``--math`` [simulated s], as ``fleet bench --cpu`` runs them."""
 
 
 def least_ratio(math_ms: float, floor_ms: float) -> float:
@@ -237,7 +235,7 @@ def measure(
 
 
 def main(argv: list[str] | None = None) -> int:
-    from bench_cpu import SCENES, marginal_rows
+    from bench_cpu import LENGTHS, SCENES, marginal_rows
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--robots", type=int, default=16)
@@ -279,7 +277,7 @@ def main(argv: list[str] | None = None) -> int:
     for _ in range(args.runs):
         math_ms = math.nan
         if args.math:
-            (sim,) = marginal_rows(args.robots, MATH_LENGTHS, 0, {"fleet simulate": ["simulate"]})
+            (sim,) = marginal_rows(args.robots, LENGTHS, 0, {"fleet simulate": ["simulate"]})
             math_ms = sim["ms_per_robot_step"]
         for cell in cells:
             for mode in modes:
