@@ -29,16 +29,42 @@ threads and Zenoh's runtime threads.  Compare it with ``fleet bench --cpu``: the
 fleet's cost that no change to the fleet's own code can remove, short of sending fewer
 messages or changing the transport.
 
+With ``--pattern step`` or ``--pattern fleet``, two more processes stand in for the tracker and
+the supervisor, and the tracker's stand-in drives the steps at ``--rate`` with the messages of a
+whole step, not only the plans (``--pattern plans``, the default, as above).  The robots'
+processes answer from their callbacks; the payloads are real encodings (:mod:`ground.wire`):
+
+* ``fleet``: the messages ``fleet run`` sends with its default flags (simulated tracker, agents
+  planning a step ahead, the tracker's realtime batching, ``tracker/sim.py``).  Each step the
+  tracker puts a tick and an outcome for all, and each robot's pose, odometry and true pose; it
+  takes every command and every plan.  Each agent takes the tick, the outcome, its pose and
+  odometry and the plans of its cells; it puts its command on the tick and its plan on the
+  outcome.  The supervisor takes the tick and every pose, true pose and plan
+  (``supervisor/monitor.py``).
+* ``step``: the fewest messages a step of the method needs, whatever the fleet's own design.
+  The tracker puts each robot's measurement (pose and odometry in one message, which also
+  starts the step) and one message of every true pose, and takes the commands.  Each agent
+  takes its measurement and the plans of its cells, and puts its command and its plan.  The
+  supervisor takes every plan and the true poses.
+
+Their agents take the samples by ``callback`` or ``decode`` as above, or by ``drain``: no
+callback at all, the main thread blocking on Zenoh's queue of the sample that starts its step
+(the tick, or its measurement) and taking whatever else is queued then, the fewest wake-ups.
+
 With ``--math`` each run also measures ``fleet simulate`` on the shipped swap of N robots, the
 math alone, as ``fleet bench --cpu`` does (``bench_cpu.marginal_rows``), and each row prints
 (math + floor) / math: the least target 1 ratio that a fleet sending at most this row's messages
-could reach.  It is a lower bound: the fleet's tracker and supervisor, and each agent's tick,
-command and outcome, add messages that the floor does not send.
+could reach.  With ``--pattern plans`` it is a loose lower bound: the fleet's tracker and
+supervisor, and each agent's tick, command and outcome, add messages that it does not send.
+``--pattern step`` sends those too, as few as the method allows: with it, the ratio bounds
+every design of processes that exchange the plans peer to peer.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import itertools
 import math
 import multiprocessing
 import os
@@ -46,6 +72,7 @@ import platform
 import queue
 import sys
 import time
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -54,6 +81,9 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 MODES = ("callback", "decode", "drain", "direct")
+PATTERNS = ("plans", "step", "fleet")
+STEP_MODES = ("callback", "decode", "drain")
+"""The modes of ``--pattern step`` and ``fleet``: how the agents take the plans."""
 
 
 def least_ratio(math_ms: float, floor_ms: float) -> float:
@@ -171,6 +201,263 @@ def _peer(
     ready.put(("took", i, taken[0], published))
 
 
+def _step_payloads(robots: int) -> dict[str, bytes]:
+    """Real encodings of a step's messages other than the plan, robot ``r0``'s (the others'
+    differ only in a digit): a command carries the shifted candidate of a 20-step horizon."""
+    import numpy as np
+
+    from ground.wire import Command, Odom, Outcome, Pose, Tick, Truth
+
+    pose = Pose(robot="r0", seq=5, t=0.5, x=0.31, y=-0.42, theta=1.1).encode()
+    truth = Truth(robot="r0", seq=5, t=0.5, x=0.31, y=-0.42, theta=1.1).encode()
+    return {
+        "pose": pose, "truth": truth, "odom": Odom(robot="r0", seq=5, t=0.5, vx=0.01, vy=-0.02).encode(),
+        "tick": Tick(robot="tracker", step=5, t=0.5, stop=False, misses=0).encode(),
+        "outcome": Outcome(robot="tracker", step=5).encode(),
+        "cmd": Command(
+            robot="r0", step=5, ax=0.01, ay=-0.02, fallback=True, x_next=np.full(4, 0.1),
+            v_next=np.full((20, 2), 0.01), K=np.full((2, 4), -2.0),
+        ).encode(),
+        # The step's measurement: a pose and an odometry in one message; the true poses at once.
+        "meas": pose + b"odom" * 8, "truths": truth * robots,
+    }  # fmt: skip
+
+
+def _step_session(hub: str, topology: str, listen: bool) -> Any:
+    import zenoh
+
+    from ground.net import NetConfig, loopback
+
+    if listen:
+        return zenoh.open(NetConfig(listen=[hub], mode="router" if topology == "star" else "peer").zenoh())
+    mode = "client" if topology == "star" else "peer"
+    return zenoh.open(NetConfig(listen=[loopback(0)], connect=[hub], mode=mode).zenoh())
+
+
+def _step_agent(
+    i: int, robots: int, hub: str, topology: str, pattern: str, mode: str, cell: int, ready: Any, go: Any,
+    stop: Any,
+) -> None:  # fmt: skip
+    """Robot ``i``'s agent in ``pattern``: it takes what an agent takes, and from the callbacks
+    puts its command and its plan (on the tick and on the outcome in ``fleet``, on its
+    measurement in ``step``).  Says on ``ready`` when open, when it has heard every publisher of
+    the cells it subscribes to but its own, and at the end how many plans it took and how many it
+    put."""
+    os.environ["OMP_NUM_THREADS"] = "1"
+    import zenoh
+
+    from ground.bus import publisher
+    from ground.wire import Plan, WireError, decode
+
+    session = _step_session(hub, topology, listen=False)
+    mine, cells, publishers = cells_of(i, robots, cell)
+    expected = publishers - 1  # an agent does not take its own plan back
+    heard: set[str] = set()
+    taken, published = [0], [0]
+    pub_plan = publisher(session, f"floor/plan/c{mine}/r{i}")
+    pub_cmd = publisher(session, f"floor/cmd/r{i}")
+    plan, cmd = _payload(i), _step_payloads(robots)["cmd"]
+
+    def on_plan(sample: Any) -> None:
+        k = str(sample.key_expr)
+        data = sample.payload.to_bytes()
+        if mode == "decode":
+            with contextlib.suppress(WireError):
+                decode(data, Plan, robot=k.rsplit("/", 1)[-1])
+        taken[0] += 1
+        if len(heard) < expected:
+            heard.add(k)
+            if len(heard) == expected:
+                ready.put(("heard all", i))
+
+    def put(sample: Any, what: tuple[Any, ...]) -> None:
+        sample.payload.to_bytes()
+        if stop.is_set():  # the end: the session may be closing under this callback
+            return
+        with contextlib.suppress(zenoh.ZError):
+            for pub, payload in what:
+                pub.put(payload)
+                if pub is pub_plan:
+                    published[0] += 1
+
+    put_cmd = partial(put, what=((pub_cmd, cmd),))
+    put_plan = partial(put, what=((pub_plan, plan),))
+    put_both = partial(put, what=((pub_cmd, cmd), (pub_plan, plan)))
+
+    def take(sample: Any) -> None:
+        sample.payload.to_bytes()
+
+    remote = zenoh.Locality.REMOTE
+    if mode == "drain":  # no callback: the main thread blocks on its trigger and drains the rest
+        _step_agent_drains(
+            session, i, pattern, cells, (pub_cmd, cmd), (pub_plan, plan), on_plan, published, ready
+        )
+        session.close()
+    else:
+        subs = [
+            session.declare_subscriber(f"floor/plan/c{c}/*", on_plan, allowed_origin=remote) for c in cells
+        ]
+        if pattern == "fleet":
+            subs += [
+                session.declare_subscriber("floor/tick", put_cmd),
+                session.declare_subscriber("floor/outcome", put_plan),
+                session.declare_subscriber(f"floor/pose/r{i}", take),
+                session.declare_subscriber(f"floor/odom/r{i}", take),
+            ]
+        else:
+            subs.append(session.declare_subscriber(f"floor/meas/r{i}", put_both))
+        ready.put(("open", i))
+        stop.wait(600)  # bounded: at most 10 min; the callbacks do the work
+        for sub in subs:
+            sub.undeclare()
+        session.close()
+    ready.put(("took", i, taken[0], published[0]))
+
+
+STOP = b"stop"
+"""The payload of the tracker's stand-in's last trigger (tick, or measurement): the end."""
+
+
+def _step_agent_drains(
+    session: Any, i: int, pattern: str, cells: list[int], command: tuple[Any, bytes], plan: tuple[Any, bytes],
+    on_plan: Any, published: list[int], ready: Any,
+) -> None:  # fmt: skip
+    """``--modes drain`` of a whole step: the main thread blocks on Zenoh's queue of its trigger
+    (the tick, or its measurement), takes what is queued on its other keys, puts its command,
+    then (on the outcome in ``fleet``) its plan, until the tracker's stand-in sends :data:`STOP`.
+    The agent's fewest wake-ups: one a step, or two with the outcome."""
+    import zenoh
+
+    def fifo(key: str, origin: Any = None) -> Any:
+        handler: Any = zenoh.handlers.FifoChannel(4096)
+        if origin is None:
+            return session.declare_subscriber(key, handler)
+        return session.declare_subscriber(key, handler, allowed_origin=origin)
+
+    plans = [fifo(f"floor/plan/c{c}/*", zenoh.Locality.REMOTE) for c in cells]
+    others: list[Any] = []
+    if pattern == "fleet":
+        trigger, outcome = fifo("floor/tick"), fifo("floor/outcome")
+        others += [fifo(f"floor/pose/r{i}"), fifo(f"floor/odom/r{i}")]
+    else:
+        trigger, outcome = fifo(f"floor/meas/r{i}"), None
+    queued = [(sub, on_plan) for sub in plans] + [(sub, None) for sub in others]
+    ready.put(("open", i))
+    for _ in range(600 * 1000):  # bounded: the tracker's stand-in ends it with STOP
+        if trigger.recv().payload.to_bytes() == STOP:
+            break
+        for sub, then in queued:
+            for _ in range(4096):
+                sample = sub.try_recv()
+                if sample is None:
+                    break
+                if then is not None:
+                    then(sample)
+                else:
+                    sample.payload.to_bytes()
+        command[0].put(command[1])
+        if outcome is not None and outcome.recv().payload.to_bytes() == STOP:
+            break
+        plan[0].put(plan[1])
+        published[0] += 1
+    for sub in [*plans, *others, trigger, *([] if outcome is None else [outcome])]:
+        sub.undeclare()
+
+
+def _step_tracker(
+    robots: int, hub: str, topology: str, pattern: str, rate: float, ready: Any, go: Any, stop: Any
+) -> None:
+    """The tracker's stand-in: listens on ``hub``; from ``go`` until ``stop`` puts a step's
+    messages at ``rate``, batched as the realtime tracker batches them, and takes the commands
+    (and in ``fleet`` the plans) from a queue once a step, as it does.  Says on ``ready`` when
+    open and when it has heard every robot's command."""
+    os.environ["OMP_NUM_THREADS"] = "1"
+    import zenoh
+
+    from ground.bus import publisher
+
+    session = _step_session(hub, topology, listen=True)
+    data = _step_payloads(robots)
+    heard: set[str] = set()
+    # Drained once a step, as the realtime tracker takes its commands and plans.
+    channel = zenoh.handlers.FifoChannel
+    drained = [session.declare_subscriber("floor/cmd/*", channel(4096))]
+    puts: list[tuple[Any, bytes]] = []
+    if pattern == "fleet":
+        drained.append(session.declare_subscriber("floor/plan/**", channel(4096)))
+        for i in range(robots):
+            puts += [
+                (publisher(session, f"floor/{what}/r{i}", express=False), data[what])
+                for what in ("pose", "odom", "truth")
+            ]
+        puts += [(publisher(session, "floor/tick", express=False), data["tick"])]
+        puts += [(publisher(session, "floor/outcome", express=True), data["outcome"])]
+        triggers = [puts[-2][0]]
+    else:
+        puts += [(publisher(session, f"floor/meas/r{i}", express=False), data["meas"]) for i in range(robots)]
+        triggers = [pub for pub, _ in puts]
+        puts += [(publisher(session, "floor/truth", express=False), data["truths"])]
+
+    def drain() -> None:
+        for sub in drained:
+            for _ in range(4096):
+                sample = sub.try_recv()
+                if sample is None:
+                    break
+                sample.payload.to_bytes()
+                key = str(sample.key_expr)
+                if len(heard) < robots and key.startswith("floor/cmd/"):
+                    heard.add(key)
+                    if len(heard) == robots:
+                        ready.put(("heard all", "tracker"))
+
+    ready.put(("open", "tracker"))
+    go.wait(60)
+    period, t_next = 1.0 / rate, time.monotonic()
+    for _ in range(int(600 * rate)):  # bounded: at most 10 min
+        if stop.is_set():
+            break
+        drain()
+        for pub, payload in puts:
+            pub.put(payload)
+        t_next += period
+        stop.wait(max(0.0, t_next - time.monotonic()))
+    for pub in triggers:  # the end, for agents that block on their trigger (``--modes drain``)
+        pub.put(STOP)
+    for sub in drained:
+        sub.undeclare()
+    session.close()
+    ready.put(("done", "tracker"))
+
+
+def _step_supervisor(robots: int, hub: str, topology: str, pattern: str, ready: Any, stop: Any) -> None:
+    """The supervisor's stand-in: takes every plan and the true poses (and in ``fleet`` the tick
+    and every pose).  Says on ``ready`` when open and when it has heard every robot's plan."""
+    os.environ["OMP_NUM_THREADS"] = "1"
+    session = _step_session(hub, topology, listen=False)
+    heard: set[str] = set()
+
+    def on_plan(sample: Any) -> None:
+        sample.payload.to_bytes()
+        if len(heard) < robots:
+            heard.add(str(sample.key_expr))
+            if len(heard) == robots:
+                ready.put(("heard all", "supervisor"))
+
+    def take(sample: Any) -> None:
+        sample.payload.to_bytes()
+
+    subs = [session.declare_subscriber("floor/plan/**", on_plan)]
+    keys = ("floor/tick", "floor/pose/*", "floor/truth/*") if pattern == "fleet" else ("floor/truth",)
+    subs += [session.declare_subscriber(k, take) for k in keys]
+    ready.put(("open", "supervisor"))
+    stop.wait(600)  # bounded: at most 10 min
+    for sub in subs:
+        sub.undeclare()
+    session.close()
+    ready.put(("done", "supervisor"))
+
+
 def _cpu(pids: list[int]) -> dict[str, float]:
     """CPU s so far of ``pids``, by thread kind."""
     from bench_cpu import _tasks, _thread_kind
@@ -184,19 +471,39 @@ def _cpu(pids: list[int]) -> dict[str, float]:
 
 
 def measure(
-    robots: int, rate: float, seconds: float, mode: str, topology: str, cell: int = 0
+    robots: int, rate: float, seconds: float, mode: str, topology: str, cell: int = 0, pattern: str = "plans"
 ) -> dict[str, Any]:
+    """One row: the processes of ``pattern`` (module docstring), started, linked up (every
+    process heard every publisher it subscribes to), measured over ``seconds``, ended."""
     from ground.net import free_port, loopback
 
     ctx = multiprocessing.get_context("spawn")
     ready, go, stop = ctx.Queue(), ctx.Event(), ctx.Event()
     hub = loopback(free_port())
-    procs = [
-        ctx.Process(
-            target=_peer, args=(i, robots, hub, topology, mode, rate, cell, ready, go, stop), daemon=True
-        )
-        for i in range(robots)
-    ]
+    if pattern == "plans":
+        procs = [
+            ctx.Process(
+                target=_peer, args=(i, robots, hub, topology, mode, rate, cell, ready, go, stop), daemon=True
+            )
+            for i in range(robots)
+        ]
+    else:  # the tracker first: it listens on the hub
+        procs = [
+            ctx.Process(
+                target=_step_tracker, args=(robots, hub, topology, pattern, rate, ready, go, stop),
+                daemon=True,
+            ),
+            *(
+                ctx.Process(
+                    target=_step_agent, args=(i, robots, hub, topology, pattern, mode, cell, ready, go, stop),
+                    daemon=True,
+                )
+                for i in range(robots)
+            ),
+            ctx.Process(
+                target=_step_supervisor, args=(robots, hub, topology, pattern, ready, stop), daemon=True
+            ),
+        ]  # fmt: skip
     try:
         procs[0].start()
         ready.get(timeout=60)  # the hub listens
@@ -208,9 +515,12 @@ def measure(
         for _ in procs:
             ready.get(timeout=60)  # every process heard every publisher: linked up
         pids = [p.pid for p in procs if p.pid is not None]
-        a, t0 = _cpu(pids), time.monotonic()
+        roles = {"agents": pids} if pattern == "plans" else {
+            "tracker": pids[:1], "agents": pids[1:-1], "supervisor": pids[-1:]
+        }  # fmt: skip
+        a, t0 = {r: _cpu(ps) for r, ps in roles.items()}, time.monotonic()
         time.sleep(seconds)  # the measured window
-        b, t1 = _cpu(pids), time.monotonic()
+        b, t1 = {r: _cpu(ps) for r, ps in roles.items()}, time.monotonic()
     finally:
         stop.set()
         took: list[float] = []
@@ -226,10 +536,17 @@ def measure(
             if p.is_alive():
                 p.kill()
     robot_steps = robots * rate * (t1 - t0)
-    split = {k: 1e3 * (b[k] - a.get(k, 0.0)) / robot_steps for k in b}
+    split: dict[str, float] = {}
+    by_role: dict[str, float] = {}
+    for role in b:
+        for kind, cpu in b[role].items():
+            ms = 1e3 * (cpu - a[role].get(kind, 0.0)) / robot_steps
+            split[kind] = split.get(kind, 0.0) + ms
+            by_role[role] = by_role.get(role, 0.0) + ms
     total = sum(split.values())
     return {
-        "mode": mode, "topology": topology, "cell": cell, "ms_per_robot_step": total, "by_thread_ms": split,
+        "pattern": pattern, "mode": mode, "topology": topology, "cell": cell, "ms_per_robot_step": total,
+        "by_thread_ms": split, "by_role_ms": by_role,
         "plans_per_step": sum(took) / len(took) if len(took) == robots else math.nan,
     }  # fmt: skip
 
@@ -243,19 +560,27 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--topology", choices=["mesh", "star"], default="mesh")
     ap.add_argument("--modes", default=",".join(MODES))
+    ap.add_argument(
+        "--pattern", default="plans",
+        help="comma-separated, side by side, of: plans (the plans alone), step (the fewest messages "
+        "of a whole step), fleet (those fleet run sends)",
+    )  # fmt: skip
     ap.add_argument("--cell", default="0", help="comma-separated cell sizes G, side by side (0: one cell)")
     ap.add_argument("--runs", type=int, default=1, help="runs of every row, interleaved")
     ap.add_argument(
         "--math", action="store_true", help="measure fleet simulate beside, each run: the floor's ratio"
     )
     args = ap.parse_args(argv)
-    modes = args.modes.split(",")
+    modes, patterns = args.modes.split(","), args.pattern.split(",")
     try:
         cells = [int(c) for c in args.cell.split(",")]
     except ValueError:
         cells = [-1]
     checks = [
         *((f"--modes: {m!r} is not one of {', '.join(MODES)}", m not in MODES) for m in modes),
+        *((f"--pattern: {p!r} is not one of {', '.join(PATTERNS)}", p not in PATTERNS) for p in patterns),
+        (f"--modes: a whole step's pattern takes the plans by one of {', '.join(STEP_MODES)}",
+         any(p != "plans" for p in patterns) and not set(modes) <= set(STEP_MODES)),
         ("--robots: at least 2 processes", args.robots < 2),
         ("--rate: a finite rate, at least 1/600 a second", not 1 / 600 <= args.rate < math.inf),
         ("--seconds: a finite window of at least 1 s", not 1 <= args.seconds < math.inf),
@@ -273,22 +598,25 @@ def main(argv: list[str] | None = None) -> int:
           f"{args.seconds:g} s; nproc {os.cpu_count()}, {platform.processor() or platform.machine()}, "
           f"python {platform.python_version()}, load {os.getloadavg()[0]:.1f}", flush=True)  # fmt: skip
     ratio = "least ratio" if args.math else ""
-    print(f"{'mode':<10}{'cell':>5}{'plans':>7} {'ms/robot-step':>13}{ratio:>12}  split", flush=True)
+    print(f"{'pattern':<8}{'mode':<10}{'cell':>5}{'plans':>7} {'ms/robot-step':>13}{ratio:>12}  split",
+          flush=True)  # fmt: skip
     for _ in range(args.runs):
         math_ms = math.nan
         if args.math:
             (sim,) = marginal_rows(args.robots, LENGTHS, 0, {"fleet simulate": ["simulate"]})
             math_ms = sim["ms_per_robot_step"]
-        for cell in cells:
-            for mode in modes:
-                r = measure(args.robots, args.rate, args.seconds, mode, args.topology, cell)
-                parts = ", ".join(
-                    f"{k} {v:.2f}" for k, v in sorted(r["by_thread_ms"].items(), key=lambda kv: -kv[1])
-                )
-                row = f"{mode:<10}{cell:>5}{r['plans_per_step']:>7.1f} {r['ms_per_robot_step']:>13.2f}"
-                if args.math:
-                    row += f"{least_ratio(math_ms, r['ms_per_robot_step']):>12.2f}"
-                print(f"{row}  {parts}", flush=True)
+        for pattern, cell, mode in itertools.product(patterns, cells, modes):
+            r = measure(args.robots, args.rate, args.seconds, mode, args.topology, cell, pattern)
+            parts = ", ".join(
+                f"{k} {v:.2f}" for k, v in sorted(r["by_thread_ms"].items(), key=lambda kv: -kv[1])
+            )
+            if pattern != "plans":
+                parts += "; " + ", ".join(f"{k} {v:.2f}" for k, v in r["by_role_ms"].items())
+            row = (f"{pattern:<8}{mode:<10}{cell:>5}{r['plans_per_step']:>7.1f}"
+                   f" {r['ms_per_robot_step']:>13.2f}")  # fmt: skip
+            if args.math:
+                row += f"{least_ratio(math_ms, r['ms_per_robot_step']):>12.2f}"
+            print(f"{row}  {parts}", flush=True)
     return 0
 
 

@@ -520,7 +520,9 @@ def test_latency_floor_times_every_command_of_its_window():
      ("bench_zenoh_floor.py", ["--seconds", "inf"], "--seconds"),
      ("bench_zenoh_floor.py", ["--rate", "inf"], "--rate"),
      ("bench_zenoh_floor.py", ["--rate", "0.001"], "--rate"),
-     ("bench_zenoh_floor.py", ["--runs", "0"], "--runs")],
+     ("bench_zenoh_floor.py", ["--runs", "0"], "--runs"),
+     ("bench_zenoh_floor.py", ["--pattern", "step,nope"], "--pattern"),
+     ("bench_zenoh_floor.py", ["--pattern", "fleet", "--modes", "direct"], "--modes")],
 )  # fmt: skip
 def test_floor_benches_refuse_bad_input_in_one_line(script: str, args: list[str], field: str) -> None:
     res = subprocess.run(
@@ -630,11 +632,37 @@ def test_zenoh_floor_delivers_only_the_cells_a_process_subscribes_to():
         cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert res.returncode == 0, res.stderr[-2000:]
-    rows = _rows(res.stdout, "mode")
-    plans = {int(r[1]): float(r[2]) for r in rows}
+    rows = _rows(res.stdout, "pattern")
+    plans = {int(r[2]): float(r[3]) for r in rows}
     assert set(plans) == {0, 2}, res.stdout
     # A peer that linked up late misses a few of the first puts, never gets more than it subscribed to.
     assert 9.0 <= plans[0] <= 10.0 and 5.4 <= plans[2] <= 6.0, res.stdout
+
+
+def test_zenoh_floor_runs_a_whole_step_with_a_tracker_and_a_supervisor():
+    """``bench_zenoh_floor.py --pattern step,fleet``: a tracker's stand-in drives the steps, ten
+    agents answer from their callbacks, a supervisor's stand-in takes every plan.  The floor
+    starts only once the tracker has heard every agent's command and the supervisor every plan,
+    so a pattern whose agents did not answer never prints.  In cells of two on a ring, each agent
+    takes the plans of the five others in its cell and the two beside it, never its own back,
+    counted by the agents themselves at their end (an agent that never ended, or ended without
+    saying, makes the count nan), by callback or from its main thread; the three roles' CPU adds
+    up to the row's."""
+    res = subprocess.run(
+        [sys.executable, "benchmarks/bench_zenoh_floor.py", "--robots", "10", "--cell", "2",
+         "--pattern", "step,fleet", "--modes", "callback,drain", "--seconds", "3"],
+        cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr[-2000:]
+    rows = {(r[0], r[1]): r for r in _rows(res.stdout, "pattern")}
+    assert set(rows) == {(p, m) for p in ("step", "fleet") for m in ("callback", "drain")}, res.stdout
+    for pattern, row in rows.items():
+        # A peer that linked up late misses a few of the first puts, never gets more than it subscribed to.
+        assert 4.5 <= float(row[3]) <= 5.0, (pattern, res.stdout)
+        roles = dict(part.rsplit(" ", 1) for part in " ".join(row[5:]).split("; ")[1].split(", "))
+        assert set(roles) == {"tracker", "agents", "supervisor"}, (pattern, res.stdout)
+        total = float(row[4])
+        assert total > 0 and sum(map(float, roles.values())) == pytest.approx(total, abs=0.02), res.stdout
 
 
 def test_zenoh_floor_sets_the_math_beside_the_floor():
@@ -649,7 +677,7 @@ def test_zenoh_floor_sets_the_math_beside_the_floor():
     assert res.returncode == 0, res.stderr[-2000:]
     (sim,) = [line.split() for line in res.stdout.splitlines() if line.strip().startswith("fleet simulate:")]
     math_ms = float(sim[2])
-    (row,) = [r for r in _rows(res.stdout, "mode") if r[0] == "callback"]
-    floor_ms, ratio = float(row[3]), float(row[4])
+    (row,) = [r for r in _rows(res.stdout, "pattern") if r[1] == "callback"]
+    floor_ms, ratio = float(row[4]), float(row[5])
     assert math_ms > 0 and floor_ms > 0, res.stdout
     assert ratio == pytest.approx((math_ms + floor_ms) / math_ms, abs=0.01 + 0.01 * ratio), res.stdout
