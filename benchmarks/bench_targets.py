@@ -5,7 +5,10 @@ Every figure comes from ``fleet run`` with its default flags (no ``--exchange``,
 
 1. **CPU.** The marginal CPU per robot-step of ``fleet run`` over ``fleet simulate``'s on the
    same scene, the 16-robot swap on the lockstep clock (``bench_cpu.py``: two run lengths, the
-   difference), with the split by process.  Goal: at most 2×.
+   difference), with the split by process.  Goal: at most 2×.  Beside it, the floor that no
+   fleet of processes can go below on this machine: the fewest messages of a whole step, with
+   two neighbours' plans an agent and no fleet code (``bench_zenoh_floor.py --pattern step
+   --cell 1``), as (math + floor) / math.
 2. **Realtime.** 32 robots on the realtime clock at Ts = 0.1 s for ``--realtime-s`` (60 s):
    fewer than 0.1 % of the robot-steps miss their deadline, with 0 collisions, every step
    judged.  48 robots are reported beside it, with no goal.
@@ -47,6 +50,16 @@ def _harnesses() -> tuple[Any, Any]:
     return _harness(HARNESS), _harness(CPU)
 
 
+def _floor_harness() -> Any:
+    from fleet.bench import HARNESS, _harness
+
+    return _harness(HARNESS.with_name("bench_zenoh_floor.py"))
+
+
+FLOOR_RATE = 25.0
+"""Steps per second of target 1's floor: about the pace of the 16-robot lockstep fleet here."""
+
+
 START_LAUNCHES = 3
 """Launches of each kind (agents forked, agents spawned) in target 4's side-by-side comparison."""
 
@@ -54,13 +67,15 @@ START_LAUNCHES = 3
 def targets(
     cpu_rows: list[dict[str, Any]], rt: dict[int, dict[str, Any]], sizes: dict[str, int],
     starts: dict[str, list[float]] | None = None, beside: dict[int, dict[str, Any]] | None = None,
+    floor: dict[str, Any] | None = None,
 ) -> list[dict[str, Any]]:  # fmt: skip
     """The four targets from the measured rows: ``cpu_rows`` (fleet simulate first, then fleet
     run's defaults), ``rt`` the realtime runs by fleet size, ``sizes`` which size each target
     is judged at ("cpu", "realtime", "latency", "ready"), ``starts`` the side-by-side launch
     times [s] by how the agents were started ("fork", "spawn"), ``beside`` the realtime runs of
     targets 2's and 3's sizes with ``--no-delay-compensation``, beside the defaults' (their
-    misses and latency go in those targets' detail; the verdicts are the defaults')."""
+    misses and latency go in those targets' detail; the verdicts are the defaults'), ``floor``
+    the row of ``bench_zenoh_floor.measure`` beside target 1 (its least ratio goes in the detail)."""
     beside = beside or {}
     miss_rate = _harnesses()[0].GOAL_MISS_RATE_32  # target 2 is the realtime goal [5] for 32 robots
     out: list[dict[str, Any]] = []
@@ -73,6 +88,9 @@ def targets(
         "detail": {"simulate_ms": sim["ms_per_robot_step"], "run_ms": run["ms_per_robot_step"],
                    "by_role_ms": run["by_role_ms"], "by_thread_ms": run["by_thread_ms"]},
     })  # fmt: skip
+    if floor is not None:
+        least = _floor_harness().least_ratio(sim["ms_per_robot_step"], floor["ms_per_robot_step"])
+        out[-1]["detail"]["floor"] = {**floor, "least_ratio": least}
     n = sizes["realtime"]
     r = rt.get(n, {})
     if "steps" in r:
@@ -144,6 +162,13 @@ def run(args: argparse.Namespace) -> int:
     cpu_rows = cpu.marginal_rows(
         sizes["cpu"], lengths, args.seed, {"fleet simulate": ["simulate"], "fleet run (defaults)": ["run"]}
     )
+    floor_s = 2.0 if quick else 15.0
+    print(f"[1] beside it, the floor: the fewest messages of a step, {sizes['cpu']} processes and a "
+          f"tracker's and a supervisor's stand-ins, {FLOOR_RATE:g} steps/s, {floor_s:g} s",
+          flush=True)  # fmt: skip
+    floor = _floor_harness().measure(
+        sizes["cpu"], FLOOR_RATE, floor_s, "callback", "mesh", cell=1, pattern="step"
+    )
     rt: dict[int, dict[str, Any]] = {}
     with tempfile.TemporaryDirectory(prefix="fleet-targets-") as tmp_s:
         print(f"[2]-[4] realtime runs, {rt_s:g} s each: {', '.join(map(str, rt_sizes))} robots", flush=True)
@@ -174,11 +199,15 @@ def run(args: argparse.Namespace) -> int:
                 )  # fmt: skip
                 starts[how].append(row.get("ready_s", math.nan))
                 print(f"  agents {how}: ready in {starts[how][-1]:.2f} s", flush=True)
-    result = targets(cpu_rows, rt, sizes, starts, beside)
+    result = targets(cpu_rows, rt, sizes, starts, beside, floor)
     print("\ntarget  goal                      measured   met   what")
     for t in result:
         met = "yes" if t["met"] else "NO"
         print(f"  {t['target']}     {t['goal']:<25} {t['measured']:>9.4g}   {met:<4}  {t['what']}")
+    fl = result[0]["detail"]["floor"]
+    print(f"  1's floor: a step's fewest messages, {fl['plans_per_step']:.1f} neighbours' plans an agent: "
+          f"{fl['ms_per_robot_step']:.2f} ms per robot-step; no fleet of processes goes below "
+          f"{fl['least_ratio']:.2f}x fleet simulate here")  # fmt: skip
     nd2 = result[1]["detail"].get("no_delay_compensation")
     if nd2:
         print(f"  2 with --no-delay-compensation: {nd2['miss_rate']:.4g} of the robot-steps missed the "

@@ -441,6 +441,14 @@ def test_targets_quick_prints_and_writes_every_target(tmp_path):
     assert (sim["config"], run["config"]) == ("fleet simulate", "fleet run (defaults)")
     assert t[1]["measured"] == pytest.approx(run["ms_per_robot_step"] / sim["ms_per_robot_step"])
     assert t[1]["met"] == (t[1]["measured"] <= 2.0)
+    # Beside it, the floor of a step's fewest messages: three agents on a ring of cells of one,
+    # each taking its two neighbours' plans; its least ratio is the floor over the same math.
+    floor = t[1]["detail"]["floor"]
+    assert floor["pattern"] == "step" and 1.5 <= floor["plans_per_step"] <= 2.0, floor
+    assert set(floor["by_role_ms"]) == {"tracker", "agents", "supervisor"}, floor
+    positive(floor["ms_per_robot_step"], "floor.ms_per_robot_step")
+    assert floor["least_ratio"] == pytest.approx(1 + floor["ms_per_robot_step"] / sim["ms_per_robot_step"])
+    assert f"{floor['least_ratio']:.2f}x fleet simulate here" in res.stdout
     # Processes cost more: in total, for each run length.  (Not the marginal ratio: over --quick's
     # 300 robot-steps fleet simulate's marginal CPU is about 0.1 s, within the spread of its
     # start-up on a loaded machine, and has come out negative.)
