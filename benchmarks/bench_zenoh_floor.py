@@ -41,11 +41,14 @@ processes answer from their callbacks; the payloads are real encodings (:mod:`gr
   odometry and the plans of its cells; it puts its command on the tick and its plan on the
   outcome.  The supervisor takes the tick and every pose, true pose and plan
   (``supervisor/monitor.py``).
-* ``step``: the fewest messages a step of the method needs, whatever the fleet's own design.
+* ``step``: the fewest messages a step of the method needs when the agents exchange their plans
+  peer to peer, with the processes the fleet has (an agent per robot, a tracker, a supervisor).
   The tracker puts each robot's measurement (pose and odometry in one message, which also
-  starts the step) and one message of every true pose, and takes the commands.  Each agent
-  takes its measurement and the plans of its cells, and puts its command and its plan.  The
-  supervisor takes every plan and the true poses.
+  starts the step) and one message of every true pose.  Each agent takes its measurement and
+  the plans of its cells, and puts one message: its plan and its command together, which the
+  tracker takes as the command and the others as the plan.  The supervisor takes every plan
+  and the true poses.  (Relaying the plans through one process, ``fleet run --exchange
+  relay``, sends fewer messages to each agent; it is not peer to peer.)
 
 Their agents take the samples by ``callback`` or ``decode`` as above, or by ``drain``: no
 callback at all, the main thread blocking on Zenoh's queue of the sample that starts its step
@@ -56,8 +59,13 @@ math alone, as ``fleet bench --cpu`` does (``bench_cpu.marginal_rows``), and eac
 (math + floor) / math: the least target 1 ratio that a fleet sending at most this row's messages
 could reach.  With ``--pattern plans`` it is a loose lower bound: the fleet's tracker and
 supervisor, and each agent's tick, command and outcome, add messages that it does not send.
-``--pattern step`` sends those too, as few as the method allows: with it, the ratio bounds
-every design of processes that exchange the plans peer to peer.
+``--pattern step`` sends those too, as few as peer-to-peer plans allow: with it, the ratio
+bounds every such design, at the pace measured.  The pace matters: what Zenoh spends by the
+second (keep-alives, timers) counts per step in proportion to 1 / ``--rate``, and a lockstep
+fleet steps as fast as its CPU allows (``fleet bench --targets`` measures the floor at the pace
+of a fleet that met target 1).  With a tracker's stand-in the robot-steps counted are the steps
+it put in the window; its stand-in and the supervisor's print how many messages they took a
+step, over their lives.
 """
 
 from __future__ import annotations
@@ -121,6 +129,28 @@ def cells_of(i: int, robots: int, cell: int) -> tuple[int, list[int], int]:
     return mine, subs, sum(min(cell, robots - c * cell) for c in subs)
 
 
+class _Heard:
+    """Which publishers a process has heard from, across its callback threads (zenoh-python runs
+    each subscriber's callbacks on a thread of its own): says "heard all" on ``ready`` exactly
+    once, when the ``expected``-th distinct key comes in."""
+
+    def __init__(self, who: Any, expected: int, ready: Any):
+        import threading
+
+        self.who, self.expected, self.ready = who, expected, ready
+        self.keys: set[str] = set()
+        self.lock = threading.Lock()
+
+    def add(self, key: str) -> None:
+        if len(self.keys) >= self.expected:  # (the usual case, without the lock)
+            return
+        with self.lock:
+            if len(self.keys) < self.expected:
+                self.keys.add(key)
+                if len(self.keys) == self.expected:
+                    self.ready.put(("heard all", self.who))
+
+
 def _peer(
     i: int, robots: int, hub: str, topology: str, mode: str, rate: float, cell: int, ready: Any, go: Any,
     stop: Any,
@@ -140,16 +170,13 @@ def _peer(
     else:
         cfg = NetConfig(listen=[loopback(0)], connect=[hub], mode="client" if topology == "star" else "peer")
     session = zenoh.open(cfg.zenoh())
-    heard: set[str] = set()
     mine, cells, expected = cells_of(i, robots, cell)
+    heard = _Heard(i, expected, ready)
     taken = [0]
 
     def took(key: str) -> None:
         taken[0] += 1
-        if len(heard) < expected:
-            heard.add(key)
-            if len(heard) == expected:
-                ready.put(("heard all", i))
+        heard.add(key)
 
     def count(sample: Any) -> None:
         sample.payload.to_bytes()
@@ -203,23 +230,25 @@ def _peer(
 
 def _step_payloads(robots: int) -> dict[str, bytes]:
     """Real encodings of a step's messages other than the plan, robot ``r0``'s (the others'
-    differ only in a digit): a command carries the shifted candidate of a 20-step horizon."""
+    differ only in a digit): a command carries the shifted candidate of a 20-step horizon.
+    ``meas`` (a pose and an odometry) and ``truths`` (every robot's true pose) stand for
+    messages the fleet does not have, by their size: nothing decodes them."""
     import numpy as np
 
     from ground.wire import Command, Odom, Outcome, Pose, Tick, Truth
 
     pose = Pose(robot="r0", seq=5, t=0.5, x=0.31, y=-0.42, theta=1.1).encode()
+    odom = Odom(robot="r0", seq=5, t=0.5, vx=0.01, vy=-0.02).encode()
     truth = Truth(robot="r0", seq=5, t=0.5, x=0.31, y=-0.42, theta=1.1).encode()
     return {
-        "pose": pose, "truth": truth, "odom": Odom(robot="r0", seq=5, t=0.5, vx=0.01, vy=-0.02).encode(),
+        "pose": pose, "truth": truth, "odom": odom,
         "tick": Tick(robot="tracker", step=5, t=0.5, stop=False, misses=0).encode(),
         "outcome": Outcome(robot="tracker", step=5).encode(),
         "cmd": Command(
             robot="r0", step=5, ax=0.01, ay=-0.02, fallback=True, x_next=np.full(4, 0.1),
             v_next=np.full((20, 2), 0.01), K=np.full((2, 4), -2.0),
         ).encode(),
-        # The step's measurement: a pose and an odometry in one message; the true poses at once.
-        "meas": pose + b"odom" * 8, "truths": truth * robots,
+        "meas": pose + odom, "truths": truth * robots,
     }  # fmt: skip
 
 
@@ -234,15 +263,20 @@ def _step_session(hub: str, topology: str, listen: bool) -> Any:
     return zenoh.open(NetConfig(listen=[loopback(0)], connect=[hub], mode=mode).zenoh())
 
 
+STOP = b"stop"
+"""The payload of the tracker's stand-in's last trigger (tick, or measurement): the end."""
+
+
 def _step_agent(
     i: int, robots: int, hub: str, topology: str, pattern: str, mode: str, cell: int, ready: Any, go: Any,
     stop: Any,
 ) -> None:  # fmt: skip
-    """Robot ``i``'s agent in ``pattern``: it takes what an agent takes, and from the callbacks
-    puts its command and its plan (on the tick and on the outcome in ``fleet``, on its
-    measurement in ``step``).  Says on ``ready`` when open, when it has heard every publisher of
-    the cells it subscribes to but its own, and at the end how many plans it took and how many it
-    put."""
+    """Robot ``i``'s agent in ``pattern``: it takes what an agent takes and answers, from its
+    callbacks or (``drain``) from its main thread.  In ``fleet`` it puts its command on the
+    tick and its plan on the outcome; in ``step`` one message on its measurement, the plan and
+    the command together, which the tracker takes as its command and the others as its plan.
+    Says on ``ready`` when open, when it has heard every publisher of the cells it subscribes to
+    but its own, and at the end how many plans it took and how many it put."""
     os.environ["OMP_NUM_THREADS"] = "1"
     import zenoh
 
@@ -251,126 +285,90 @@ def _step_agent(
 
     session = _step_session(hub, topology, listen=False)
     mine, cells, publishers = cells_of(i, robots, cell)
-    expected = publishers - 1  # an agent does not take its own plan back
-    heard: set[str] = set()
+    heard = _Heard(i, publishers - 1, ready)  # an agent does not take its own plan back
     taken, published = [0], [0]
     pub_plan = publisher(session, f"floor/plan/c{mine}/r{i}")
     pub_cmd = publisher(session, f"floor/cmd/r{i}")
     plan, cmd = _payload(i), _step_payloads(robots)["cmd"]
+    # What the agent puts on its trigger(s), and whether it is a plan.
+    answers = (
+        {"tick": ((pub_cmd, cmd),), "outcome": ((pub_plan, plan),)} if pattern == "fleet"
+        else {"meas": ((pub_plan, plan + cmd),)}
+    )  # fmt: skip
 
     def on_plan(sample: Any) -> None:
         k = str(sample.key_expr)
         data = sample.payload.to_bytes()
         if mode == "decode":
             with contextlib.suppress(WireError):
-                decode(data, Plan, robot=k.rsplit("/", 1)[-1])
+                decode(data[: len(plan)], Plan, robot=k.rsplit("/", 1)[-1])
         taken[0] += 1
-        if len(heard) < expected:
-            heard.add(k)
-            if len(heard) == expected:
-                ready.put(("heard all", i))
+        heard.add(k)
 
-    def put(sample: Any, what: tuple[Any, ...]) -> None:
-        sample.payload.to_bytes()
-        if stop.is_set():  # the end: the session may be closing under this callback
-            return
-        with contextlib.suppress(zenoh.ZError):
+    def answer(what: tuple[tuple[Any, bytes], ...]) -> None:
+        with contextlib.suppress(zenoh.ZError):  # the session may be closing at the end
             for pub, payload in what:
                 pub.put(payload)
                 if pub is pub_plan:
                     published[0] += 1
 
-    put_cmd = partial(put, what=((pub_cmd, cmd),))
-    put_plan = partial(put, what=((pub_plan, plan),))
-    put_both = partial(put, what=((pub_cmd, cmd), (pub_plan, plan)))
+    def on_trigger(sample: Any, what: tuple[tuple[Any, bytes], ...]) -> None:
+        if sample.payload.to_bytes() != STOP and not stop.is_set():
+            answer(what)
 
     def take(sample: Any) -> None:
         sample.payload.to_bytes()
 
+    triggers = {"tick": "floor/tick", "outcome": "floor/outcome", "meas": f"floor/meas/r{i}"}
+    inputs = [f"floor/pose/r{i}", f"floor/odom/r{i}"] if pattern == "fleet" else []
+    plan_keys = [f"floor/plan/c{c}/*" for c in cells]
     remote = zenoh.Locality.REMOTE
-    if mode == "drain":  # no callback: the main thread blocks on its trigger and drains the rest
-        _step_agent_drains(
-            session, i, pattern, cells, (pub_cmd, cmd), (pub_plan, plan), on_plan, published, ready
-        )
-        session.close()
-    else:
-        subs = [
-            session.declare_subscriber(f"floor/plan/c{c}/*", on_plan, allowed_origin=remote) for c in cells
+    if mode != "drain":
+        subs = [session.declare_subscriber(k, on_plan, allowed_origin=remote) for k in plan_keys]
+        subs += [
+            session.declare_subscriber(triggers[t], partial(on_trigger, what=a)) for t, a in answers.items()
         ]
-        if pattern == "fleet":
-            subs += [
-                session.declare_subscriber("floor/tick", put_cmd),
-                session.declare_subscriber("floor/outcome", put_plan),
-                session.declare_subscriber(f"floor/pose/r{i}", take),
-                session.declare_subscriber(f"floor/odom/r{i}", take),
-            ]
-        else:
-            subs.append(session.declare_subscriber(f"floor/meas/r{i}", put_both))
+        subs += [session.declare_subscriber(k, take) for k in inputs]
         ready.put(("open", i))
         stop.wait(600)  # bounded: at most 10 min; the callbacks do the work
-        for sub in subs:
-            sub.undeclare()
-        session.close()
+    else:  # no callback: the main thread blocks on its trigger(s) in turn and drains the rest
+
+        def fifo(key: str, origin: Any = zenoh.Locality.ANY) -> Any:
+            return session.declare_subscriber(key, zenoh.handlers.FifoChannel(4096), allowed_origin=origin)
+
+        queued = [(fifo(k, remote), on_plan) for k in plan_keys] + [(fifo(k), take) for k in inputs]
+        waits = [(fifo(triggers[t]), a) for t, a in answers.items()]
+        subs = [s for s, _ in queued] + [s for s, _ in waits]
+        ready.put(("open", i))
+        for _ in range(600 * 1000):  # the tracker's stand-in ends it with STOP (and the parent's kill)
+            for trigger, what in waits:
+                if trigger.recv().payload.to_bytes() == STOP:
+                    break
+                for sub, then in queued:
+                    for _ in range(4096):
+                        sample = sub.try_recv()
+                        if sample is None:
+                            break
+                        then(sample)
+                answer(what)
+            else:
+                continue
+            break
+    for sub in subs:
+        sub.undeclare()
+    session.close()
     ready.put(("took", i, taken[0], published[0]))
 
 
-STOP = b"stop"
-"""The payload of the tracker's stand-in's last trigger (tick, or measurement): the end."""
-
-
-def _step_agent_drains(
-    session: Any, i: int, pattern: str, cells: list[int], command: tuple[Any, bytes], plan: tuple[Any, bytes],
-    on_plan: Any, published: list[int], ready: Any,
-) -> None:  # fmt: skip
-    """``--modes drain`` of a whole step: the main thread blocks on Zenoh's queue of its trigger
-    (the tick, or its measurement), takes what is queued on its other keys, puts its command,
-    then (on the outcome in ``fleet``) its plan, until the tracker's stand-in sends :data:`STOP`.
-    The agent's fewest wake-ups: one a step, or two with the outcome."""
-    import zenoh
-
-    def fifo(key: str, origin: Any = None) -> Any:
-        handler: Any = zenoh.handlers.FifoChannel(4096)
-        if origin is None:
-            return session.declare_subscriber(key, handler)
-        return session.declare_subscriber(key, handler, allowed_origin=origin)
-
-    plans = [fifo(f"floor/plan/c{c}/*", zenoh.Locality.REMOTE) for c in cells]
-    others: list[Any] = []
-    if pattern == "fleet":
-        trigger, outcome = fifo("floor/tick"), fifo("floor/outcome")
-        others += [fifo(f"floor/pose/r{i}"), fifo(f"floor/odom/r{i}")]
-    else:
-        trigger, outcome = fifo(f"floor/meas/r{i}"), None
-    queued = [(sub, on_plan) for sub in plans] + [(sub, None) for sub in others]
-    ready.put(("open", i))
-    for _ in range(600 * 1000):  # bounded: the tracker's stand-in ends it with STOP
-        if trigger.recv().payload.to_bytes() == STOP:
-            break
-        for sub, then in queued:
-            for _ in range(4096):
-                sample = sub.try_recv()
-                if sample is None:
-                    break
-                if then is not None:
-                    then(sample)
-                else:
-                    sample.payload.to_bytes()
-        command[0].put(command[1])
-        if outcome is not None and outcome.recv().payload.to_bytes() == STOP:
-            break
-        plan[0].put(plan[1])
-        published[0] += 1
-    for sub in [*plans, *others, trigger, *([] if outcome is None else [outcome])]:
-        sub.undeclare()
-
-
 def _step_tracker(
-    robots: int, hub: str, topology: str, pattern: str, rate: float, ready: Any, go: Any, stop: Any
-) -> None:
+    robots: int, hub: str, topology: str, pattern: str, rate: float, rounds: Any, ready: Any, go: Any,
+    stop: Any,
+) -> None:  # fmt: skip
     """The tracker's stand-in: listens on ``hub``; from ``go`` until ``stop`` puts a step's
-    messages at ``rate``, batched as the realtime tracker batches them, and takes the commands
-    (and in ``fleet`` the plans) from a queue once a step, as it does.  Says on ``ready`` when
-    open and when it has heard every robot's command."""
+    messages at ``rate`` (counting the steps in ``rounds``), batched as the realtime tracker
+    batches them, and takes what the robots send (``fleet``: commands and plans; ``step``: the
+    plans that carry the commands) from a queue once a step, as the realtime tracker does.  Says
+    on ``ready`` when open, when it has heard every robot, and at the end how much it took."""
     os.environ["OMP_NUM_THREADS"] = "1"
     import zenoh
 
@@ -378,13 +376,14 @@ def _step_tracker(
 
     session = _step_session(hub, topology, listen=True)
     data = _step_payloads(robots)
-    heard: set[str] = set()
-    # Drained once a step, as the realtime tracker takes its commands and plans.
+    heard = _Heard("tracker", robots, ready)
+    taken = [0]
     channel = zenoh.handlers.FifoChannel
-    drained = [session.declare_subscriber("floor/cmd/*", channel(4096))]
+    takes = ["floor/cmd/*", "floor/plan/**"] if pattern == "fleet" else ["floor/plan/**"]
+    drained = [session.declare_subscriber(k, channel(4096)) for k in takes]
+    answered = "floor/cmd/" if pattern == "fleet" else "floor/plan/"  # what says a robot answered
     puts: list[tuple[Any, bytes]] = []
     if pattern == "fleet":
-        drained.append(session.declare_subscriber("floor/plan/**", channel(4096)))
         for i in range(robots):
             puts += [
                 (publisher(session, f"floor/{what}/r{i}", express=False), data[what])
@@ -392,10 +391,10 @@ def _step_tracker(
             ]
         puts += [(publisher(session, "floor/tick", express=False), data["tick"])]
         puts += [(publisher(session, "floor/outcome", express=True), data["outcome"])]
-        triggers = [puts[-2][0]]
+        triggers = ["floor/tick", "floor/outcome"]
     else:
         puts += [(publisher(session, f"floor/meas/r{i}", express=False), data["meas"]) for i in range(robots)]
-        triggers = [pub for pub, _ in puts]
+        triggers = [f"floor/meas/r{i}" for i in range(robots)]
         puts += [(publisher(session, "floor/truth", express=False), data["truths"])]
 
     def drain() -> None:
@@ -405,11 +404,10 @@ def _step_tracker(
                 if sample is None:
                     break
                 sample.payload.to_bytes()
+                taken[0] += 1
                 key = str(sample.key_expr)
-                if len(heard) < robots and key.startswith("floor/cmd/"):
+                if key.startswith(answered):
                     heard.add(key)
-                    if len(heard) == robots:
-                        ready.put(("heard all", "tracker"))
 
     ready.put(("open", "tracker"))
     go.wait(60)
@@ -420,32 +418,36 @@ def _step_tracker(
         drain()
         for pub, payload in puts:
             pub.put(payload)
+        with rounds.get_lock():
+            rounds.value += 1
         t_next += period
         stop.wait(max(0.0, t_next - time.monotonic()))
-    for pub in triggers:  # the end, for agents that block on their trigger (``--modes drain``)
-        pub.put(STOP)
+    for key in triggers:  # the end, sent at once, for agents blocked on their trigger (``drain``)
+        session.put(key, STOP, express=True, congestion_control=zenoh.CongestionControl.BLOCK)
+    drain()
     for sub in drained:
         sub.undeclare()
     session.close()
-    ready.put(("done", "tracker"))
+    ready.put(("counted", "tracker", taken[0]))
 
 
 def _step_supervisor(robots: int, hub: str, topology: str, pattern: str, ready: Any, stop: Any) -> None:
     """The supervisor's stand-in: takes every plan and the true poses (and in ``fleet`` the tick
-    and every pose).  Says on ``ready`` when open and when it has heard every robot's plan."""
+    and every pose).  Says on ``ready`` when open, when it has heard every robot's plan, and at
+    the end how much it took."""
     os.environ["OMP_NUM_THREADS"] = "1"
     session = _step_session(hub, topology, listen=False)
-    heard: set[str] = set()
+    heard = _Heard("supervisor", robots, ready)
+    taken = [0]
 
     def on_plan(sample: Any) -> None:
         sample.payload.to_bytes()
-        if len(heard) < robots:
-            heard.add(str(sample.key_expr))
-            if len(heard) == robots:
-                ready.put(("heard all", "supervisor"))
+        taken[0] += 1
+        heard.add(str(sample.key_expr))
 
     def take(sample: Any) -> None:
         sample.payload.to_bytes()
+        taken[0] += 1
 
     subs = [session.declare_subscriber("floor/plan/**", on_plan)]
     keys = ("floor/tick", "floor/pose/*", "floor/truth/*") if pattern == "fleet" else ("floor/truth",)
@@ -455,7 +457,7 @@ def _step_supervisor(robots: int, hub: str, topology: str, pattern: str, ready: 
     for sub in subs:
         sub.undeclare()
     session.close()
-    ready.put(("done", "supervisor"))
+    ready.put(("counted", "supervisor", taken[0]))
 
 
 def _cpu(pids: list[int]) -> dict[str, float]:
@@ -474,11 +476,13 @@ def measure(
     robots: int, rate: float, seconds: float, mode: str, topology: str, cell: int = 0, pattern: str = "plans"
 ) -> dict[str, Any]:
     """One row: the processes of ``pattern`` (module docstring), started, linked up (every
-    process heard every publisher it subscribes to), measured over ``seconds``, ended."""
+    process heard every publisher it subscribes to), measured over ``seconds``, ended.  With a
+    tracker's stand-in, the robot-steps are the steps it put in the window, not the nominal rate."""
     from ground.net import free_port, loopback
 
     ctx = multiprocessing.get_context("spawn")
     ready, go, stop = ctx.Queue(), ctx.Event(), ctx.Event()
+    rounds = ctx.Value("q", 0)
     hub = loopback(free_port())
     if pattern == "plans":
         procs = [
@@ -490,7 +494,7 @@ def measure(
     else:  # the tracker first: it listens on the hub
         procs = [
             ctx.Process(
-                target=_step_tracker, args=(robots, hub, topology, pattern, rate, ready, go, stop),
+                target=_step_tracker, args=(robots, hub, topology, pattern, rate, rounds, ready, go, stop),
                 daemon=True,
             ),
             *(
@@ -504,6 +508,8 @@ def measure(
                 target=_step_supervisor, args=(robots, hub, topology, pattern, ready, stop), daemon=True
             ),
         ]  # fmt: skip
+    took: list[float] = []
+    counted: dict[str, int] = {}
     try:
         procs[0].start()
         ready.get(timeout=60)  # the hub listens
@@ -518,12 +524,11 @@ def measure(
         roles = {"agents": pids} if pattern == "plans" else {
             "tracker": pids[:1], "agents": pids[1:-1], "supervisor": pids[-1:]
         }  # fmt: skip
-        a, t0 = {r: _cpu(ps) for r, ps in roles.items()}, time.monotonic()
+        a, t0, r0 = {r: _cpu(ps) for r, ps in roles.items()}, time.monotonic(), rounds.value
         time.sleep(seconds)  # the measured window
-        b, t1 = {r: _cpu(ps) for r, ps in roles.items()}, time.monotonic()
+        b, t1, r1 = {r: _cpu(ps) for r, ps in roles.items()}, time.monotonic(), rounds.value
     finally:
         stop.set()
-        took: list[float] = []
         for _ in procs:
             try:
                 msg = ready.get(timeout=30)
@@ -531,11 +536,14 @@ def measure(
                 break
             if msg[0] == "took" and msg[3] > 0:
                 took.append(msg[2] / msg[3])
+            elif msg[0] == "counted":
+                counted[msg[1]] = msg[2]
+        deadline = time.monotonic() + 30  # one wait for all: then the stragglers are killed
         for p in procs:
-            p.join(timeout=30)
+            p.join(timeout=max(0.0, deadline - time.monotonic()))
             if p.is_alive():
                 p.kill()
-    robot_steps = robots * rate * (t1 - t0)
+    robot_steps = robots * (rate * (t1 - t0) if pattern == "plans" else r1 - r0)
     split: dict[str, float] = {}
     by_role: dict[str, float] = {}
     for role in b:
@@ -543,11 +551,13 @@ def measure(
             ms = 1e3 * (cpu - a[role].get(kind, 0.0)) / robot_steps
             split[kind] = split.get(kind, 0.0) + ms
             by_role[role] = by_role.get(role, 0.0) + ms
-    total = sum(split.values())
+    steps = rounds.value
     return {
-        "pattern": pattern, "mode": mode, "topology": topology, "cell": cell, "ms_per_robot_step": total,
-        "by_thread_ms": split, "by_role_ms": by_role,
+        "pattern": pattern, "mode": mode, "topology": topology, "cell": cell, "rate": rate,
+        "ms_per_robot_step": sum(split.values()), "by_thread_ms": split, "by_role_ms": by_role,
         "plans_per_step": sum(took) / len(took) if len(took) == robots else math.nan,
+        # Messages the tracker's and the supervisor's stand-ins took per step, over their lives.
+        "took_per_step": {who: n / steps for who, n in counted.items()} if steps else {},
     }  # fmt: skip
 
 
@@ -612,6 +622,7 @@ def main(argv: list[str] | None = None) -> int:
             )
             if pattern != "plans":
                 parts += "; " + ", ".join(f"{k} {v:.2f}" for k, v in r["by_role_ms"].items())
+                parts += "; took a step: " + ", ".join(f"{k} {v:.1f}" for k, v in r["took_per_step"].items())
             row = (f"{pattern:<8}{mode:<10}{cell:>5}{r['plans_per_step']:>7.1f}"
                    f" {r['ms_per_robot_step']:>13.2f}")  # fmt: skip
             if args.math:
