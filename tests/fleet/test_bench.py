@@ -448,7 +448,8 @@ def test_targets_quick_prints_and_writes_every_target(tmp_path):
 
     bench_targets = _harness(TARGETS)
     floor = t[1]["detail"]["floor"]
-    assert floor["pattern"] == "step" and 1.5 <= floor["plans_per_step"] <= 2.0, floor
+    # Per plan of its own: a neighbour may still answer the step at which this agent stopped.
+    assert floor["pattern"] == "step" and 1.5 <= floor["plans_per_step"] <= 2.1, floor
     assert set(floor["by_role_ms"]) == {"tracker", "agents", "supervisor"}, floor
     positive(floor["ms_per_robot_step"], "floor.ms_per_robot_step")
     assert floor["rate"] == pytest.approx(
@@ -682,8 +683,10 @@ def test_zenoh_floor_runs_a_whole_step_with_a_tracker_and_a_supervisor():
     per_step = {"step": {"tracker": robots, "supervisor": robots + 1},
                 "fleet": {"tracker": 2 * robots, "supervisor": 3 * robots + 1}}  # fmt: skip
     for (pattern, mode), row in rows.items():
-        # A peer that linked up late misses a few of the first puts, never gets more than it subscribed to.
-        assert 4.5 <= float(row[3]) <= 5.0, (pattern, mode, res.stdout)
+        # Per plan of its own, over its life: an agent that linked up late misses a few of the
+        # first plans, and a neighbour may still answer the step at which it stopped; never the
+        # six of a cell filter that let its own plan back, or more.
+        assert 4.5 <= float(row[3]) <= 5.1, (pattern, mode, res.stdout)
         assert float(row[4]) > 0, res.stdout
         _, by_role, took = " ".join(row[5:]).split("; ")
         roles = dict(part.rsplit(" ", 1) for part in by_role.split(", "))
