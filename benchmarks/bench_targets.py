@@ -102,9 +102,12 @@ def targets(
                    "by_role_ms": run["by_role_ms"], "by_thread_ms": run["by_thread_ms"]},
     })  # fmt: skip
     if floor is not None:
-        sim_ms, floor_ms = sim["ms_per_robot_step"], floor.get("ms_per_robot_step", math.nan)
-        # (--quick's fleet simulate can come out at zero or below: no ratio then.)
-        least = _floor_harness().least_ratio(sim_ms, floor_ms) if sim_ms > 0 and floor_ms >= 0 else math.nan
+        try:
+            least = _floor_harness().least_ratio(
+                sim["ms_per_robot_step"], floor.get("ms_per_robot_step", math.nan)
+            )
+        except ValueError:  # --quick's fleet simulate can come out at zero or below: no ratio then
+            least = math.nan
         out[-1]["detail"]["floor"] = {**floor, "least_ratio": least}
     n = sizes["realtime"]
     r = rt.get(n, {})

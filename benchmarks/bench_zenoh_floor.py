@@ -151,6 +151,28 @@ class _Heard:
                     self.ready.put(("heard all", self.who))
 
 
+def _session(hub: str, topology: str, listen: bool) -> Any:
+    """A session configured as ``fleet run`` configures its processes: the one that ``listen``s
+    on ``hub`` (a router in a star), or one connecting to it (a client in a star)."""
+    import zenoh
+
+    from ground.net import NetConfig, loopback
+
+    if listen:
+        return zenoh.open(NetConfig(listen=[hub], mode="router" if topology == "star" else "peer").zenoh())
+    mode = "client" if topology == "star" else "peer"
+    return zenoh.open(NetConfig(listen=[loopback(0)], connect=[hub], mode=mode).zenoh())
+
+
+def _drain(sub: Any, then: Any) -> None:
+    """Take what is queued on ``sub`` (a FIFO channel), at most its capacity, each by ``then``."""
+    for _ in range(4096):
+        sample = sub.try_recv()
+        if sample is None:
+            return
+        then(sample)
+
+
 def _peer(
     i: int, robots: int, hub: str, topology: str, mode: str, rate: float, cell: int, ready: Any, go: Any,
     stop: Any,
@@ -162,14 +184,9 @@ def _peer(
     os.environ["OMP_NUM_THREADS"] = "1"
     import zenoh
 
-    from ground.net import NetConfig, loopback
     from ground.wire import Plan, WireError, decode
 
-    if i == 0:
-        cfg = NetConfig(listen=[hub], mode="router" if topology == "star" else "peer")
-    else:
-        cfg = NetConfig(listen=[loopback(0)], connect=[hub], mode="client" if topology == "star" else "peer")
-    session = zenoh.open(cfg.zenoh())
+    session = _session(hub, topology, listen=i == 0)
     mine, cells, expected = cells_of(i, robots, cell)
     heard = _Heard(i, expected, ready)
     taken = [0]
@@ -214,12 +231,7 @@ def _peer(
         published += 1
         if mode == "drain":
             for sub in subs:
-                for _ in range(4096):
-                    s = sub.try_recv()
-                    if s is None:
-                        break
-                    s.payload.to_bytes()
-                    took(str(s.key_expr))
+                _drain(sub, count)
         t_next += period
         stop.wait(max(0.0, t_next - time.monotonic()))  # the publication rate
     for sub in subs:
@@ -252,17 +264,6 @@ def _step_payloads(robots: int) -> dict[str, bytes]:
     }  # fmt: skip
 
 
-def _step_session(hub: str, topology: str, listen: bool) -> Any:
-    import zenoh
-
-    from ground.net import NetConfig, loopback
-
-    if listen:
-        return zenoh.open(NetConfig(listen=[hub], mode="router" if topology == "star" else "peer").zenoh())
-    mode = "client" if topology == "star" else "peer"
-    return zenoh.open(NetConfig(listen=[loopback(0)], connect=[hub], mode=mode).zenoh())
-
-
 STOP = b"stop"
 """The payload of the tracker's stand-in's last trigger (tick, or measurement): the end."""
 
@@ -283,14 +284,14 @@ def _step_agent(
     from ground.bus import publisher
     from ground.wire import Plan, WireError, decode
 
-    session = _step_session(hub, topology, listen=False)
+    session = _session(hub, topology, listen=False)
     mine, cells, publishers = cells_of(i, robots, cell)
     heard = _Heard(i, publishers - 1, ready)  # an agent does not take its own plan back
     taken, published = [0], [0]
     pub_plan = publisher(session, f"floor/plan/c{mine}/r{i}")
     pub_cmd = publisher(session, f"floor/cmd/r{i}")
     plan, cmd = _payload(i), _step_payloads(robots)["cmd"]
-    # What the agent puts on its trigger(s), and whether it is a plan.
+    # What the agent puts on each of its triggers.
     answers = (
         {"tick": ((pub_cmd, cmd),), "outcome": ((pub_plan, plan),)} if pattern == "fleet"
         else {"meas": ((pub_plan, plan + cmd),)}
@@ -345,11 +346,7 @@ def _step_agent(
                 if trigger.recv().payload.to_bytes() == STOP:
                     break
                 for sub, then in queued:
-                    for _ in range(4096):
-                        sample = sub.try_recv()
-                        if sample is None:
-                            break
-                        then(sample)
+                    _drain(sub, then)
                 answer(what)
             else:
                 continue
@@ -374,7 +371,7 @@ def _step_tracker(
 
     from ground.bus import publisher
 
-    session = _step_session(hub, topology, listen=True)
+    session = _session(hub, topology, listen=True)
     data = _step_payloads(robots)
     heard = _Heard("tracker", robots, ready)
     taken = [0]
@@ -397,17 +394,16 @@ def _step_tracker(
         triggers = [f"floor/meas/r{i}" for i in range(robots)]
         puts += [(publisher(session, "floor/truth", express=False), data["truths"])]
 
+    def take(sample: Any) -> None:
+        sample.payload.to_bytes()
+        taken[0] += 1
+        key = str(sample.key_expr)
+        if key.startswith(answered):
+            heard.add(key)
+
     def drain() -> None:
         for sub in drained:
-            for _ in range(4096):
-                sample = sub.try_recv()
-                if sample is None:
-                    break
-                sample.payload.to_bytes()
-                taken[0] += 1
-                key = str(sample.key_expr)
-                if key.startswith(answered):
-                    heard.add(key)
+            _drain(sub, take)
 
     ready.put(("open", "tracker"))
     go.wait(60)
@@ -436,7 +432,7 @@ def _step_supervisor(robots: int, hub: str, topology: str, pattern: str, ready: 
     and every pose).  Says on ``ready`` when open, when it has heard every robot's plan, and at
     the end how much it took."""
     os.environ["OMP_NUM_THREADS"] = "1"
-    session = _step_session(hub, topology, listen=False)
+    session = _session(hub, topology, listen=False)
     heard = _Heard("supervisor", robots, ready)
     taken = [0]
 
