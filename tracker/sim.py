@@ -542,6 +542,10 @@ class SimTracker:
             with self.inbox.cond:
                 x, y, th = (float(v) for v in self.world.pose(rid))
             self.pubs[rid][2].put(Truth(robot=rid, seq=k, t=k * p.Ts, x=x, y=y, theta=th).encode())
+        if not self.world.drives and k > 0 and not self.ahead:
+            # As tick k would: what the links did over the last step (with delay compensation
+            # the step's outcome said it already).
+            self._links_reported(k)
         self.clock.put(
             Tick(
                 robot=ROLE, step=k, t=k * p.Ts, stop=True, misses=self.misses, fallback=self.on_chain,
