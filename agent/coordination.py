@@ -95,6 +95,23 @@ def precedence(phase: int, phase_age: int, priority: int, rank: int) -> tuple[in
     return (phase, -phase_age if phase == RETURNING else 0, *order_key(priority, rank))
 
 
+PLACE_LAG = 2
+"""Steps [steps] by which what an agent knows of another robot's place (its plan by place, its
+place token) may lag behind where that robot's last committed point is."""
+
+
+def place_side(footprint: float, eps: float, share_hi: float) -> float:
+    """Side [m] of the cells by which plans travel (``--exchange place``, docs/method.md §6).
+
+    Two committed points in cells two or more apart are more than a side apart.  At that
+    distance the split rule adds no row between them (:func:`split_halfplanes`: σ·s ≥
+    √2·ε·1.01 for the smallest share s), even after both have moved √2·ε a step for
+    :data:`PLACE_LAG` steps: so an agent that coordinates only with the robots in its own cell
+    and the eight around it gets the same rows as one that knows every robot."""
+    s = min(share_hi, 1.0 - share_hi, 0.5)
+    return 2.0 * footprint + SQRT2 * eps * 1.01 / s + 2.0 * PLACE_LAG * SQRT2 * eps
+
+
 def split_halfplanes(
     c_i: Array, r_i: float, prio_i: int, neighbours: Sequence[NeighbourInfo], share_hi: float, eps: float
 ) -> tuple[list[Array], list[float], float]:

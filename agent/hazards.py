@@ -10,11 +10,12 @@ point, grown for every step its plans have been missing (:func:`agent.coordinati
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Container, Mapping, Sequence
 
 import numpy as np
 
-from agent.coordination import Hazard, NeighbourInfo
+from agent.coordination import PLACE_LAG, Hazard, NeighbourInfo
+from ground.geometry import Cell, Whereabouts, cell_centre, cell_of, cells_apart
 from ground.params import ControllerParams
 from ground.wire import BLIND, LinkState, Plan
 
@@ -26,6 +27,33 @@ def neighbour_of(plan: Plan) -> NeighbourInfo:
         plan.robot, plan.committed[-1], plan.footprint, plan.priority, plan.rank, plan.target, plan.goal,
         plan.phase, plan.phase_age,
     )  # fmt: skip
+
+
+def in_reach(
+    others: Sequence[str], mine: Cell, side: float, last: Mapping[str, Plan | None],
+    places: Mapping[str, Whereabouts], starts: Mapping[str, NeighbourInfo], live: Container[str],
+) -> list[str]:  # fmt: skip
+    """The robots of ``others`` that an agent whose last committed point is in cell ``mine``
+    (cells of ``side`` [m]) coordinates with, with plans by place (docs/method.md §6):
+
+    * every robot whose agent is gone (not in ``live``): its disc may be large, and the QP
+      drops the rows of a far one itself (:func:`agent.coordination.hazard_halfplanes`);
+    * every other robot whose last committed point is in ``mine`` or one of the eight cells
+      around it, by what was last heard of it: its newest plan (``last``), or its place token
+      (``places``) if that is newer, or else its start (``starts``).
+
+    A robot farther away gets no row from the split rule (:func:`agent.coordination.place_side`),
+    so leaving it out changes nothing the constraints guarantee."""
+    out = []
+    for j in others:
+        pl, w = last.get(j), places.get(j)
+        if w is not None and (pl is None or pl.step < w.since):
+            cell = w.cell
+        else:
+            cell = cell_of(starts[j].last_point if pl is None else pl.committed[-1], side)
+        if j not in live or cells_apart(cell, mine) <= 1:
+            out.append(j)
+    return out
 
 
 class Guard:
@@ -47,8 +75,11 @@ class Guard:
     robot does, so mixing it with a neighbour's split rule is safe.  Changes
     are logged the first time each, then only counted."""
 
-    def __init__(self, me: str, p: ControllerParams, log: Callable[[str], None]):
+    def __init__(self, me: str, p: ControllerParams, log: Callable[[str], None], side: float | None = None):
+        """``side`` [m]: the cells of plans by place (:func:`agent.coordination.place_side`), for
+        the discs of robots known only by their place token; None: plans go to every agent."""
         self.me = me
+        self.side = side
         self.log = log
         self.Ts = p.Ts
         self.eps = math.sqrt(2.0) * p.epsilon
@@ -63,13 +94,17 @@ class Guard:
     def classify(
         self, k: int, others: list[str], fresh: dict[str, Plan | None], last: dict[str, Plan | None],
         live: set[str], starts: dict[str, NeighbourInfo], braked: frozenset[str] | set[str] = frozenset(),
-        links: Mapping[str, LinkState | None] | None = None,
+        links: Mapping[str, LinkState | None] | None = None, places: Mapping[str, Whereabouts] | None = None,
     ) -> tuple[list[NeighbourInfo], list[Hazard]]:  # fmt: skip
         """(neighbours, hazards) for step k from the plans of step k − 1 (``fresh``),
         the latest plans (``last``), the live set, the robots their robot side braked
         over step k − 1 (Tick.braked): those have left their plans as a dead robot's has,
         and the newest link state of each robot (``links``): a robot whose link is down drives
-        on uncontrolled, a moving obstacle."""
+        on uncontrolled, a moving obstacle.  With plans by place, ``places``: the robots' place
+        tokens; a robot without a plan of step k − 1 whose token is newer than its newest plan
+        known here (it moved to another cell since, out of this agent's hearing, or its plans
+        of the new cell were lost) is kept clear of as the smaller of the disc its plan gives and
+        one about that cell (:meth:`_placed`)."""
         nbs: list[NeighbourInfo] = []
         hazards: list[Hazard] = []
         for j in others:
@@ -99,12 +134,20 @@ class Guard:
             if j in live and j not in braked and not blind:
                 radius = r_j + (m + 1) * self.eps
                 info = neighbour_of(old) if old is not None else starts[j]
-                self._note(j, "stale", k)
+                state = "stale"
             else:
                 radius = r_j + max(self.N, m + 1) * self.eps + self.brake
                 info = None
-                self._note(j, "dead" if j not in live else "braked" if j in braked else "blind", k)
-            hazards.append(Hazard(j, np.array(centre, dtype=float), radius, info))
+                state = "dead" if j not in live else "braked" if j in braked else "blind"
+            hz = Hazard(j, np.array(centre, dtype=float), radius, info)
+            where = None if places is None else places.get(j)
+            if where is not None and (old is None or old.step < where.since):
+                # Both discs hold; the token's is the smaller once the plan is old enough.
+                placed = self._placed(j, where, starts[j])
+                if placed.radius < hz.radius:
+                    hz, state = placed, "placed"
+            hazards.append(hz)
+            self._note(j, state, k)
         self.hazard_steps += len(hazards)
         return nbs, hazards
 
@@ -129,6 +172,18 @@ class Guard:
         radius = r_j + step_reach * max(k + self.N + 1 - since, 0)
         return Hazard(j, centre, radius, None)
 
+    def _placed(self, j: str, where: Whereabouts, start: NeighbourInfo) -> Hazard:
+        """A robot known only by its place token: its last committed point was in the token's
+        cell when the token came, and since then moved at most √2·ε a step for
+        :data:`agent.coordination.PLACE_LAG` steps before a newer token would have come.  Its
+        agent may have fallen silent there, and then its robot followed the last candidate for
+        up to N steps more before braking: a disc of radius r_j + side/√2 + (N + lag)·√2·ε +
+        v_max²/(2 a_max) about the cell's centre, whatever the robot does (alive, its newer plans
+        would move the token on)."""
+        assert self.side is not None
+        radius = start.footprint + self.side / math.sqrt(2.0) + (self.N + PLACE_LAG) * self.eps + self.brake
+        return Hazard(j, cell_centre(where.cell, self.side), radius, None)
+
     def _note(self, j: str, state: str, k: int) -> None:
         before = self._state.get(j, "neighbour")
         self._state[j] = state
@@ -145,5 +200,6 @@ class Guard:
             "braked": "braked by its robot side; kept clear of as a static obstacle while it stops",
             "blind": "without poses, braking; kept clear of as a static obstacle while it stops",
             "loose": "link down, driving on uncontrolled; kept clear of as a moving obstacle",
+            "placed": "known by its place token only; kept clear of as a disc about its cell",
         }[state]
         self.log(f"step {k}: {j}: {what}")

@@ -4,8 +4,9 @@
 
 At step k the agent waits for the tracker's tick k, its own pose and odometry of step k and the
 plans that the live neighbours committed at step k − 1 (liveliness says who is live; every wait
-is bounded).  The plans come on the neighbours' keys (``--exchange mesh``) or together in the
-tracker's digest of step k − 1 (``relay``).  It then steps the controller and publishes its
+is bounded).  The plans come on the neighbours' keys (``--exchange mesh``), on the keys of the
+cells about this robot's (``place``: only the neighbours in reach, :meth:`Agent._reach`) or
+together in the tracker's digest of step k − 1 (``relay``).  It then steps the controller and publishes its
 command and its plan for step k (:mod:`agent.messages`).  A neighbour whose plan of step k − 1
 does not arrive in time is kept clear of as a growing disc (:class:`agent.hazards.Guard`).  When
 the tick says the robot side did not apply the agent's last commands, the agent takes the plan
@@ -45,12 +46,20 @@ from typing import Any
 import numpy as np
 
 from agent.controller import SNAPSHOTS, TUBE_TOL, StepOutput, TubeMPC
-from agent.coordination import NeighbourInfo
-from agent.hazards import Guard, neighbour_of
+from agent.coordination import NeighbourInfo, place_side
+from agent.hazards import Guard, in_reach, neighbour_of
 from agent.messages import command_message, plan_message
 from agent.tube import validated_design
-from ground.bus import Inbox, goal_reply, open_session, publisher, remember_steps
-from ground.geometry import controlled_point, measured_state
+from ground.bus import Inbox, goal_reply, open_session, publisher, put, remember_steps
+from ground.geometry import (
+    Cell,
+    Whereabouts,
+    block,
+    cell_name,
+    cell_of,
+    controlled_point,
+    measured_state,
+)
 from ground.model import ancillary_law, chain_input
 from ground.process import add_common_args, announce, fault_plan, log
 from ground.scenario import ConfigError, Scenario, goal_problem, load_scenario
@@ -137,8 +146,20 @@ class Agent:
         the plan was made, or while it drained the pose and odometry itself."""
         self.by_callback = 0
         """Of those, the commands put by a Zenoh callback."""
+        self.place = args.exchange == "place"
+        """Plans by place (docs/design.md, "Plans by place"): an agent takes the plans of the
+        cells about its own, and coordinates with the robots in reach (:meth:`_reach`)."""
+        self.side = place_side(design.footprint, p.epsilon, p.priority_share) if self.place else None
+        """The side of the cells [m] (:func:`agent.coordination.place_side`), or None."""
         self.link = _Link(
-            args, self.keys, me, self.role, self._answer if self.dc else None, tracked=spec.link == "sim"
+            args,
+            self.keys,
+            me,
+            self.role,
+            self._answer if self.dc else None,
+            tracked=spec.link == "sim",
+            side=self.side,
+            start=controlled_point(spec.start, p.lookahead),
         )
         self.inbox = self.link.inbox
         self.others = [r for r in ids if r != me]
@@ -149,7 +170,7 @@ class Agent:
             )
             for i, r in enumerate(scn.robots)
         }  # fmt: skip
-        self.guard = Guard(me, p, partial(log, self.role))
+        self.guard = Guard(me, p, partial(log, self.role), side=self.side)
         self.k = 0
         self.joined = False
         self.x_est: np.ndarray | None = None
@@ -188,6 +209,8 @@ class Agent:
         self.sent: dict[int, StepOutput] = {}
         """The controller outputs of the recent commands sent, by step: with delay compensation
         the agent predicts what its robot side applied when it followed one's candidate."""
+        self.places: dict[str, Whereabouts] = {}
+        """The place tokens as :meth:`_reach` last read them (with plans by place)."""
         self.link.go_live(self._answer_goal)
 
     def step(self) -> int | None:
@@ -244,7 +267,7 @@ class Agent:
             self._plan_ahead(k, x, a)
             self.k += 1
             return None
-        fresh, live, goal = self._neighbours(k)
+        fresh, live, goal, reach = self._neighbours(k)
         if x is None:
             # Not joined yet and nothing measured: keep the robot still, commit nothing.
             self.link.pub_cmd.put(Command(robot=self.me, step=k, ax=0.0, ay=0.0).encode())
@@ -253,7 +276,7 @@ class Agent:
         self._goals(goal, k)
         ctrl, blind = self.ctrl, self.blind > args.blind_steps
         nbs, hazards = self.guard.classify(
-            k, self.others, fresh, self.last, live, self.starts, set(tick.braked), self.links
+            k, reach, fresh, self.last, live, self.starts, set(tick.braked), self.links, self.places
         )
         out = ctrl.hold(x) if blind else ctrl.step(x, nbs, hazards)
         self.ran.append(k)
@@ -261,7 +284,7 @@ class Agent:
         # The command first: the robot side waits on it; the neighbours need the plan only at
         # the next step, which cannot start before the robots move.
         self.link.pub_cmd.put(command_message(self.me, k, ctrl, out, follow=not blind).encode())
-        self.link.pub_plan.put(plan_message(self.me, k, ctrl, out).encode())
+        self.link.put_plan(plan_message(self.me, k, ctrl, out))
         inbox.prune(k - 2)
         if self.dc:
             self.sent[k] = out
@@ -304,11 +327,11 @@ class Agent:
             a = self.a_prev = ctrl.ancillary(x) if a_j is None else a_j  # (the same, to rounding)
         # What the plan can tell of the tube: whether it held at x, the measurement it follows.
         tube_ok = design.contains_error(x - ctrl.xi[0:4], TUBE_TOL)
-        fresh, live, goal = self._neighbours(k + 1)
+        fresh, live, goal, reach = self._neighbours(k + 1)
         self._goals(goal, k + 1)
         x_next = np.asarray(design.A @ x + design.B @ a)
         nbs, hazards = self.guard.classify(
-            k + 1, self.others, fresh, self.last, live, self.starts, set(outcome.braked), self.links
+            k + 1, reach, fresh, self.last, live, self.starts, set(outcome.braked), self.links, self.places
         )
         out = ctrl.step(x_next, nbs, hazards, predicted=True)
         self.ran.append(k + 1)
@@ -319,7 +342,7 @@ class Agent:
         with inbox.cond:  # ready before the plan goes out
             self.ready = ready
             self._answer(None)  # tick k + 1 may be in already (it does not wait for this plan)
-        self.link.pub_plan.put(replace(plan_message(me, k + 1, ctrl, out), tube_ok=tube_ok).encode())
+        self.link.put_plan(replace(plan_message(me, k + 1, ctrl, out), tube_ok=tube_ok))
 
     def _told(self, k: int) -> bool:
         """The outcome of step k is in, or lost (fault plan); on the realtime clock, or the next
@@ -438,9 +461,9 @@ class Agent:
             odom = inbox.get(Odom, me, k)
         return self._state(k, pose, odom), answered
 
-    def _neighbours(self, k: int) -> tuple[dict[str, Plan | None], set[str], Goal | None]:
+    def _neighbours(self, k: int) -> tuple[dict[str, Plan | None], set[str], Goal | None, list[str]]:
         """The live neighbours' plans of step k − 1, to plan step k against: (those plans, who is
-        live, the latest goal given at run time).
+        live, the latest goal given at run time, the robots in reach: :meth:`_reach`).
 
         Realtime: the wait may not hold up this step's deadline.  In mesh the plans come by
         callback, so a plan a little late is still used; in relay the digest came by callback
@@ -451,7 +474,7 @@ class Agent:
         wait = inbox.drain_until if self.link.drained and self.relay else inbox.wait
         if k > 0:
             plans_in = _relayed if self.relay else _plans_in
-            wait(partial(plans_in, inbox, self.others, k - 1), limit)
+            wait(partial(plans_in, inbox, self._reach(k), k - 1), limit)
         with inbox.cond:
             # Plans of step k − 1, and of no later step than each robot side executed
             # (Tick.fallback, Tick.braked): a plan whose command missed its deadline was never
@@ -467,7 +490,17 @@ class Agent:
             live = set(inbox.live)
             goal = inbox.get(Goal, me)
             self.links = {j: inbox.get(LinkState, j) for j in self.others}
-        return fresh, live, goal
+        return fresh, live, goal, self._reach(k)
+
+    def _reach(self, k: int) -> list[str]:
+        """The other robots that step k may need to know: every one, or with plans by place those
+        :func:`agent.hazards.in_reach` keeps, from the plans and place tokens heard so far."""
+        if self.side is None:
+            return self.others
+        with self.inbox.cond:
+            self.places = dict(self.inbox.places)
+            live = set(self.inbox.live)
+        return in_reach(self.others, self.link.cell, self.side, self.last, self.places, self.starts, live)
 
     def _goals(self, goal: Goal | None, k: int) -> None:
         """Take, for the plan of step k, a goal published at run time (checked here) and one a
@@ -574,7 +607,8 @@ class Agent:
             f"{c.ahead} steered ahead, {self.on_arrival} commands put on arrival "
             f"({self.by_callback} by Zenoh's callback), "
             f"{guard.hazard_steps} neighbour-steps kept clear of as static discs ({guard.transitions} "
-            f"changes), {self.inbox.injected} injected faults, {self.inbox.rejects.total} rejected payloads",
+            f"changes), {self.inbox.taken.get(Plan.TYPE, 0)} plans taken ({self.args.exchange}), "
+            f"{self.inbox.injected} injected faults, {self.inbox.rejects.total} rejected payloads",
         )
         self.link.close()
 
@@ -584,12 +618,13 @@ class _Link:
 
     def __init__(
         self, args: argparse.Namespace, keys: Keys, me: str, role: str, on_input: Any = None,
-        tracked: bool = True,
+        tracked: bool = True, side: float | None = None, start: np.ndarray | None = None,
     ) -> None:  # fmt: skip
         """``on_input``: called with each tick, pose and odometry of this robot stored (a Zenoh
         thread, or the draining thread; the inbox's lock held), or None.  ``tracked``: the
         odometry comes from the tracker (a simulated robot), not from the robot's
-        ``epuck_link``."""
+        ``epuck_link``.  ``side`` [m]: plans by place, in cells of that side, from the robot's
+        ``start`` (2,) [m], its controlled point; None: every plan (mesh) or the digest."""
         self.session = open_session(args)
         self.inbox = inbox = Inbox(keys, role, fault_plan(args))
         # Realtime: the tracker sends this robot's pose and odometry just before the tick,
@@ -611,10 +646,14 @@ class _Link:
                 self.session, keys.odom(me), Odom, keep=True, drained=drained and tracked, then=on_input
             ),
             # The neighbours' plans: each on its own key (mesh), or a step's plans at once in
-            # the tracker's digest (relay: one message a step).
-            inbox.subscribe(self.session, keys.digest, Digest, keep=True)
-            if args.exchange == "relay"
-            else inbox.subscribe(self.session, keys.plan(), Plan, keep=True, remote=True),
+            # the tracker's digest (relay: one message a step); by place, see move_to.
+            *(
+                [inbox.subscribe(self.session, keys.digest, Digest, keep=True)]
+                if args.exchange == "relay"
+                else []
+                if side is not None
+                else [inbox.subscribe(self.session, keys.plan(), Plan, keep=True, remote=True)]
+            ),
             inbox.subscribe(self.session, keys.goal(me), Goal),
             inbox.subscribe(self.session, keys.link(), LinkState),
             inbox.subscribe(self.session, keys.clock, Tick, then=on_input),
@@ -626,6 +665,54 @@ class _Link:
         self.pub_cmd = publisher(self.session, keys.cmd(me))
         self.args, self.keys, self.me, self.role = args, keys, me, role
         self.token: Any = None
+        self.side = side
+        self.cell: Cell = (0, 0)
+        """The cell of this robot's last committed point (plans by place)."""
+        self.block: dict[Cell, Any] = {}
+        """The subscriptions to the plans of the groups of cells about :attr:`cell`'s (:data:`GROUP`)."""
+        self.place_token: Any = None
+        if side is not None:
+            self.subs.append(inbox.watch_places(self.session))
+            assert start is not None
+            self.cell = cell_of(start, side)
+            self._subscribe_block()
+
+    def put_plan(self, plan: Plan) -> None:
+        """Publish this robot's plan on its key and, by place, on its cell's, once encoded.
+        By place, a plan whose last committed point is in a new cell first moves the robot's
+        place token and subscriptions there (:meth:`move_to`)."""
+        data = plan.encode()
+        if self.side is not None:
+            cell = cell_of(plan.committed[-1], self.side)
+            if cell != self.cell:
+                self.move_to(cell, plan.step)
+            # A put, not a publisher per group: a declaration would travel to every peer.
+            put(self.session, self.keys.near(self.me, cell_name(group_of(cell))), data)
+        self.pub_plan.put(data)
+
+    def move_to(self, cell: Cell, step: int) -> None:
+        """The robot's last committed point is in ``cell`` from its plan of ``step`` on: declare the
+        place token there (before the old one goes: a robot always has one while its agent lives)
+        and subscribe to the plans of the cells about it."""
+        moved = group_of(cell) != group_of(self.cell)
+        self.cell = cell
+        if self.place_token is not None:  # live already (go_live declares the first)
+            old, self.place_token = self.place_token, self._place_token(step)
+            old.undeclare()
+        if moved:
+            self._subscribe_block()
+
+    def _place_token(self, step: int) -> Any:
+        return self.session.liveliness().declare_token(self.keys.at(self.me, cell_name(self.cell), step))
+
+    def _subscribe_block(self) -> None:
+        want = block(group_of(self.cell), 1)
+        for c in [c for c in self.block if c not in want]:
+            self.inbox.unsubscribe(self.block.pop(c))
+        for c in want - set(self.block):
+            self.block[c] = self.inbox.subscribe(
+                self.session, self.keys.near("*", cell_name(c)), Plan, keep=True, remote=True
+            )
 
     def go_live(self, on_goal: Any) -> None:
         """Answer goal queries with ``on_goal``, then declare the liveliness token."""
@@ -636,14 +723,31 @@ class _Link:
         # become live only once the commands have a taker.
         if not _wait_matching(self.pub_cmd, args.timeout):
             log(self.role, f"nobody subscribes to {keys.cmd(me)} within {args.timeout} s; going live anyway")
+        if self.side is not None:
+            self.place_token = self._place_token(0)
         self.token = self.session.liveliness().declare_token(keys.alive(me))
 
     def close(self) -> None:
-        if self.token is not None:
-            self.token.undeclare()
-        for sub in self.subs:
+        for token in (self.token, self.place_token):
+            if token is not None:
+                token.undeclare()
+        for sub in [*self.subs, *self.block.values()]:
             sub.undeclare()
         self.session.close()
+
+
+GROUP = 2
+"""Plans by place travel by groups of GROUP × GROUP cells (their key names the group).  An agent
+subscribes to its own group and the eight around it: whichever cell of its group it is in, they
+hold the cells it coordinates with (one apart from its own) and one ring more, so that a robot
+coming into reach has been heard from for a step at least.  It declares them again only when it
+changes group: every declaration travels to every peer, and at one cell a group each step's
+crossings cost the receiving side of every process more than the plans they saved."""
+
+
+def group_of(cell: Cell) -> Cell:
+    """The group (:data:`GROUP`) of ``cell``."""
+    return (cell[0] // GROUP, cell[1] // GROUP)
 
 
 def _wait_matching(pub: Any, timeout: float) -> bool:

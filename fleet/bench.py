@@ -19,7 +19,7 @@ from pathlib import Path
 from types import ModuleType
 
 from fleet.launch import TOPOLOGIES
-from ground.process import seed_arg
+from ground.process import EXCHANGES, seed_arg
 
 HARNESS = Path(__file__).resolve().parent.parent / "benchmarks" / "bench_scale.py"
 """The harness in the source checkout this package is installed from (editable install)."""
@@ -84,7 +84,7 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
         help="seconds per realtime run at Ts (default 60; quick 3)",
     )  # fmt: skip
     ap.add_argument(
-        "--exchange", choices=["mesh", "relay"], default="relay",
+        "--exchange", choices=["auto", *EXCHANGES], default="relay",
         help="how the fleet runs' plans travel (fleet run --exchange; default relay)",
     )  # fmt: skip
     ap.add_argument(

@@ -31,7 +31,7 @@ from typing import Any
 from fleet.launch import STARTS, TOPOLOGIES
 from fleet.report import strict_json
 from ground.params import PRESETS, preset
-from ground.process import domain_arg, lease_arg, seed_arg
+from ground.process import EXCHANGES, domain_arg, lease_arg, seed_arg
 from ground.scenario import ConfigError, load_scenario
 
 DEFAULT_ARENA = (-1.0, 1.0, -1.0, 1.0)
@@ -417,9 +417,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="fault plan for every process (JSON text or file; see ground/faults.py): drop or delay messages",
     )  # fmt: skip
     r.add_argument(
-        "--exchange", choices=["mesh", "relay"], default="mesh",
-        help="how plans travel: mesh (agent to agent, default) or relay (one digest a step from the "
-        "tracker: one message per agent instead of n - 1, for large fleets)",
+        "--exchange", choices=["auto", *EXCHANGES], default="auto",
+        help="how plans travel: mesh (every agent to every agent), place (agent to agent, each taking "
+        "only the plans of the cells about its own: a few a step whatever the fleet's size) or relay "
+        "(one digest a step from the tracker); auto (default): place on the realtime clock, mesh on "
+        "lockstep, where it keeps fleet run equal to fleet simulate",
     )  # fmt: skip
     r.add_argument(
         "--lease", metavar="SECONDS", type=lease_arg,

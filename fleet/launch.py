@@ -373,6 +373,15 @@ class Launched:
         return (1, why, summary) if why else (0, "ok", summary)
 
 
+def exchange_for(clock: str, exchange: str = "auto") -> str:
+    """The exchange ``auto`` stands for on ``clock``: by place on the realtime clock, where an
+    agent's CPU a step must not grow with the fleet; every plan to every agent on lockstep, which
+    keeps a run equal to ``fleet simulate`` (whose agents know every robot)."""
+    if exchange != "auto":
+        return exchange
+    return "place" if clock == "realtime" else "mesh"
+
+
 def start_fleet(
     scenario: str,
     robots: list[str],
@@ -384,7 +393,7 @@ def start_fleet(
     hub: str | None = None,
     links: dict[str, str] | None = None,
     faults: str | None = None,
-    exchange: str = "mesh",
+    exchange: str = "auto",
     lease: float | None = None,
     topology: str = "mesh",
     scripted: bool = False,
@@ -403,8 +412,9 @@ def start_fleet(
     ``seed`` overrides the scenario's.  ``fleet`` is the fleet's name in the keys.
     ``hub`` is the tracker's listening endpoint (default: a free loopback port).
     ``faults`` is a fault plan (:mod:`ground.faults`) handed to every process.
-    ``exchange`` is how plans travel: ``mesh`` (agent to agent) or ``relay``
-    (the tracker's digest, docs/design.md, "Relayed plans").
+    ``exchange`` is how plans travel: ``mesh`` (every agent to every agent), ``place`` (agent
+    to agent by place, docs/design.md, "Plans by place") or ``relay`` (the tracker's digest,
+    "Relayed plans"); ``auto``: :func:`exchange_for` the clock.
     ``lease`` is every process's Zenoh transport lease [s] (default 10 s in the mesh,
     :data:`STAR_LEASE` in the star).
     ``topology``: ``mesh`` (every process a Zenoh peer) or ``star`` (the tracker a
@@ -434,6 +444,7 @@ def start_fleet(
         raise ValueError("ros_listen: in the star topology ROS 2 tools connect to the hub (the router)")
     if topology not in TOPOLOGIES:
         raise ValueError(f"topology {topology!r} is not one of {', '.join(TOPOLOGIES)}")
+    exchange = exchange_for(clock, exchange)
     emulated = [r for r in robots if (links or {}).get(r, "sim") == "emulator"]
     hub = hub or loopback(free_port())
     print(f"fleet: hub {hub} (fleet goal --connect {hub} ...)", file=sys.stderr, flush=True)

@@ -21,7 +21,8 @@ default-deny and grants, for fleet ``F`` (keys of :mod:`ground.wire`):
 identity        may publish (put)                                       liveliness token
 ==============  ======================================================  =====================
 robot ``R``     ``F/plan/R`` ``F/cmd/R`` ``F/odom/R`` ``F/wheels/R``     ``F/alive/R``
-                ``F/emu/R`` ``F/applied/R`` ``F/link/R``
+                ``F/emu/R`` ``F/applied/R`` ``F/link/R``                ``F/at/R/**``
+                ``F/near/*/R``
 ``tracker``     ``F/pose/*`` ``F/truth/*`` ``F/clock`` ``F/outcome``     —
                 (and ``F/odom/*`` and ``F/digest`` with
                 ``sim_tracker``: the simulated tracker plays every
@@ -283,9 +284,9 @@ def acl_json(
                 f"publish-{r}",
                 ["put"],
                 "ingress",
-                [k.plan(r), k.cmd(r), k.odom(r), k.wheels(r), k.emu(r), k.applied(r), k.link(r)],
+                [k.plan(r), k.near(r), k.cmd(r), k.odom(r), k.wheels(r), k.emu(r), k.applied(r), k.link(r)],
             ),
-            rule(f"token-{r}", ["liveliness_token"], "ingress", [k.alive(r)]),
+            rule(f"token-{r}", ["liveliness_token"], "ingress", [k.alive(r), k.at(r)]),
             rule(f"goals-{r}", ["declare_queryable", "reply"], "ingress", [k.goal(r)]),
             rule(f"asked-{r}", ["query"], "egress", [k.goal(r)]),
         ]

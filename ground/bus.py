@@ -16,6 +16,7 @@ from collections.abc import Callable, Container, Iterable
 from typing import Any, TypeVar
 
 from ground.faults import DELIVER, FaultPlan
+from ground.geometry import Whereabouts
 from ground.net import NetConfig, load_config, loopback
 from ground.process import log
 from ground.wire import Digest, Goal, Keys, Message, Plan, RejectCounter, WireError, decode
@@ -120,6 +121,14 @@ def publisher(session: Any, key: str, express: bool = True) -> Any:
     return session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK, express=express)
 
 
+def put(session: Any, key: str, payload: bytes, express: bool = True) -> None:
+    """Put ``payload`` on ``key`` as a :func:`publisher` would, with no publisher declared: for
+    keys that change often (a declaration travels to every peer)."""
+    import zenoh
+
+    session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK, express=express)
+
+
 GOAL_REPLY_TIMEOUT = 10.0
 """How long an agent has to answer a goal query [s]."""
 
@@ -179,10 +188,14 @@ class Inbox:
         self.latest: dict[tuple[str, str], Any] = {}
         self.history: dict[tuple[str, str], dict[int, Any]] = {}
         self.live: set[str] = set()
+        self.places: dict[str, Whereabouts] = {}
+        """Each robot's place token, newest first (:meth:`watch_places`; ``--exchange place``)."""
         self.gone: dict[str, float] = {}
         """When [s, time.monotonic] each robot that is not live lost its liveliness token."""
         self.arrived: dict[tuple[str, str], float] = {}
         """Arrival time [s, time.monotonic] of the latest message per (type, robot)."""
+        self.taken: dict[str, int] = {}
+        """Messages taken (decoded, checked and stored) so far, by type."""
         self.first: dict[str, float] = {}
         """Arrival time [s, time.monotonic] of the first message of each type."""
         self.rejects = RejectCounter(report=lambda m: log(role, m))
@@ -223,6 +236,12 @@ class Inbox:
         if drained:
             self._drained.append((sub, typ, keep, then))
         return sub
+
+    def unsubscribe(self, sub: Any) -> None:
+        """Undeclare a subscriber of :meth:`subscribe` (drained or not)."""
+        with self.cond:
+            self._drained = [d for d in self._drained if d[0] is not sub]
+        sub.undeclare()
 
     def drain(self) -> int:
         """Take every queued sample of the drained subscriptions; returns how many."""
@@ -275,7 +294,10 @@ class Inbox:
                 self._store(Digest.TYPE, msg, False)
                 self._wake()
                 return
-            if self._admit(k.split("/", 2)[-1], typ, msg, keep, now) and then is not None:
+            tail = k.split("/", 2)[-1]
+            if tail.startswith("near/"):  # a plan by place: the fault plan knows it by its robot
+                tail = f"plan/{msg.robot}"
+            if self._admit(tail, typ, msg, keep, now) and then is not None:
                 then(msg)
             self._wake()
 
@@ -292,6 +314,7 @@ class Inbox:
                     self.held.append((step + delay, typ.TYPE, msg, keep))
                 return False
         self._store(typ.TYPE, msg, keep)
+        self.taken[typ.TYPE] = self.taken.get(typ.TYPE, 0) + 1
         self.arrived[(typ.TYPE, msg.robot)] = now
         self.first.setdefault(typ.TYPE, now)
         return True
@@ -333,6 +356,31 @@ class Inbox:
                 self.cond.notify_all()
 
         return session.liveliness().declare_subscriber(self.keys.alive(), on_token, history=True)
+
+    def watch_places(self, session: Any) -> Any:
+        """Keep :attr:`places` from the place tokens (``--exchange place``): a robot re-declares
+        its token as its last committed point enters a new cell, the new before the old goes,
+        so the newest token of a robot is where it is (or, once gone, where it died).  A key
+        that is not a place token is rejected and counted."""
+        import zenoh
+
+        def on_token(sample: Any) -> None:
+            key = str(sample.key_expr)
+            try:
+                rid, cell, step = self.keys.place_of(key)
+            except WireError as e:
+                with self.cond:
+                    self.rejects.reject(key, e)
+                return
+            with self.cond:
+                had = self.places.get(rid)
+                if sample.kind == zenoh.SampleKind.DELETE:
+                    if had is not None and (had.cell, had.since) == (cell, step):
+                        self.places[rid] = Whereabouts(cell, step, present=False)
+                elif had is None or had.since <= step:
+                    self.places[rid] = Whereabouts(cell, step, present=True)
+
+        return session.liveliness().declare_subscriber(self.keys.at(), on_token, history=True)
 
     def _wake(self) -> None:
         """Wake the main loop if what it waits for now holds (call with the lock held).

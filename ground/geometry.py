@@ -14,7 +14,9 @@ paper.  Everything that maps a pose to the controlled point, or back, calls this
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -49,3 +51,59 @@ def measured_state(
 def wrap_angle(a: float) -> float:
     """The angle ``a`` [rad] wrapped to [−π, π)."""
     return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+# ---------------------------------------------------------------- places
+Cell = tuple[int, int]
+"""A square cell of the plane by place: (column, row), the floors of x / side and y / side."""
+
+
+@dataclass(frozen=True)
+class Whereabouts:
+    """Where a robot's last committed point is, by cell (its place token, ``--exchange place``)."""
+
+    cell: Cell
+    """The cell, of the fleet's side."""
+    since: int
+    """The step of the first plan whose last committed point was in ``cell`` [steps]."""
+    present: bool
+    """The robot's agent is still there; False: it is gone, and ``cell`` is where it was."""
+
+
+def cell_of(point: Sequence[float] | Array, side: float) -> Cell:
+    """The cell of side ``side`` [m] holding ``point`` (2,) [m, world frame]."""
+    return (math.floor(float(point[0]) / side), math.floor(float(point[1]) / side))
+
+
+def cell_name(cell: Cell) -> str:
+    """A cell as one chunk of a key expression: ``"3_-1"``."""
+    return f"{cell[0]}_{cell[1]}"
+
+
+def parse_cell(name: str) -> Cell:
+    """The inverse of :func:`cell_name`; raises ValueError on anything else."""
+    col, sep, row = name.partition("_")
+    if not sep or not _CELL_INT.fullmatch(col) or not _CELL_INT.fullmatch(row):
+        raise ValueError(f"not a cell: {name[:40]!r}")
+    return (int(col), int(row))
+
+
+def cells_apart(a: Cell, b: Cell) -> int:
+    """How many cells apart ``a`` and ``b`` are (Chebyshev): two points whose cells are
+    d ≥ 2 apart are more than (d − 1) sides apart."""
+    return max(abs(a[0] - b[0]), abs(a[1] - b[1]))
+
+
+def block(centre: Cell, radius: int) -> set[Cell]:
+    """The (2 radius + 1)² cells at most ``radius`` apart from ``centre``."""
+    return {
+        (centre[0] + i, centre[1] + j) for i in range(-radius, radius + 1) for j in range(-radius, radius + 1)
+    }
+
+
+def cell_centre(cell: Cell, side: float) -> Array:
+    """The centre (2,) [m, world frame] of ``cell``; every point of it is within side / √2."""
+    return np.array([(cell[0] + 0.5) * side, (cell[1] + 0.5) * side])
+
+
+_CELL_INT = re.compile(r"-?[0-9]{1,9}")

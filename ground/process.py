@@ -20,6 +20,10 @@ from ground.faults import FaultPlan, FaultPlanError
 from ground.net import MODES, NetConfig, lease_seconds
 from ground.scenario import MAX_SEED, ROS_DOMAIN_MAX
 
+EXCHANGES = ("mesh", "place", "relay")
+"""How the agents' plans travel (``--exchange``): to every agent, to the agents near, or through
+the tracker's digest."""
+
 
 def lease_arg(text: str) -> float:
     """argparse type of ``--lease``: seconds in :data:`ground.net.LEASE_RANGE`."""
@@ -87,8 +91,9 @@ def add_common_args(ap: argparse.ArgumentParser) -> None:
         help="lockstep: step when every agent answered; realtime: wall-clock steps at Ts",
     )  # fmt: skip
     ap.add_argument(
-        "--exchange", choices=["mesh", "relay"], default="mesh",
-        help="plans: mesh, every agent subscribes to every plan; relay, the tracker sends each "
+        "--exchange", choices=EXCHANGES, default="mesh",
+        help="plans: mesh, every agent subscribes to every plan; place, each agent to the plans of "
+        "the cells about its own (docs/design.md, \"Plans by place\"); relay, the tracker sends each "
         "agent one digest of a step's plans (docs/design.md, \"Relayed plans\")",
     )  # fmt: skip
     ap.add_argument(

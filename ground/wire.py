@@ -16,6 +16,8 @@ Keys, for a fleet named ``F`` and a robot id ``R``:
 ``fleet/F/truth/R``        tracker → supervisor: true pose (the camera's, on real robots)
 ``fleet/F/odom/R``         robot side → agent: inner-loop velocity (:class:`Odom`)
 ``fleet/F/plan/R``         agent → all: committed reference (:class:`Plan`)
+``fleet/F/near/C/R``       agent → agents near: the same plan, by the cell C of its last committed
+                           point (``--exchange place``; cells of :mod:`ground.geometry`)
 ``fleet/F/cmd/R``          agent → robot side: acceleration (:class:`Command`)
 ``fleet/F/goal/R``         operator → agent: new goal (:class:`Goal`); put, or a query the agent answers
 ``fleet/F/script``         script → tracker: permits steps, ends the run (:class:`Script`)
@@ -25,6 +27,8 @@ Keys, for a fleet named ``F`` and a robot id ``R``:
 ``fleet/F/digest``         tracker → agents: one step's plans, relayed (:class:`Digest`)
 ``fleet/F/alive/R``        liveliness token of agent R (also ``supervisor``, :data:`SCRIPT`, and
                            ``tracker`` in a scripted run)
+``fleet/F/at/R/C/S``       liveliness token of agent R (``--exchange place``): its last committed
+                           point has been in cell C since its plan of step S
 ``fleet/F/wheels/R``       ``epuck_link`` → all: wheel odometry (:class:`Wheels`)
 ``fleet/F/applied/R``      ``epuck_link`` → tracker: what the robot did over a step (:class:`Applied`)
 ``fleet/F/emu/R``          e-puck emulator → tracker (``--source emulator``): its true pose
@@ -43,6 +47,8 @@ from typing import Any, ClassVar, TypeVar
 import msgpack
 import numpy as np
 from numpy.typing import NDArray
+
+from ground.geometry import Cell, parse_cell
 
 SCHEMA_VERSION = 5
 """The version of every message's layout; a message of another version is rejected.
@@ -101,6 +107,26 @@ class Keys:
 
     def plan(self, robot: str = "*") -> str:
         return f"{self.root}/plan/{robot}"
+
+    def near(self, robot: str = "*", cell: str = "*") -> str:
+        return f"{self.root}/near/{cell}/{robot}"
+
+    def at(self, robot: str = "*", cell: str | None = None, step: int | None = None) -> str:
+        """A place token's key, or with ``cell`` None every place token of ``robot``."""
+        return f"{self.root}/at/{robot}/**" if cell is None else f"{self.root}/at/{robot}/{cell}/{step}"
+
+    def place_of(self, key: str) -> tuple[str, Cell, int]:
+        """(robot, cell, step) of a place token's key; raises WireError otherwise."""
+        parts = str(key).split("/")
+        if len(parts) != 6 or parts[:3] != [*self.root.split("/"), "at"]:
+            raise WireError(f"key {str(key)[:80]!r}: not a place token")
+        rid, cell, step = parts[3:]
+        if not ROBOT_ID.fullmatch(rid) or not re.fullmatch(r"[0-9]{1,10}", step):
+            raise WireError(f"key {str(key)[:80]!r}: bad robot id or step")
+        try:
+            return rid, parse_cell(cell), int(step)
+        except ValueError as e:
+            raise WireError(f"key {str(key)[:80]!r}: {e}") from None
 
     def cmd(self, robot: str = "*") -> str:
         return f"{self.root}/cmd/{robot}"

@@ -567,10 +567,11 @@ def test_acl_grants_exactly_the_documented_rights() -> None:
     acl = acl_json(["r1", "r2"], fleet="lab")
     rules = {r["id"]: r for r in acl["rules"]}
     assert acl["default_permission"] == "deny"
-    assert rules["publish-r1"]["key_exprs"] == [K.plan("r1"), K.cmd("r1"), K.odom("r1"), K.wheels("r1"),
-                                                K.emu("r1"), K.applied("r1"), K.link("r1")]  # fmt: skip
+    own = [K.plan("r1"), K.near("r1"), K.cmd("r1"), K.odom("r1"), K.wheels("r1"), K.emu("r1")]
+    assert rules["publish-r1"]["key_exprs"] == [*own, K.applied("r1"), K.link("r1")]
+    assert K.near("r1") == "fleet/lab/near/*/r1" and K.at("r1") == "fleet/lab/at/r1/**"
     assert rules["token-r1"] == {"id": "token-r1", "messages": ["liveliness_token"], "flows": ["ingress"],
-                                 "permission": "allow", "key_exprs": [K.alive("r1")]}  # fmt: skip
+                                 "permission": "allow", "key_exprs": [K.alive("r1"), K.at("r1")]}  # fmt: skip
     assert rules["publish-tracker"]["key_exprs"] == [K.pose(), K.truth(), K.clock, K.outcome]
     sim = {r["id"]: r for r in acl_json(["r1"], sim_tracker=True)["rules"]}
     sim_puts = [K.pose(), K.truth(), K.clock, K.outcome, K.odom(), K.digest]
@@ -600,6 +601,7 @@ def test_acl_grants_exactly_the_documented_rights() -> None:
     robot = {
         *{("ingress", "put", key) for key in rules["publish-r1"]["key_exprs"]},
         ("ingress", "liveliness_token", K.alive("r1")),
+        ("ingress", "liveliness_token", K.at("r1")),  # its place tokens (plans by place)
         ("ingress", "declare_queryable", K.goal("r1")),  # the agent's goal queryable
         ("ingress", "reply", K.goal("r1")),  # its answers
         ("egress", "query", K.goal("r1")),  # the queries for it, and no other robot's

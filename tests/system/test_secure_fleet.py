@@ -618,8 +618,8 @@ def test_a_script_joins_the_secure_fleet_with_the_operators_certificate(net: Net
                                     "--zenoh-config", net.config("tracker")])  # fmt: skip
     net.start("supervisor", ["-m", "supervisor", *common, "--out", str(out),
                              "--zenoh-config", net.config("supervisor")])  # fmt: skip
-    for rid in ("r1", "r2"):
-        net.start(f"agent {rid}", ["-m", "agent", *common, "--robot", rid,
+    for rid in ("r1", "r2"):  # plans by place, as fleet run sends them on the realtime clock
+        net.start(f"agent {rid}", ["-m", "agent", *common, "--robot", rid, "--exchange", "place",
                                    "--zenoh-config", net.config("agent", rid)])  # fmt: skip
     fleet_names = [n for n in net.procs if n in ("tracker", "supervisor") or n.startswith("agent ")]
     for name in fleet_names:
@@ -658,5 +658,10 @@ def test_a_script_joins_the_secure_fleet_with_the_operators_certificate(net: Net
     assert len(took) == 1, net.procs["agent r1"].tail()
     for name in fleet_names:
         assert [ln for ln in net.procs[name].lines() if "rejected payload from" in ln] == [], name
+    for rid in ("r1", "r2"):  # the router let each robot's plans by place through to the other
+        taken = [
+            int(n) for ln in net.procs[f"agent {rid}"].lines() for n in re.findall(r"(\d+) plans taken", ln)
+        ]
+        assert len(taken) == 1 and taken[0] >= JOINED_STEPS // 2, net.procs[f"agent {rid}"].tail()
     s = json.loads((out / "summary.json").read_text())
     assert s["robots"]["r1"]["goal"] == list(NEW_GOAL) and s["rejected_payloads"] == 0, s

@@ -1,0 +1,180 @@
+"""Plans by place: the cells, the reach they give, and what an agent keeps clear of by them."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import zenoh
+
+from agent.coordination import PLACE_LAG, NeighbourInfo, place_side, split_halfplanes
+from agent.hazards import Guard, in_reach
+from agent.tube import validated_design
+from ground.bus import Inbox
+from ground.geometry import Whereabouts, block, cell_centre, cell_name, cell_of, cells_apart, parse_cell
+from ground.scenario import load_scenario
+from ground.wire import Keys, Plan, WireError
+
+SCN = load_scenario(Path(__file__).resolve().parents[2] / "scenarios" / "swap_16.toml")
+DESIGN = validated_design(SCN)
+P = DESIGN.params
+SIDE = place_side(DESIGN.footprint, P.epsilon, P.priority_share)
+STEP = math.sqrt(2.0) * P.epsilon
+"""How far a committed point moves in a step at most [m]."""
+
+
+def test_cells_name_and_parse_and_two_apart_means_more_than_a_side():
+    rng = np.random.default_rng(7)
+    for _ in range(2000):
+        a, b = rng.uniform(-3.0, 3.0, 2), rng.uniform(-3.0, 3.0, 2)
+        ca, cb = cell_of(a, SIDE), cell_of(b, SIDE)
+        assert parse_cell(cell_name(ca)) == ca
+        assert np.all(np.abs(a - cell_centre(ca, SIDE)) <= SIDE / 2 + 1e-12)
+        if cells_apart(ca, cb) >= 2:
+            assert np.max(np.abs(a - b)) > SIDE
+    assert len(block((3, -1), 2)) == 25 and cells_apart((3, -1), (5, 1)) == 2
+    for bad in ("3", "3_", "_1", "a_1", "1_2_3", "1_1e3", "9999999999_0"):
+        with pytest.raises(ValueError):
+            parse_cell(bad)
+
+
+@pytest.mark.parametrize("prio", [(0, 0), (1, 0), (0, 1)])
+def test_a_robot_out_of_reach_gets_no_split_row_even_after_the_lag(prio):
+    """The split rule adds no row between committed points in cells two apart, after both
+    moved towards each other for PLACE_LAG steps: coordinating only within reach loses no
+    constraint.  Just inside that distance it does add one (the bound is not vacuous)."""
+    rng = np.random.default_rng(3)
+    r = DESIGN.footprint
+    for _ in range(500):
+        # Two points in cells two apart along a random axis, as close as those cells allow.
+        x_i = rng.uniform(0.0, SIDE)
+        gap = SIDE + rng.uniform(1e-9, 1e-3)  # just over a side apart
+        c_i = np.array([x_i, rng.uniform(0.0, SIDE)])
+        c_j = c_i + np.array([gap, rng.uniform(-1e-3, 1e-3)])
+        if cells_apart(cell_of(c_i, SIDE), cell_of(c_j, SIDE)) < 2:
+            continue
+        towards = (c_j - c_i) / np.linalg.norm(c_j - c_i)
+        c_i2, c_j2 = c_i + towards * PLACE_LAG * STEP, c_j - towards * PLACE_LAG * STEP
+        nb = NeighbourInfo("r2", c_j2, r, prio[1], 1)
+        normals, _, _ = split_halfplanes(c_i2, r, prio[0], [nb], P.priority_share, P.epsilon)
+        assert normals == [], (c_i, c_j)
+    closer = np.array([2.0 * r + STEP * 1.01 / (1.0 - P.priority_share) - 1e-3, 0.0])
+    normals, _, _ = split_halfplanes(np.zeros(2), r, 0, [NeighbourInfo("r2", closer, r, 1, 1)],
+                                     P.priority_share, P.epsilon)  # fmt: skip
+    assert len(normals) == 1
+
+
+def _plan(robot: str, step: int, point) -> Plan:
+    return Plan(
+        robot=robot, step=step, t0=0.1 * step, Ts=P.Ts, committed=np.tile(point, (P.horizon, 1)),
+        nominal=np.zeros((P.horizon + 1, 2)), footprint=DESIGN.footprint, priority=0, rank=1, phase=0,
+        target=np.zeros(2), goal=np.zeros(2), status="PROXQP_SOLVED", solve_time=0.0, tube_ok=True,
+    )  # fmt: skip
+
+
+def _starts(points: dict[str, tuple[float, float]]) -> dict[str, NeighbourInfo]:
+    return {
+        j: NeighbourInfo(j, np.array(q), DESIGN.footprint, 0, n) for n, (j, q) in enumerate(points.items())
+    }
+
+
+def test_in_reach_takes_the_newest_of_plan_token_and_start():
+    """By the newest of what was heard; an agent that is gone is always in (its disc may be
+    large); nothing heard: the start."""
+    mine = (0, 0)
+    near, far = (0.5 * SIDE, 0.5 * SIDE), (3.5 * SIDE, 0.5 * SIDE)
+    starts = _starts({"a": near, "b": far, "c": far, "d": near, "e": far, "f": far})
+    last = {"b": _plan("b", 10, near), "c": _plan("c", 10, near), "d": _plan("d", 10, far)}
+    places = {
+        "b": Whereabouts((0, 3), 11, True),  # moved away after its last plan heard
+        "c": Whereabouts((3, 0), 9, True),  # a plan newer than the token: the plan says near
+        "d": Whereabouts((1, 1), 4, True),  # the token is older than the plan: far
+        "e": Whereabouts((-1, 1), 12, True),  # heard of by its token only: near
+    }
+    live = {"a", "b", "c", "d", "e"}  # f is gone: in, wherever it is
+    got = in_reach(["a", "b", "c", "d", "e", "f"], mine, SIDE, last, places, starts, live)
+    assert got == ["a", "c", "e", "f"]
+    assert in_reach(["a", "b", "c", "d", "e", "f"], (3, 0), SIDE, last, places, starts, set(starts)) == [
+        "d", "f",
+    ]  # fmt: skip
+
+
+def test_guard_keeps_clear_of_a_robot_known_by_its_token_only():
+    """The cell's disc covers every point of the cell grown by N + lag steps and the braking
+    distance; it replaces the plan's disc only when smaller, and a fresh plan still makes a
+    neighbour, whatever the token says."""
+    g = Guard("r1", P, print, side=SIDE)
+    brake = P.v_max**2 / (2 * P.a_max)
+    starts = _starts({"r1": (0.0, 0.0), "r2": (1.0, 1.0)})
+    where = Whereabouts((2, -1), 30, True)
+    # Never heard, long after the start: about the token's cell, not the start.
+    nbs, hz = g.classify(200, ["r2"], {"r2": None}, {}, {"r2"}, starts, places={"r2": where})
+    assert not nbs and np.array_equal(hz[0].centre, cell_centre((2, -1), SIDE))
+    grown = hz[0].radius - DESIGN.footprint - (P.horizon + PLACE_LAG) * STEP - brake
+    corners = [cell_centre((2, -1), SIDE) + SIDE / 2 * np.array([sx, sy]) for sx in (-1, 1) for sy in (-1, 1)]
+    assert all(np.linalg.norm(c - hz[0].centre) <= grown + 1e-12 for c in corners)
+    # An old plan (step 5) from elsewhere: its disc has grown past the cell's, which is kept;
+    # soon after the start, the start's disc is the smaller.
+    old = _plan("r2", 5, (1.0, 1.0))
+    nbs, hz = g.classify(200, ["r2"], {"r2": None}, {"r2": old}, {"r2"}, starts, places={"r2": where})
+    assert np.array_equal(hz[0].centre, cell_centre((2, -1), SIDE))
+    nbs, hz = g.classify(20, ["r2"], {"r2": None}, {}, {"r2"}, starts, places={"r2": where})
+    assert np.array_equal(hz[0].centre, [1.0, 1.0]) and hz[0].radius == pytest.approx(
+        DESIGN.footprint + 21 * STEP
+    )
+    # A plan one step older than the token: its small disc is kept.
+    recent = _plan("r2", 38, (0.1, -0.2))
+    nbs, hz = g.classify(40, ["r2"], {"r2": None}, {"r2": recent}, {"r2"}, starts,
+                         places={"r2": dataclasses.replace(where, since=39)})  # fmt: skip
+    assert np.array_equal(hz[0].centre, [0.1, -0.2]) and hz[0].radius == pytest.approx(
+        DESIGN.footprint + 2 * STEP
+    )
+    # Gone where its token was: the same cell disc, the braking included.
+    nbs, hz = g.classify(200, ["r2"], {"r2": None}, {}, set(), starts,
+                         places={"r2": dataclasses.replace(where, present=False)})  # fmt: skip
+    assert np.array_equal(hz[0].centre, cell_centre((2, -1), SIDE))
+    fresh = _plan("r2", 39, (0.4, 0.4))
+    nbs, hz = g.classify(40, ["r2"], {"r2": fresh}, {"r2": fresh}, {"r2"}, starts, places={"r2": where})
+    assert [n.id for n in nbs] == ["r2"] and not hz
+
+
+class _Session:
+    """Stands in for a Zenoh session: keeps the liveliness subscriber's callback."""
+
+    def __init__(self):
+        self.callback = None
+
+    def liveliness(self):
+        return self
+
+    def declare_subscriber(self, key, callback, history):
+        assert key == "fleet/lab/at/*/**" and history
+        self.callback = callback
+        return None
+
+
+def test_inbox_keeps_each_robots_newest_place_and_where_it_went():
+    keys = Keys("lab")
+    inbox, session = Inbox(keys, "test"), _Session()
+    inbox.watch_places(session)
+
+    def token(kind, robot, cell, step):
+        session.callback(SimpleNamespace(kind=kind, key_expr=keys.at(robot, cell_name(cell), step)))
+
+    put, delete = zenoh.SampleKind.PUT, zenoh.SampleKind.DELETE
+    token(put, "r2", (0, 0), 0)
+    token(put, "r2", (1, 0), 14)  # the new token comes before the old one goes
+    token(delete, "r2", (0, 0), 0)
+    assert inbox.places["r2"] == Whereabouts((1, 0), 14, True)
+    token(put, "r2", (0, 0), 0)  # an old token late (history): ignored
+    assert inbox.places["r2"] == Whereabouts((1, 0), 14, True)
+    token(delete, "r2", (1, 0), 14)  # its agent is gone: where it was stays
+    assert inbox.places["r2"] == Whereabouts((1, 0), 14, False)
+    session.callback(SimpleNamespace(kind=put, key_expr="fleet/lab/at/r3/x_1/2"))
+    assert inbox.rejects.total == 1 and "r3" not in inbox.places
+    with pytest.raises(WireError):
+        keys.place_of("fleet/lab/at/r3/1_1")
