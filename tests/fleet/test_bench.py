@@ -541,7 +541,9 @@ def test_latency_floor_times_every_command_of_its_window():
      ("bench_zenoh_floor.py", ["--rate", "0.001"], "--rate"),
      ("bench_zenoh_floor.py", ["--runs", "0"], "--runs"),
      ("bench_zenoh_floor.py", ["--pattern", "step,nope"], "--pattern"),
-     ("bench_zenoh_floor.py", ["--pattern", "fleet", "--modes", "direct"], "--modes")],
+     ("bench_zenoh_floor.py", ["--pattern", "fleet", "--modes", "direct"], "--modes"),
+     ("bench_exchange.py", ["--order", "mesh,nope"], "--order"),
+     ("bench_exchange.py", ["--seconds", "nan"], "--seconds")],
 )  # fmt: skip
 def test_floor_benches_refuse_bad_input_in_one_line(script: str, args: list[str], field: str) -> None:
     res = subprocess.run(
@@ -714,3 +716,23 @@ def test_zenoh_floor_sets_the_math_beside_the_floor():
     floor_ms, ratio = float(row[4]), float(row[5])
     assert math_ms > 0 and floor_ms > 0, res.stdout
     assert ratio == pytest.approx((math_ms + floor_ms) / math_ms, abs=0.01 + 0.01 * ratio), res.stdout
+
+
+def test_exchange_bench_runs_each_exchange_and_counts_the_plans_taken(tmp_path):
+    """``bench_exchange.py`` runs the realtime fleet once per exchange named, in order, and reads
+    from each agent's closing line how many plans it took: every other robot's in the mesh."""
+    out = tmp_path / "rows.json"
+    res = subprocess.run(
+        [sys.executable, "benchmarks/bench_exchange.py", "--robots", "3", "--seconds", "3",
+         "--order", "mesh,place", "--out", str(tmp_path / "runs"), "--json", str(out)],
+        cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
+    rows = json.loads(out.read_text())["rows"]
+    assert [r["exchange"] for r in rows] == ["mesh", "place"], rows
+    for r in rows:
+        assert r["collisions"] == 0 and r["steps"] >= 25, r
+    # Three robots within reach of each other: both take the two others' plans about every step
+    # (a little over two: the agents' last plans come after the tracker's last step counted).
+    assert 1.5 <= rows[0]["plans"] <= 2.2 and 1.5 <= rows[1]["plans"] <= 2.2, rows
+    assert "# medians, and ratios to mesh" in res.stdout
