@@ -29,15 +29,25 @@ def neighbour_of(plan: Plan) -> NeighbourInfo:
     )  # fmt: skip
 
 
+def loose(ls: LinkState | None, newest: Plan | None) -> bool:
+    """The robot's link is down, or back with no plan yet made from where the robot stands: it
+    drives on (or stood) uncontrolled, off its plans (:meth:`Guard._loose`)."""
+    return ls is not None and (not ls.up or (-1 if newest is None else newest.step) < ls.back)
+
+
 def in_reach(
     others: Sequence[str], mine: Cell, side: float, last: Mapping[str, Plan | None],
     places: Mapping[str, Whereabouts], starts: Mapping[str, NeighbourInfo], live: Container[str],
+    discs: Container[str] = (),
 ) -> list[str]:  # fmt: skip
     """The robots of ``others`` that an agent whose last committed point is in cell ``mine``
     (cells of ``side`` [m]) coordinates with, with plans by place (docs/method.md §6):
 
-    * every robot whose agent is gone (not in ``live``): its disc may be large, and the QP
-      drops the rows of a far one itself (:func:`agent.coordination.hazard_halfplanes`);
+    * every robot whose agent is gone (not in ``live``), and every one in ``discs``: those its
+      robot side braked, whose link is down (:func:`loose`) or whose last plan says its agent
+      is blind.  They are kept clear of as discs, which can be wider than a cell, so their
+      rows may be needed beyond the reach; the QP drops the rows of a far disc itself
+      (:func:`agent.coordination.hazard_halfplanes`);
     * every other robot whose last committed point is in ``mine`` or one of the eight cells
       around it, by what was last heard of it: its newest plan (``last``), or its place token
       (``places``) if that is newer, or else its start (``starts``).
@@ -51,7 +61,12 @@ def in_reach(
             cell = w.cell
         else:
             cell = cell_of(starts[j].last_point if pl is None else pl.committed[-1], side)
-        if j not in live or cells_apart(cell, mine) <= 1:
+        if (
+            j not in live
+            or j in discs
+            or (pl is not None and pl.status == BLIND)
+            or cells_apart(cell, mine) <= 1
+        ):
             out.append(j)
     return out
 
@@ -114,7 +129,7 @@ class Guard:
                 continue
             ls = None if links is None else links.get(j)
             newest = pl if pl is not None else last.get(j)
-            if ls is not None and (not ls.up or (-1 if newest is None else newest.step) < ls.back):
+            if ls is not None and loose(ls, newest):
                 # Down, or back but with no plan yet made from where the robot stands.
                 hazards.append(self._loose(k, j, ls, last.get(j), starts[j]))
                 self._note(j, "loose", k)

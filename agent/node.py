@@ -39,6 +39,7 @@ import argparse
 import sys
 import threading
 import time
+from collections.abc import Collection
 from dataclasses import dataclass, replace
 from functools import partial
 from typing import Any
@@ -47,7 +48,7 @@ import numpy as np
 
 from agent.controller import SNAPSHOTS, TUBE_TOL, StepOutput, TubeMPC
 from agent.coordination import NeighbourInfo, place_side
-from agent.hazards import Guard, in_reach, neighbour_of
+from agent.hazards import Guard, in_reach, loose, neighbour_of
 from agent.messages import command_message, plan_message
 from agent.tube import validated_design
 from ground.bus import Inbox, goal_reply, open_session, publisher, put, remember_steps
@@ -61,7 +62,7 @@ from ground.geometry import (
     measured_state,
 )
 from ground.model import ancillary_law, chain_input
-from ground.process import add_common_args, announce, fault_plan, log
+from ground.process import add_common_args, announce, exchange_for, fault_plan, log
 from ground.scenario import ConfigError, Scenario, goal_problem, load_scenario
 from ground.wire import (
     Command,
@@ -98,6 +99,7 @@ def main(argv: list[str] | None = None) -> int:
         "while the tracker is alive (its liveliness token)",
     )  # fmt: skip
     args = ap.parse_args(argv)
+    args.exchange = exchange_for(args.clock, args.exchange)
     try:
         scn = load_scenario(args.scenario)
         ids = [r.id for r in scn.robots]
@@ -267,7 +269,7 @@ class Agent:
             self._plan_ahead(k, x, a)
             self.k += 1
             return None
-        fresh, live, goal, reach = self._neighbours(k)
+        fresh, live, goal, reach = self._neighbours(k, tick.braked)
         if x is None:
             # Not joined yet and nothing measured: keep the robot still, commit nothing.
             self.link.pub_cmd.put(Command(robot=self.me, step=k, ax=0.0, ay=0.0).encode())
@@ -327,7 +329,7 @@ class Agent:
             a = self.a_prev = ctrl.ancillary(x) if a_j is None else a_j  # (the same, to rounding)
         # What the plan can tell of the tube: whether it held at x, the measurement it follows.
         tube_ok = design.contains_error(x - ctrl.xi[0:4], TUBE_TOL)
-        fresh, live, goal, reach = self._neighbours(k + 1)
+        fresh, live, goal, reach = self._neighbours(k + 1, outcome.braked)
         self._goals(goal, k + 1)
         x_next = np.asarray(design.A @ x + design.B @ a)
         nbs, hazards = self.guard.classify(
@@ -461,7 +463,9 @@ class Agent:
             odom = inbox.get(Odom, me, k)
         return self._state(k, pose, odom), answered
 
-    def _neighbours(self, k: int) -> tuple[dict[str, Plan | None], set[str], Goal | None, list[str]]:
+    def _neighbours(
+        self, k: int, braked: Collection[str]
+    ) -> tuple[dict[str, Plan | None], set[str], Goal | None, list[str]]:
         """The live neighbours' plans of step k − 1, to plan step k against: (those plans, who is
         live, the latest goal given at run time, the robots in reach: :meth:`_reach`).
 
@@ -474,7 +478,7 @@ class Agent:
         wait = inbox.drain_until if self.link.drained and self.relay else inbox.wait
         if k > 0:
             plans_in = _relayed if self.relay else _plans_in
-            wait(partial(plans_in, inbox, self._reach(k), k - 1), limit)
+            wait(partial(plans_in, inbox, self._reach(braked), k - 1), limit)
         with inbox.cond:
             # Plans of step k − 1, and of no later step than each robot side executed
             # (Tick.fallback, Tick.braked): a plan whose command missed its deadline was never
@@ -490,17 +494,22 @@ class Agent:
             live = set(inbox.live)
             goal = inbox.get(Goal, me)
             self.links = {j: inbox.get(LinkState, j) for j in self.others}
-        return fresh, live, goal, self._reach(k)
+        return fresh, live, goal, self._reach(braked)
 
-    def _reach(self, k: int) -> list[str]:
-        """The other robots that step k may need to know: every one, or with plans by place those
-        :func:`agent.hazards.in_reach` keeps, from the plans and place tokens heard so far."""
+    def _reach(self, braked: Collection[str]) -> list[str]:
+        """The other robots that a step may need to know: every one, or with plans by place those
+        :func:`agent.hazards.in_reach` keeps, from the plans and place tokens heard so far, about
+        the controller's own last committed point (moved by a rejoin, before any plan from it
+        goes out).  ``braked``: the robots the step's tick or outcome says were braked."""
         if self.side is None:
             return self.others
-        with self.inbox.cond:
-            self.places = dict(self.inbox.places)
-            live = set(self.inbox.live)
-        return in_reach(self.others, self.link.cell, self.side, self.last, self.places, self.starts, live)
+        inbox = self.inbox
+        with inbox.cond:
+            self.places = dict(inbox.places)
+            live = set(inbox.live)
+            discs = {*braked, *(j for j in self.others if loose(inbox.get(LinkState, j), self.last.get(j)))}
+        mine = cell_of(self.ctrl.last_point, self.side)
+        return in_reach(self.others, mine, self.side, self.last, self.places, self.starts, live, discs)
 
     def _goals(self, goal: Goal | None, k: int) -> None:
         """Take, for the plan of step k, a goal published at run time (checked here) and one a
@@ -684,7 +693,7 @@ class _Link:
         data = plan.encode()
         if self.side is not None:
             cell = cell_of(plan.committed[-1], self.side)
-            if cell != self.cell:
+            if cell != self.cell or self.place_token is None:
                 self.move_to(cell, plan.step)
             # A put, not a publisher per group: a declaration would travel to every peer.
             put(self.session, self.keys.near(self.me, cell_name(group_of(cell))), data)
@@ -692,12 +701,14 @@ class _Link:
 
     def move_to(self, cell: Cell, step: int) -> None:
         """The robot's last committed point is in ``cell`` from its plan of ``step`` on: declare the
-        place token there (before the old one goes: a robot always has one while its agent lives)
-        and subscribe to the plans of the cells about it."""
+        place token there (before the old one goes, so that the robot has one from its first plan
+        on) and subscribe to the plans of the cells about it.  The first token waits for the
+        first plan: an agent that (re)joins a running fleet then declares the step it plans,
+        newer than the token it left where it was (at its start it would say step 0)."""
         moved = group_of(cell) != group_of(self.cell)
         self.cell = cell
-        if self.place_token is not None:  # live already (go_live declares the first)
-            old, self.place_token = self.place_token, self._place_token(step)
+        old, self.place_token = self.place_token, self._place_token(step)
+        if old is not None:
             old.undeclare()
         if moved:
             self._subscribe_block()
@@ -723,8 +734,6 @@ class _Link:
         # become live only once the commands have a taker.
         if not _wait_matching(self.pub_cmd, args.timeout):
             log(self.role, f"nobody subscribes to {keys.cmd(me)} within {args.timeout} s; going live anyway")
-        if self.side is not None:
-            self.place_token = self._place_token(0)
         self.token = self.session.liveliness().declare_token(keys.alive(me))
 
     def close(self) -> None:

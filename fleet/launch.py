@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import IO, Any, Protocol
 
 from ground.net import NetConfig, free_port, loopback
+from ground.process import exchange_for
 from ground.scenario import load_scenario
 from supervisor.judge import verdict
 
@@ -371,15 +372,6 @@ class Launched:
             return 1, "supervisor wrote no summary", None
         why = verdict(summary)
         return (1, why, summary) if why else (0, "ok", summary)
-
-
-def exchange_for(clock: str, exchange: str = "auto") -> str:
-    """The exchange ``auto`` stands for on ``clock``: by place on the realtime clock, where an
-    agent's CPU a step must not grow with the fleet; every plan to every agent on lockstep, which
-    keeps a run equal to ``fleet simulate`` (whose agents know every robot)."""
-    if exchange != "auto":
-        return exchange
-    return "place" if clock == "realtime" else "mesh"
 
 
 def start_fleet(

@@ -25,6 +25,16 @@ EXCHANGES = ("mesh", "place", "relay")
 the tracker's digest."""
 
 
+def exchange_for(clock: str, exchange: str = "auto") -> str:
+    """The exchange ``auto`` stands for on ``clock``: by place on the realtime clock, where an
+    agent's CPU a step must not grow with the fleet; every plan to every agent on lockstep, which
+    keeps a run equal to ``fleet simulate`` (whose agents know every robot).  Every agent of a
+    fleet must use the same exchange: ``fleet run`` hands its own to all."""
+    if exchange != "auto":
+        return exchange
+    return "place" if clock == "realtime" else "mesh"
+
+
 def lease_arg(text: str) -> float:
     """argparse type of ``--lease``: seconds in :data:`ground.net.LEASE_RANGE`."""
     try:
@@ -91,8 +101,9 @@ def add_common_args(ap: argparse.ArgumentParser) -> None:
         help="lockstep: step when every agent answered; realtime: wall-clock steps at Ts",
     )  # fmt: skip
     ap.add_argument(
-        "--exchange", choices=EXCHANGES, default="mesh",
-        help="plans: mesh, every agent subscribes to every plan; place, each agent to the plans of "
+        "--exchange", choices=["auto", *EXCHANGES], default="auto",
+        help="plans: auto (default), place on the realtime clock and mesh on lockstep, as fleet run "
+        "picks; mesh, every agent subscribes to every plan; place, each agent to the plans of "
         "the cells about its own (docs/design.md, \"Plans by place\"); relay, the tracker sends each "
         "agent one digest of a step's plans (docs/design.md, \"Relayed plans\")",
     )  # fmt: skip

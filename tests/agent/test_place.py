@@ -13,11 +13,13 @@ import zenoh
 
 from agent.coordination import PLACE_LAG, NeighbourInfo, place_side, split_halfplanes
 from agent.hazards import Guard, in_reach
+from agent.node import group_of
 from agent.tube import validated_design
 from ground.bus import Inbox
 from ground.geometry import Whereabouts, block, cell_centre, cell_name, cell_of, cells_apart, parse_cell
+from ground.process import exchange_for
 from ground.scenario import load_scenario
-from ground.wire import Keys, Plan, WireError
+from ground.wire import BLIND, Keys, Plan, WireError
 
 SCN = load_scenario(Path(__file__).resolve().parents[2] / "scenarios" / "swap_16.toml")
 DESIGN = validated_design(SCN)
@@ -68,6 +70,18 @@ def test_a_robot_out_of_reach_gets_no_split_row_even_after_the_lag(prio):
     assert len(normals) == 1
 
 
+def test_the_groups_subscribed_hold_the_reach_and_one_ring_more():
+    """Whichever cell of its group a robot is in (negative indices too), the 3 x 3 groups about
+    its group hold every cell at most two apart from its own; ``auto`` is place on the realtime
+    clock only."""
+    rng = np.random.default_rng(5)
+    for cell in [tuple(int(v) for v in rng.integers(-50, 50, 2)) for _ in range(400)] + [(0, 0), (-1, -1)]:
+        groups = block(group_of(cell), 1)
+        assert {group_of(c) for c in block(cell, 2)} <= groups, cell
+    assert (exchange_for("realtime"), exchange_for("lockstep")) == ("place", "mesh")
+    assert exchange_for("realtime", "relay") == "relay"
+
+
 def _plan(robot: str, step: int, point) -> Plan:
     return Plan(
         robot=robot, step=step, t0=0.1 * step, Ts=P.Ts, committed=np.tile(point, (P.horizon, 1)),
@@ -83,8 +97,9 @@ def _starts(points: dict[str, tuple[float, float]]) -> dict[str, NeighbourInfo]:
 
 
 def test_in_reach_takes_the_newest_of_plan_token_and_start():
-    """By the newest of what was heard; an agent that is gone is always in (its disc may be
-    large); nothing heard: the start."""
+    """By the newest of what was heard; nothing heard: the start.  A robot kept clear of as a
+    disc, which can be wider than a cell, is always in: its agent gone, its robot braked or its
+    link down (``discs``), or its agent blind by its last plan."""
     mine = (0, 0)
     near, far = (0.5 * SIDE, 0.5 * SIDE), (3.5 * SIDE, 0.5 * SIDE)
     starts = _starts({"a": near, "b": far, "c": far, "d": near, "e": far, "f": far})
@@ -98,6 +113,9 @@ def test_in_reach_takes_the_newest_of_plan_token_and_start():
     live = {"a", "b", "c", "d", "e"}  # f is gone: in, wherever it is
     got = in_reach(["a", "b", "c", "d", "e", "f"], mine, SIDE, last, places, starts, live)
     assert got == ["a", "c", "e", "f"]
+    blind = dataclasses.replace(last["d"], status=BLIND)
+    got = in_reach(["b", "d"], mine, SIDE, {**last, "d": blind}, places, starts, live, discs={"b"})
+    assert got == ["b", "d"]  # b braked (or loose), d blind: both far, both in
     assert in_reach(["a", "b", "c", "d", "e", "f"], (3, 0), SIDE, last, places, starts, set(starts)) == [
         "d", "f",
     ]  # fmt: skip
