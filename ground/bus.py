@@ -360,8 +360,9 @@ class Inbox:
     def watch_places(self, session: Any) -> Any:
         """Keep :attr:`places` from the place tokens (``--exchange place``): a robot re-declares
         its token as its last committed point enters a new cell, the new before the old goes,
-        so the newest token of a robot is where it is (or, once gone, where it died).  A key
-        that is not a place token is rejected and counted."""
+        so the newest token of a robot is where it is, and a token's going changes nothing
+        (once its agent is gone, it is where the robot was).  A key that is not a place token
+        is rejected and counted."""
         import zenoh
 
         def on_token(sample: Any) -> None:
@@ -372,13 +373,12 @@ class Inbox:
                 with self.cond:
                     self.rejects.reject(key, e)
                 return
+            if sample.kind == zenoh.SampleKind.DELETE:
+                return  # a token moved on (its newer one came first) or its agent went: it stays
             with self.cond:
                 had = self.places.get(rid)
-                if sample.kind == zenoh.SampleKind.DELETE:
-                    if had is not None and (had.cell, had.since) == (cell, step):
-                        self.places[rid] = Whereabouts(cell, step, present=False)
-                elif had is None or had.since <= step:
-                    self.places[rid] = Whereabouts(cell, step, present=True)
+                if had is None or had.since <= step:
+                    self.places[rid] = Whereabouts(cell, step)
 
         return session.liveliness().declare_subscriber(self.keys.at(), on_token, history=True)
 

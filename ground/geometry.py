@@ -60,14 +60,13 @@ Cell = tuple[int, int]
 
 @dataclass(frozen=True)
 class Whereabouts:
-    """Where a robot's last committed point is, by cell (its place token, ``--exchange place``)."""
+    """Where a robot's last committed point is, by cell (its newest place token, ``--exchange
+    place``); once its agent is gone, where it was."""
 
     cell: Cell
     """The cell, of the fleet's side."""
     since: int
     """The step of the first plan whose last committed point was in ``cell`` [steps]."""
-    present: bool
-    """The robot's agent is still there; False: it is gone, and ``cell`` is where it was."""
 
 
 def cell_of(point: Sequence[float] | Array, side: float) -> Cell:
@@ -78,6 +77,9 @@ def cell_of(point: Sequence[float] | Array, side: float) -> Cell:
 def cell_name(cell: Cell) -> str:
     """A cell as one chunk of a key expression: ``"3_-1"``."""
     return f"{cell[0]}_{cell[1]}"
+
+
+_CELL_INT = re.compile(r"-?[0-9]{1,9}")
 
 
 def parse_cell(name: str) -> Cell:
@@ -104,6 +106,3 @@ def block(centre: Cell, radius: int) -> set[Cell]:
 def cell_centre(cell: Cell, side: float) -> Array:
     """The centre (2,) [m, world frame] of ``cell``; every point of it is within side / √2."""
     return np.array([(cell[0] + 0.5) * side, (cell[1] + 0.5) * side])
-
-
-_CELL_INT = re.compile(r"-?[0-9]{1,9}")

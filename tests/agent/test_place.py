@@ -105,10 +105,10 @@ def test_in_reach_takes_the_newest_of_plan_token_and_start():
     starts = _starts({"a": near, "b": far, "c": far, "d": near, "e": far, "f": far})
     last = {"b": _plan("b", 10, near), "c": _plan("c", 10, near), "d": _plan("d", 10, far)}
     places = {
-        "b": Whereabouts((0, 3), 11, True),  # moved away after its last plan heard
-        "c": Whereabouts((3, 0), 9, True),  # a plan newer than the token: the plan says near
-        "d": Whereabouts((1, 1), 4, True),  # the token is older than the plan: far
-        "e": Whereabouts((-1, 1), 12, True),  # heard of by its token only: near
+        "b": Whereabouts((0, 3), 11),  # moved away after its last plan heard
+        "c": Whereabouts((3, 0), 9),  # a plan newer than the token: the plan says near
+        "d": Whereabouts((1, 1), 4),  # the token is older than the plan: far
+        "e": Whereabouts((-1, 1), 12),  # heard of by its token only: near
     }
     live = {"a", "b", "c", "d", "e"}  # f is gone: in, wherever it is
     got = in_reach(["a", "b", "c", "d", "e", "f"], mine, SIDE, last, places, starts, live)
@@ -128,7 +128,7 @@ def test_guard_keeps_clear_of_a_robot_known_by_its_token_only():
     g = Guard("r1", P, print, side=SIDE)
     brake = P.v_max**2 / (2 * P.a_max)
     starts = _starts({"r1": (0.0, 0.0), "r2": (1.0, 1.0)})
-    where = Whereabouts((2, -1), 30, True)
+    where = Whereabouts((2, -1), 30)
     # Never heard, long after the start: about the token's cell, not the start.
     nbs, hz = g.classify(200, ["r2"], {"r2": None}, {}, {"r2"}, starts, places={"r2": where})
     assert not nbs and np.array_equal(hz[0].centre, cell_centre((2, -1), SIDE))
@@ -153,7 +153,7 @@ def test_guard_keeps_clear_of_a_robot_known_by_its_token_only():
     )
     # Gone where its token was: the same cell disc, the braking included.
     nbs, hz = g.classify(200, ["r2"], {"r2": None}, {}, set(), starts,
-                         places={"r2": dataclasses.replace(where, present=False)})  # fmt: skip
+                         places={"r2": where})  # fmt: skip
     assert np.array_equal(hz[0].centre, cell_centre((2, -1), SIDE))
     fresh = _plan("r2", 39, (0.4, 0.4))
     nbs, hz = g.classify(40, ["r2"], {"r2": fresh}, {"r2": fresh}, {"r2"}, starts, places={"r2": where})
@@ -187,11 +187,13 @@ def test_inbox_keeps_each_robots_newest_place_and_where_it_went():
     token(put, "r2", (0, 0), 0)
     token(put, "r2", (1, 0), 14)  # the new token comes before the old one goes
     token(delete, "r2", (0, 0), 0)
-    assert inbox.places["r2"] == Whereabouts((1, 0), 14, True)
+    assert inbox.places["r2"] == Whereabouts((1, 0), 14)
     token(put, "r2", (0, 0), 0)  # an old token late (history): ignored
-    assert inbox.places["r2"] == Whereabouts((1, 0), 14, True)
+    assert inbox.places["r2"] == Whereabouts((1, 0), 14)
     token(delete, "r2", (1, 0), 14)  # its agent is gone: where it was stays
-    assert inbox.places["r2"] == Whereabouts((1, 0), 14, False)
+    assert inbox.places["r2"] == Whereabouts((1, 0), 14)
+    token(put, "r2", (2, 0), 9)  # an older step, as a late history replay: ignored
+    assert inbox.places["r2"] == Whereabouts((1, 0), 14)
     session.callback(SimpleNamespace(kind=put, key_expr="fleet/lab/at/r3/x_1/2"))
     assert inbox.rejects.total == 1 and "r3" not in inbox.places
     with pytest.raises(WireError):
