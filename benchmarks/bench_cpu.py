@@ -8,8 +8,9 @@ robot-steps between them, is the marginal CPU per robot-step: start-up and shut-
 * ``fleet simulate`` (the whole fleet in one process) is the math: controllers, plants, judge.
 * ``fleet run`` with its defaults, and with ``--exchange relay --topology star``: one process
   per robot, a tracker and a supervisor, talking over Zenoh on loopback.
-* ``fleet run`` with its defaults and Zenoh's runtime sized down to one worker thread and a
-  transmit thread (:data:`ZENOH_RUNTIME`), beside the defaults: what Zenoh's own threads cost.
+* ``fleet run`` with its defaults but Zenoh's own runtime sizes (:data:`ZENOH_OWN`), beside
+  the defaults, which size it down to one worker thread and a transmit thread
+  (:data:`ground.net.RUNTIME`): what Zenoh's own threads cost.
 * ``fleet run --no-delay-compensation``: each agent solving its plan after the tick instead of
   a step ahead (one message less a step: no outcome from the tracker).
 * ``fleet run --ros2``: the defaults plus the fleet's ROS 2 face (``python -m ros2_link``), a
@@ -48,28 +49,23 @@ from typing import Any
 ROOT = Path(__file__).resolve().parent.parent
 SCENES = {3: "paper_three_robots", 8: "swap_8", 16: "swap_16", 32: "swap_32"}
 SCHEMA = "fleet-bench-cpu/1"
-ZENOH_SIZED_ROW = "fleet run (defaults), Zenoh sized down"
-ZENOH_RUNTIME = "(app: (worker_threads: 1), acc: (handover: app), rx: (handover: app), net: (handover: app))"
-"""Zenoh's runtime sized down (the ``ZENOH_RUNTIME`` environment variable, RON): one worker
-thread, to which the receive, accept and network pools hand over their work, and the transmit
-pool's one worker kept apart.  Handing the transmit pool over too deadlocks a router: its only
-worker, forwarding a sample, waits for a link's queue, which a publishing thread holds while it
-waits for room that only the transmit task, queued on that same worker, would make
-(docs/performance.md).  Measured beside the defaults
-only: the saving is within this machine's drift, so ``fleet run`` leaves Zenoh's sizes alone."""
+ZENOH_OWN_ROW = "fleet run (defaults), Zenoh's own sizes"
+ZENOH_OWN = "()"
+"""``ZENOH_RUNTIME`` that leaves every pool of Zenoh's runtime at Zenoh's own size: the
+processes of ``fleet run`` size it down unless the variable is set (:func:`ground.net.size_runtime`)."""
 POLL = 0.05
 """Seconds between two samples of the fleet's threads."""
 LENGTHS = (6.0, 46.0)
 """The two run lengths [simulated s] whose difference is measured, by default."""
 CONFIGS: dict[str, list[str]] = {
     "fleet run (defaults)": [],
-    ZENOH_SIZED_ROW: [],
+    ZENOH_OWN_ROW: [],
     "fleet run --ros2": ["--ros2"],
     "fleet run --no-delay-compensation": ["--no-delay-compensation"],
     "fleet run --exchange relay --topology star": ["--exchange", "relay", "--topology", "star"],
 }
 """``fleet run``'s flags by row label; ``--ros2`` next to the defaults it is compared with."""
-ENVS: dict[str, dict[str, str]] = {ZENOH_SIZED_ROW: {"ZENOH_RUNTIME": ZENOH_RUNTIME}}
+ENVS: dict[str, dict[str, str]] = {ZENOH_OWN_ROW: {"ZENOH_RUNTIME": ZENOH_OWN}}
 """Environment set for a row's runs, by row label."""
 ROS2 = ("fleet run --ros2", "fleet run (defaults)")
 """The row with the ROS 2 face and the row without it (the same flags otherwise)."""

@@ -7,7 +7,9 @@ or by place.
 Runs ``fleet run`` of the shipped swap of ``--robots`` robots on the realtime clock for
 ``--seconds`` of its clock, once per entry of ``--order`` (``fleet run --exchange E``, every other
 flag its default: delay compensation, the peer mesh topology), interleaved so that the machine's
-drift falls on both alike.  Each run is :func:`bench_scale.fleet_run`'s, the harness of ``fleet
+drift falls on both alike.  An entry ``E/zenoh`` runs the same with Zenoh's own runtime sizes
+(``ZENOH_RUNTIME=()``) instead of the one worker thread the fleet's processes size it down to
+(``ground.net.RUNTIME``).  Each run is :func:`bench_scale.fleet_run`'s, the harness of ``fleet
 bench``: deadline misses and their share of the robot-steps, the clock's real-time factor,
 collisions, pose → command latency, the cores of the agents, the tracker and the supervisor, and
 the plans each agent took a step (its closing line, ``N plans taken``).  The last lines give the
@@ -36,6 +38,10 @@ from bench_step import machine_info  # noqa: E402
 
 from ground.process import EXCHANGES  # noqa: E402
 
+RUNTIMES = {"": None, "zenoh": {"ZENOH_RUNTIME": "()"}}
+"""Environment of an ``--order`` entry's fleet by its suffix: none (the fleet's own sizing of
+Zenoh's runtime), or ``/zenoh``, Zenoh's own sizes."""
+
 FIGURES = ("miss_pct", "rtf", "agents_cores", "cores", "p99_ms", "plans")
 
 
@@ -46,12 +52,12 @@ def _plans_taken(run_dir: str, steps: int) -> float:
     return sum(taken) / len(taken) / steps if taken and steps else float("nan")
 
 
-def _row(r: dict[str, Any]) -> dict[str, Any]:
+def _row(r: dict[str, Any], entry: str) -> dict[str, Any]:
     if "steps" not in r:
-        return {"exchange": r["exchange"], "error": r.get("error", r["verdict"])}
+        return {"exchange": entry, "error": r.get("error", r["verdict"])}
     cpu, lat = r["cpu"], r.get("latency", {}).get("pose_to_command_ms", {"p99": float("nan")})
     return {
-        "exchange": r["exchange"], "steps": r["steps"], "misses": r["deadline_misses"],
+        "exchange": entry, "steps": r["steps"], "misses": r["deadline_misses"],
         "miss_pct": 100.0 * r["miss_rate"], "rtf": r["rtf"], "collisions": r["collisions"],
         "agents_cores": cpu["agents_cores"], "cores": cpu["cores_used"], "p99_ms": lat["p99"],
         "plans": _plans_taken(r["out"], r["steps"]), "load": r["loadavg_before"][0],
@@ -70,33 +76,37 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bench_exchange: error: --seconds: {args.seconds} is not a positive number", file=sys.stderr)
         return 2
     order = args.order.split(",")
-    bad = [e for e in order if e not in EXCHANGES]
+    bad = [e for e in order if e.partition("/")[0] not in EXCHANGES or e.partition("/")[2] not in RUNTIMES]
     if bad or not order:
         what = bad[0] if bad else "(empty)"
-        print(f"bench_exchange: error: --order: {what} is not one of {', '.join(EXCHANGES)}", file=sys.stderr)
+        print(
+            f"bench_exchange: error: --order: {what} is not one of {', '.join(EXCHANGES)}, "
+            "each alone or with /zenoh", file=sys.stderr,
+        )  # fmt: skip
         return 2
     print(
         f"# {machine_info()['cpu']}, {os.cpu_count()} cores, "
         f"load {os.getloadavg()[0]:.1f}: "
         f"swap of {args.robots} robots, realtime, {args.seconds:g} s a run, default flags but --exchange"
     )
-    head = (
-        f"{'exchange':<9}{'steps':>6}{'misses':>8}{'miss %':>8}{'RTF':>6}{'coll':>5}{'agents':>8}{'cores':>6}"
-    )
-    print(head + f"{'p99 ms':>8}{'plans':>7}{'load':>6}")
+    head = f"{'exchange':<12}{'steps':>6}{'misses':>8}{'miss %':>8}{'RTF':>6}{'coll':>5}{'agents':>8}"
+    print(head + f"{'cores':>6}{'p99 ms':>8}{'plans':>7}{'load':>6}")
     rows = []
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
         for i, ex in enumerate(order):
-            r = _row(fleet_run(args.robots, "realtime", args.seconds, out, Path(tmp), print, exchange=ex,
-                               topology=None, tag=f"{ex}_{i}"))  # fmt: skip
+            exchange, _, runtime = ex.partition("/")
+            tag, environ = f"{exchange}_{runtime or 'sized'}_{i}", RUNTIMES[runtime]
+            run = fleet_run(args.robots, "realtime", args.seconds, out, Path(tmp), print, exchange=exchange,
+                            topology=None, tag=tag, environ=environ)  # fmt: skip
+            r = _row(run, ex)
             rows.append(r)
             if "error" in r:
-                print(f"{ex:<9} failed: {r['error']}")
+                print(f"{ex:<12} failed: {r['error']}")
                 continue
             print(
-                f"{ex:<9}{r['steps']:>6}{r['misses']:>8}{r['miss_pct']:>8.2f}{r['rtf']:>6.2f}{r['collisions']:>5}"
+                f"{ex:<12}{r['steps']:>6}{r['misses']:>8}{r['miss_pct']:>8.2f}{r['rtf']:>6.2f}{r['collisions']:>5}"
                 f"{r['agents_cores']:>8.2f}{r['cores']:>6.2f}{r['p99_ms']:>8.1f}{r['plans']:>7.1f}{r['load']:>6.1f}",
                 flush=True,
             )
@@ -112,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
             ratios = " ".join(
                 f"{m[f] / medians[base][f]:.2f}" if medians[base][f] else "nan" for f in FIGURES
             )
-            print(f"{ex:<9}" + " ".join(f"{m[f]:.3g}" for f in FIGURES) + f"   ({ratios})")
+            print(f"{ex:<12}" + " ".join(f"{m[f]:.3g}" for f in FIGURES) + f"   ({ratios})")
     if args.json:
         Path(args.json).write_text(json.dumps({"rows": rows, "medians": medians}, indent=1))
     return 1 if len(done) < len(rows) else 0

@@ -966,14 +966,14 @@ def capped_scenario(name: str, sim_s: float, tmp: Path, Ts: float | None = None)
 def fleet_run(
     robots: int, clock: str, sim_s: float, out: Path, tmp: Path, log: Callable[[str], None],
     exchange: str | None = "relay", topology: str | None = "star", Ts: float | None = None,
-    extra: tuple[str, ...] = (), tag: str = "",
+    extra: tuple[str, ...] = (), tag: str = "", environ: dict[str, str] | None = None,
 ) -> dict[str, Any]:  # fmt: skip
     """One ``fleet run`` of the shipped scene for ``robots`` robots, ``sim_s`` simulated seconds,
     plans travelling by ``exchange`` (mesh or relay), the processes linked by ``topology``
     (mesh or star), at the scene's sampling period or at ``Ts`` [s].  ``exchange`` or
     ``topology`` None: the flag is left out, so ``fleet run`` uses its default.  ``extra``: more
     flags of ``fleet run``; ``tag``: a suffix of the run's directory, to keep apart runs that
-    differ only in those."""
+    differ only in those; ``environ``: more environment variables of the fleet's processes."""
     from ground.net import free_port, loopback
 
     name = SCENES[robots]
@@ -983,7 +983,7 @@ def fleet_run(
         shutil.rmtree(run_dir)
     run_dir.mkdir(parents=True)
     port = free_port()
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "RERUN_ANALYTICS": "0"}
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "RERUN_ANALYTICS": "0", **(environ or {})}
     load_before = loadavg()
     cmd = [
         sys.executable, "-m", "fleet.cli", "run", str(scn_path), "--out", str(run_dir), "--clock", clock,

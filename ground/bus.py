@@ -17,7 +17,7 @@ from typing import Any, TypeVar
 
 from ground.faults import DELIVER, FaultPlan
 from ground.geometry import Whereabouts
-from ground.net import NetConfig, load_config, loopback
+from ground.net import NetConfig, load_config, loopback, size_runtime
 from ground.process import log
 from ground.wire import Digest, Goal, Keys, Message, Plan, RejectCounter, WireError, decode
 
@@ -97,10 +97,12 @@ def session_config(args: argparse.Namespace) -> Any:
 def open_session(args: argparse.Namespace) -> Any:
     """A Zenoh session (:func:`session_config`).  A session Zenoh cannot open (a client
     whose router is not there: unlike a peer, it does not wait for it) is one line on
-    stderr and exit 1."""
+    stderr and exit 1.  Every process of the fleet opens its session here, with Zenoh's runtime
+    sized by :func:`ground.net.size_runtime`."""
     import zenoh
 
     conf = session_config(args)
+    size_runtime()
     try:
         return zenoh.open(conf)
     except zenoh.ZError as e:

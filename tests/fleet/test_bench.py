@@ -303,7 +303,7 @@ def test_cpu_harness_splits_a_fleets_cpu_by_process_and_thread(tmp_path):
     assert d["schema"] == "fleet-bench-cpu/1" and d["robots"] == 3
     sim, *fleets = d["rows"]
     ros2 = importlib.util.find_spec("rosbags") is not None  # the ros2 extra, in the test extras
-    labels = ["fleet run (defaults)", "fleet run (defaults), Zenoh sized down",
+    labels = ["fleet run (defaults)", "fleet run (defaults), Zenoh's own sizes",
               *(["fleet run --ros2"] if ros2 else []), "fleet run --no-delay-compensation",
               "fleet run --exchange relay --topology star"]  # fmt: skip
     assert sim["config"] == "fleet simulate" and [r["config"] for r in fleets] == labels
@@ -543,6 +543,7 @@ def test_latency_floor_times_every_command_of_its_window():
      ("bench_zenoh_floor.py", ["--pattern", "step,nope"], "--pattern"),
      ("bench_zenoh_floor.py", ["--pattern", "fleet", "--modes", "direct"], "--modes"),
      ("bench_exchange.py", ["--order", "mesh,nope"], "--order"),
+     ("bench_exchange.py", ["--order", "place/nope"], "--order"),
      ("bench_exchange.py", ["--seconds", "nan"], "--seconds")],
 )  # fmt: skip
 def test_floor_benches_refuse_bad_input_in_one_line(script: str, args: list[str], field: str) -> None:
@@ -573,20 +574,19 @@ def test_fleet_runs_solve_after_the_tick_without_delay_compensation(tmp_path):
 
 
 def test_the_sized_zenoh_runtime_keeps_a_router_forwarding(tmp_path):
-    """``fleet bench --cpu``'s sized Zenoh runtime (:data:`bench_cpu.ZENOH_RUNTIME`, the transmit
-    pool apart) set for every process of a star, whose hub forwards every sample between the
-    others: the run completes, every goal reached.  With the transmit pool handed over too, the
-    hub deadlocked within 20 steps of this scene, every time it was tried (docs/performance.md)."""
-    from fleet.bench import CPU, _harness
+    """The Zenoh runtime every process sizes down by default (:data:`ground.net.RUNTIME`, the
+    transmit pool apart), in a star, whose hub forwards every sample between the others: the
+    run completes, every goal reached.  With the transmit pool handed over too, the hub
+    deadlocked within 20 steps of this scene, every time it was tried (docs/performance.md)."""
+    from ground.net import RUNTIME
 
-    bench_cpu = _harness(CPU)
-    assert "tx:" not in bench_cpu.ZENOH_RUNTIME  # the transmit pool keeps its own worker
+    assert "tx:" not in RUNTIME  # the transmit pool keeps its own worker
     out = tmp_path / "star"
+    env = {k: v for k, v in ENV.items() if k != "ZENOH_RUNTIME"}  # the defaults' sizes
     res = subprocess.run(
         [sys.executable, "-m", "fleet.cli", "run", str(ROOT / "scenarios" / "paper_three_robots.toml"),
          "--out", str(out), "--exchange", "relay", "--topology", "star"],
-        cwd=ROOT, env={**ENV, "ZENOH_RUNTIME": bench_cpu.ZENOH_RUNTIME}, capture_output=True, text=True,
-        timeout=300,
+        cwd=ROOT, env=env, capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert res.returncode == 0, res.stderr[-2000:]
     summary = json.loads((out / "summary.json").read_text())
@@ -719,17 +719,18 @@ def test_zenoh_floor_sets_the_math_beside_the_floor():
 
 
 def test_exchange_bench_runs_each_exchange_and_counts_the_plans_taken(tmp_path):
-    """``bench_exchange.py`` runs the realtime fleet once per exchange named, in order, and reads
-    from each agent's closing line how many plans it took: every other robot's in the mesh."""
+    """``bench_exchange.py`` runs the realtime fleet once per exchange named, in order (``/zenoh``:
+    with Zenoh's own runtime sizes), and reads from each agent's closing line how many plans it
+    took: every other robot's in the mesh."""
     out = tmp_path / "rows.json"
     res = subprocess.run(
         [sys.executable, "benchmarks/bench_exchange.py", "--robots", "3", "--seconds", "3",
-         "--order", "mesh,place", "--out", str(tmp_path / "runs"), "--json", str(out)],
+         "--order", "mesh,place/zenoh", "--out", str(tmp_path / "runs"), "--json", str(out)],
         cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
     rows = json.loads(out.read_text())["rows"]
-    assert [r["exchange"] for r in rows] == ["mesh", "place"], rows
+    assert [r["exchange"] for r in rows] == ["mesh", "place/zenoh"], rows
     for r in rows:
         assert r["collisions"] == 0 and r["steps"] >= 25, r
     # Three robots within reach of each other: both take the two others' plans about every step

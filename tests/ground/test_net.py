@@ -70,3 +70,61 @@ def test_the_ports_picked_from_are_the_larger_gap_beside_the_ephemeral_range(
     f.write_text(ephemeral + "\n")
     monkeypatch.setattr(net, "EPHEMERAL_RANGE", f)
     assert net._fixed_ports() == expected
+
+
+_THREADS = r"""
+import argparse, json, os, re, sys, threading
+import zenoh
+from ground.bus import open_session
+from ground.net import NetConfig, free_port, loopback
+
+hub = loopback(free_port())
+args = argparse.Namespace(listen=[hub], connect=[], lease=None, mode=None, zenoh_config=None)
+session = open_session(args)  # as every process of the fleet opens its session
+heard = threading.Event()
+sub = session.declare_subscriber("probe/**", lambda sample: heard.set())
+other = zenoh.open(NetConfig(connect=[hub]).zenoh())  # a second session: a link to receive on
+for _ in range(200):  # bounded: until the first sample crosses the link
+    other.put("probe/x", b"1")
+    if heard.wait(0.05):
+        break
+names = sorted({re.sub(r"[-_]?\d+$", "", open(f"/proc/self/task/{t}/comm").read().strip())
+                for t in os.listdir("/proc/self/task")})
+print(json.dumps({"heard": heard.is_set(), "threads": names}))
+other.close()
+session.close()
+"""
+
+
+def _zenoh_threads(env: dict[str, str]) -> dict:
+    """The thread names of a process that opened its session as the fleet's processes do and
+    received a sample over a link."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    res = subprocess.run(
+        [sys.executable, "-c", _THREADS], cwd=root, env={**env, "PYTHONPATH": str(root)},
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr[-2000:]
+    out = json.loads(res.stdout.splitlines()[-1])
+    assert out["heard"], out
+    return out
+
+
+def test_every_process_sizes_zenohs_runtime_down_and_a_users_sizes_win():
+    """``ground.bus.open_session`` sizes Zenoh's runtime (``ground.net.RUNTIME``): one worker
+    takes the receive, accept and network pools' work, and the transmit pool keeps a thread
+    of its own (handing it over too deadlocks a router).  A ``ZENOH_RUNTIME`` the user set
+    wins: ``()``, Zenoh's own sizes, brings back its receiving threads."""
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k != "ZENOH_RUNTIME"}
+    sized = _zenoh_threads(env)["threads"]
+    assert "app" in sized and "tx" in sized, sized
+    assert not {"rx", "acc", "net"} & set(sized), sized
+    own = _zenoh_threads({**env, "ZENOH_RUNTIME": "()"})["threads"]
+    assert "rx" in own and "acc" in own, own
