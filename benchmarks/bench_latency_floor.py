@@ -83,7 +83,7 @@ def _agent(scenario: str, rank: int, hub: str, order: str, ready: Any, stop: Any
     from agent.tube import validated_design
     from ground.bus import Inbox, publisher
     from ground.geometry import controlled_point, measured_state
-    from ground.net import NetConfig, loopback
+    from ground.net import NetConfig, loopback, size_runtime
     from ground.scenario import load_scenario
     from ground.wire import Command, Keys, Odom, Plan, Pose
 
@@ -91,6 +91,7 @@ def _agent(scenario: str, rank: int, hub: str, order: str, ready: Any, stop: Any
     keys = Keys("floor")
     spec = scn.robots[rank]
     me, others = spec.id, [r.id for r in scn.robots if r.id != spec.id]
+    size_runtime()  # Zenoh's runtime as the fleet's processes size it (ground.bus.open_session)
     session = zenoh.open(NetConfig(listen=[loopback(0)], connect=[hub]).zenoh())
     pub_cmd = publisher(session, keys.cmd(me))
     if order in BARE:  # nothing else in the process: no controller, no Inbox
@@ -247,7 +248,7 @@ def measure(scenario: str, order: str, seconds: float) -> dict[str, Any]:
     import zenoh
 
     from ground.bus import publisher
-    from ground.net import NetConfig, free_port, loopback
+    from ground.net import NetConfig, free_port, loopback, size_runtime
     from ground.scenario import load_scenario
     from ground.wire import Command, Keys, Odom, Pose, WireError, decode
 
@@ -256,6 +257,7 @@ def measure(scenario: str, order: str, seconds: float) -> dict[str, Any]:
     Ts = scn.controller.Ts
     hub = loopback(free_port())
     keys = Keys("floor")
+    size_runtime()  # as the tracker sizes Zenoh's runtime (ground.bus.open_session)
     session = zenoh.open(NetConfig(listen=[hub]).zenoh())
     lock = threading.Lock()
     sent: dict[tuple[str, int], float] = {}

@@ -156,8 +156,9 @@ def _session(hub: str, topology: str, listen: bool) -> Any:
     on ``hub`` (a router in a star), or one connecting to it (a client in a star)."""
     import zenoh
 
-    from ground.net import NetConfig, loopback
+    from ground.net import NetConfig, loopback, size_runtime
 
+    size_runtime()  # Zenoh's runtime as the fleet's processes size it (ground.bus.open_session)
     if listen:
         return zenoh.open(NetConfig(listen=[hub], mode="router" if topology == "star" else "peer").zenoh())
     mode = "client" if topology == "star" else "peer"
