@@ -11,8 +11,10 @@ drift falls on both alike.  An entry ``E/zenoh`` runs the same with Zenoh's own 
 (``ZENOH_RUNTIME=()``) instead of the one worker thread the fleet's processes size it down to
 (``ground.net.RUNTIME``).  Each run is :func:`bench_scale.fleet_run`'s, the harness of ``fleet
 bench``: deadline misses and their share of the robot-steps, the clock's real-time factor,
-collisions, pose → command latency, the cores of the agents, the tracker and the supervisor, and
-the plans each agent took a step (its closing line, ``N plans taken``).  The last lines give the
+collisions, pose → command latency, the cores of the agents, the tracker and the supervisor, the
+plans each agent took a step (its closing line, ``N plans taken``), and the agents' cores by
+thread: their main threads, Zenoh's runtime threads, and the Python threads Zenoh runs the
+callbacks on (sampled from ``/proc`` about once a second).  The last lines give the
 medians of each exchange and their ratios to the first's.
 """
 
@@ -42,7 +44,7 @@ RUNTIMES = {"": None, "zenoh": {"ZENOH_RUNTIME": "()"}}
 """Environment of an ``--order`` entry's fleet by its suffix: none (the fleet's own sizing of
 Zenoh's runtime), or ``/zenoh``, Zenoh's own sizes."""
 
-FIGURES = ("miss_pct", "rtf", "agents_cores", "cores", "p99_ms", "plans")
+FIGURES = ("miss_pct", "rtf", "agents_cores", "cores", "p99_ms", "plans", "main", "zenoh", "callbacks")
 
 
 def _plans_taken(run_dir: str, steps: int) -> float:
@@ -61,6 +63,7 @@ def _row(r: dict[str, Any], entry: str) -> dict[str, Any]:
         "miss_pct": 100.0 * r["miss_rate"], "rtf": r["rtf"], "collisions": r["collisions"],
         "agents_cores": cpu["agents_cores"], "cores": cpu["cores_used"], "p99_ms": lat["p99"],
         "plans": _plans_taken(r["out"], r["steps"]), "load": r["loadavg_before"][0],
+        **cpu.get("agents_threads_cores", dict.fromkeys(("main", "zenoh", "callbacks"), math.nan)),
     }  # fmt: skip
 
 
@@ -90,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
         f"swap of {args.robots} robots, realtime, {args.seconds:g} s a run, default flags but --exchange"
     )
     head = f"{'exchange':<12}{'steps':>6}{'misses':>8}{'miss %':>8}{'RTF':>6}{'coll':>5}{'agents':>8}"
-    print(head + f"{'cores':>6}{'p99 ms':>8}{'plans':>7}{'load':>6}")
+    print(head + f"{'cores':>6}{'p99 ms':>8}{'plans':>7}{'load':>6}  agents' threads: main zenoh callbacks")
     rows = []
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -107,7 +110,8 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             print(
                 f"{ex:<12}{r['steps']:>6}{r['misses']:>8}{r['miss_pct']:>8.2f}{r['rtf']:>6.2f}{r['collisions']:>5}"
-                f"{r['agents_cores']:>8.2f}{r['cores']:>6.2f}{r['p99_ms']:>8.1f}{r['plans']:>7.1f}{r['load']:>6.1f}",
+                f"{r['agents_cores']:>8.2f}{r['cores']:>6.2f}{r['p99_ms']:>8.1f}{r['plans']:>7.1f}{r['load']:>6.1f}"
+                f"  {r['main']:.2f} {r['zenoh']:.2f} {r['callbacks']:.2f}",
                 flush=True,
             )
     done = [r for r in rows if "error" not in r]

@@ -727,6 +727,19 @@ def _proc_stat(pid: int) -> tuple[int, float] | None:
     return int(fields[1]), (int(fields[11]) + int(fields[12])) / tck
 
 
+def _thread_split(pid: int, total: float) -> tuple[float, float, float]:
+    """(CPU seconds of ``pid``'s main thread, of its Zenoh runtime threads, ``total``): its
+    threads from /proc, named as ``bench_cpu`` names them."""
+    main = zenoh = 0.0
+    for tid, (name, cpu) in bench_cpu._tasks(pid).items():
+        kind = bench_cpu._thread_kind(pid, tid, name)
+        if kind == "main thread":
+            main += cpu
+        elif kind == "zenoh runtime":
+            zenoh += cpu
+    return main, zenoh, total
+
+
 def _vm_mb(pid: int) -> tuple[float, float] | None:
     """(VmRSS, VmHWM) of ``pid`` [MB]: resident memory now and its peak, or None."""
     try:
@@ -799,6 +812,9 @@ class Sampler:
         """pid → [(time.monotonic, PSS [MB])], every few samples (smaps_rollup costs more)."""
         self.cpu: dict[int, list[tuple[float, float]]] = {}
         """pid → [(time.monotonic, CPU seconds)]."""
+        self.threads: dict[int, list[tuple[float, tuple[float, float, float]]]] = {}
+        """Agent pid → [(time.monotonic, (CPU seconds of its main thread, of Zenoh's runtime
+        threads, of the whole process)], every few samples: the threads are read one by one."""
         self.machine: list[tuple[float, float]] = []
         """[(time.monotonic, busy CPU seconds of the whole machine, /proc/stat)]."""
         self.me: list[tuple[float, float]] = []
@@ -847,6 +863,8 @@ class Sampler:
                 if i % (2 * scan_every) == 1 and (pss := _pss_mb(pid)) is not None:
                     self.pss.setdefault(pid, []).append((now, pss))
                 self.cpu.setdefault(pid, []).append((now, st[1]))
+                if i % scan_every == 2 and self.roles[pid] == "agent":
+                    self.threads.setdefault(pid, []).append((now, _thread_split(pid, st[1])))
             self._stop.wait(self.START_PERIOD if starting else self.period)
 
     def rss_in(self, pid: int, t0: float, t1: float, pss: bool = False) -> float:
@@ -861,6 +879,22 @@ class Sampler:
         after ``t1``: the window is always covered, even when it is shorter than the sampling
         period (a quick lockstep run took 0.14 s against 0.25 s, and measured no CPU at all)."""
         return self._between(self.cpu.get(pid, []), t0, t1)
+
+    def threads_between(self, pid: int, t0: float, t1: float) -> tuple[float, float, float, float]:
+        """CPU seconds agent ``pid`` used in its main thread, in Zenoh's runtime threads and in
+        the rest (the Python threads Zenoh runs callbacks on), and the wall seconds they were
+        taken over: between the first and the last thread sample within [t0, t1], so that no
+        start-up is counted (all samples if fewer than two fall within).  The rest is the
+        process's CPU less the other two, so that the callback threads that ended (a
+        subscription undeclared) are still counted."""
+        samples = [x for x in self.threads.get(pid, []) if t0 <= x[0] <= t1]
+        if len(samples) < 2:
+            samples = self.threads.get(pid, [])
+        if len(samples) < 2:
+            return 0.0, 0.0, 0.0, 0.0
+        (ta, a), (tb, b) = samples[0], samples[-1]
+        main, zenoh, total = (max(0.0, b[k] - a[k]) for k in range(3))
+        return main, zenoh, max(0.0, total - main - zenoh), tb - ta
 
     def covered(self, t0: float, t1: float) -> float:
         """Wall time [s] the samples bounding [t0, t1] span (see :meth:`cpu_between`)."""
@@ -1103,6 +1137,12 @@ def fleet_run(
         "supervisor_cores": cpu["supervisor"] / span,
         "agent_ms_per_step": 1e3 * cpu["agent"] / max(1, len(by_role["agent"])) / max(1, steps),
     }
+    split = [sampler.threads_between(p, t0, t1) for p in by_role["agent"]]
+    over = max((x[3] for x in split), default=0.0)
+    if over > 0:  # the agents' cores by thread kind, sampled every second or so
+        row["cpu"]["agents_threads_cores"] = {
+            kind: sum(x[j] for x in split) / over for j, kind in enumerate(("main", "zenoh", "callbacks"))
+        }
     if lat is not None:
         row["latency"] = {k: v for k, v in lat.items() if k.endswith("_ms")}
     return row

@@ -736,4 +736,12 @@ def test_exchange_bench_runs_each_exchange_and_counts_the_plans_taken(tmp_path):
     # Three robots within reach of each other: both take the two others' plans about every step
     # (a little over two: the agents' last plans come after the tracker's last step counted).
     assert 1.5 <= rows[0]["plans"] <= 2.2 and 1.5 <= rows[1]["plans"] <= 2.2, rows
+    # The agents' cores by thread: the MPC runs on the main threads, Zenoh's runtime carries
+    # every message, the callback threads decode them; together about the agents' whole CPU
+    # (sampled about once a second within the run, the whole CPU every quarter; /proc counts
+    # CPU in ticks of 10 ms, so a 3 s run of three agents allows 0.02 cores either way).
+    for r in rows:
+        parts = (r["main"], r["zenoh"], r["callbacks"])
+        assert r["main"] > 0 and r["zenoh"] + r["callbacks"] > 0 and min(parts) >= 0, r
+        assert 0.6 * r["agents_cores"] - 0.02 <= sum(parts) <= 1.5 * r["agents_cores"] + 0.02, r
     assert "# medians, and ratios to mesh" in res.stdout
