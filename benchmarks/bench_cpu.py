@@ -132,6 +132,15 @@ def _thread_kind(pid: int, tid: int, name: str) -> str:
     return "other (rerun, allocator)"
 
 
+def cpu_by_kind(pid: int) -> dict[str, float]:
+    """CPU s so far of the live threads of process ``pid``, by thread kind ({} once it is gone)."""
+    out: dict[str, float] = {}
+    for tid, (name, cpu) in _tasks(pid).items():
+        kind = _thread_kind(pid, tid, name)
+        out[kind] = out.get(kind, 0.0) + cpu
+    return out
+
+
 def _measure(
     cmd: list[str], out: Path, extra_env: dict[str, str] | None = None
 ) -> tuple[float, dict[str, float], dict[str, float], float, dict[str, float]]:

@@ -35,12 +35,13 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+import bench_cpu  # noqa: E402
 from bench_scale import SCENES, fleet_run  # noqa: E402
 from bench_step import machine_info  # noqa: E402
 
 from ground.process import EXCHANGES  # noqa: E402
 
-RUNTIMES = {"": None, "zenoh": {"ZENOH_RUNTIME": "()"}}
+RUNTIMES = {"": None, "zenoh": {"ZENOH_RUNTIME": bench_cpu.ZENOH_OWN}}
 """Environment of an ``--order`` entry's fleet by its suffix: none (the fleet's own sizing of
 Zenoh's runtime), or ``/zenoh``, Zenoh's own sizes."""
 

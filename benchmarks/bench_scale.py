@@ -729,15 +729,9 @@ def _proc_stat(pid: int) -> tuple[int, float] | None:
 
 def _thread_split(pid: int, total: float) -> tuple[float, float, float]:
     """(CPU seconds of ``pid``'s main thread, of its Zenoh runtime threads, ``total``): its
-    threads from /proc, named as ``bench_cpu`` names them."""
-    main = zenoh = 0.0
-    for tid, (name, cpu) in bench_cpu._tasks(pid).items():
-        kind = bench_cpu._thread_kind(pid, tid, name)
-        if kind == "main thread":
-            main += cpu
-        elif kind == "zenoh runtime":
-            zenoh += cpu
-    return main, zenoh, total
+    threads from /proc, of the kinds ``bench_cpu`` names."""
+    kinds = bench_cpu.cpu_by_kind(pid)
+    return kinds.get("main thread", 0.0), kinds.get("zenoh runtime", 0.0), total
 
 
 def _vm_mb(pid: int) -> tuple[float, float] | None:

@@ -459,12 +459,11 @@ def _step_supervisor(robots: int, hub: str, topology: str, pattern: str, ready: 
 
 def _cpu(pids: list[int]) -> dict[str, float]:
     """CPU s so far of ``pids``, by thread kind."""
-    from bench_cpu import _tasks, _thread_kind
+    from bench_cpu import cpu_by_kind
 
     out: dict[str, float] = {}
     for pid in pids:
-        for tid, (name, cpu) in _tasks(pid).items():
-            kind = _thread_kind(pid, tid, name)
+        for kind, cpu in cpu_by_kind(pid).items():
             out[kind] = out.get(kind, 0.0) + cpu
     return out
 

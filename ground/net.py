@@ -42,7 +42,7 @@ RON): one worker thread, to which the receive, accept and network pools hand ove
 and the transmit pool's one worker kept apart.  Zenoh's own sizes run two receive threads and
 one each for accepting and the network besides: a sample that arrives at an idle process wakes
 one of them and then the Python thread of its callback.  Sized down, a 32-robot realtime fleet
-missed fewer deadlines and answered its poses sooner in every one of five interleaved pairs
+missed fewer deadlines and answered its poses sooner in every interleaved pair measured
 (docs/performance.md, "Zenoh's own threads").  Handing the transmit pool over too deadlocks a
 router: its only worker, forwarding a sample, waits for a link's queue, which a publishing
 thread holds while it waits for room that only the transmit task, queued on that same worker,
