@@ -47,7 +47,7 @@ from typing import Any
 import numpy as np
 
 from agent.controller import SNAPSHOTS, TUBE_TOL, StepOutput, TubeMPC
-from agent.coordination import NeighbourInfo, place_side
+from agent.coordination import PLACE_LAG, NeighbourInfo, place_side
 from agent.hazards import Guard, in_reach, loose, neighbour_of
 from agent.messages import command_message, plan_message
 from agent.tube import validated_design
@@ -609,6 +609,8 @@ class Agent:
 
     def close(self) -> None:
         c, guard = self.ctrl.counters, self.guard
+        heard = sum(self.inbox.late.values())
+        late = f"{heard} places heard over {PLACE_LAG} steps late, " if self.place else ""
         log(
             self.role,
             f"stopped after {self.k} steps: {c.solves} solves, {c.fallbacks} fallbacks, "
@@ -617,7 +619,7 @@ class Agent:
             f"({self.by_callback} by Zenoh's callback), "
             f"{guard.hazard_steps} neighbour-steps kept clear of as static discs ({guard.transitions} "
             f"changes), {self.inbox.taken.get(Plan.TYPE, 0)} plans taken ({self.args.exchange}), "
-            f"{self.inbox.injected} injected faults, {self.inbox.rejects.total} rejected payloads",
+            f"{late}{self.inbox.injected} injected faults, {self.inbox.rejects.total} rejected payloads",
         )
         self.link.close()
 
@@ -681,7 +683,7 @@ class _Link:
         """The subscriptions to the plans of the groups of cells about :attr:`cell`'s (:data:`GROUP`)."""
         self.place_token: Any = None
         if side is not None:
-            self.subs.append(inbox.watch_places(self.session))
+            self.subs.append(inbox.watch_places(self.session, PLACE_LAG))
             assert start is not None
             self.cell = cell_of(start, side)
             self._subscribe_block()

@@ -205,6 +205,14 @@ class Inbox:
         """Subscriptions read by :meth:`drain`: (subscriber, type, keep, then)."""
         self._awaited: Callable[[], bool] | None = None
         """The predicate the main loop waits on; callbacks wake it only when it holds."""
+        self.step = -1
+        """The receiver's current step (:meth:`release`): what the lag of place news is measured against."""
+        self.lag: int | None = None
+        """Plans by place (:meth:`watch_places`): the steps of lag that coordinating within reach
+        assumes (docs/method.md §6.7); None: nothing assumed, nothing measured."""
+        self.late: dict[str, int] = {}
+        """Per robot, the news of its place (a plan, or a place token, newer than any known) that
+        came more than :attr:`lag` steps after the step it names."""
 
     def subscribe(
         self, session: Any, key: str, typ: type[M], keep: bool = False, remote: bool = False,
@@ -324,6 +332,8 @@ class Inbox:
     def _store(self, type_name: str, msg: Any, keep: bool) -> None:
         """Record ``msg`` (lock held): ``latest`` never goes back to an older step."""
         step = _step_of(msg)
+        if type_name == Plan.TYPE and self.lag is not None:
+            self._place_news(msg.robot, msg.step)
         old = self.latest.get((type_name, msg.robot))
         if step is None or old is None or (_step_of(old) or 0) <= step:
             self.latest[(type_name, msg.robot)] = msg
@@ -333,6 +343,7 @@ class Inbox:
     def release(self, step: int) -> None:
         """Deliver the delayed messages due by ``step`` (the receiver's current step)."""
         with self.cond:
+            self.step = max(self.step, step)
             due = [h for h in self.held if h[0] <= step]
             if due:
                 self.held = [h for h in self.held if h[0] > step]
@@ -359,13 +370,18 @@ class Inbox:
 
         return session.liveliness().declare_subscriber(self.keys.alive(), on_token, history=True)
 
-    def watch_places(self, session: Any) -> Any:
+    def watch_places(self, session: Any, lag: int | None = None) -> Any:
         """Keep :attr:`places` from the place tokens (``--exchange place``): a robot re-declares
         its token as its last committed point enters a new cell, the new before the old goes,
         so the newest token of a robot is where it is, and a token's going changes nothing
         (once its agent is gone, it is where the robot was).  A key that is not a place token
-        is rejected and counted."""
+        is rejected and counted.
+
+        ``lag`` [steps]: how late news of a robot's place may come, as coordinating within
+        reach assumes; each later one is counted in :attr:`late` (:meth:`_place_news`)."""
         import zenoh
+
+        self.lag = lag
 
         def on_token(sample: Any) -> None:
             key = str(sample.key_expr)
@@ -380,9 +396,30 @@ class Inbox:
             with self.cond:
                 had = self.places.get(rid)
                 if had is None or had.since <= step:
+                    if self.lag is not None:
+                        self._place_news(rid, step)
                     self.places[rid] = Whereabouts(cell, step)
 
         return session.liveliness().declare_subscriber(self.keys.at(), on_token, history=True)
+
+    def _place_news(self, rid: str, step: int) -> None:
+        """News of where robot ``rid`` is as of ``step``, before it is stored (lock held): if it
+        is newer than what was known of it (its newest plan, its place token) and came more
+        than :attr:`lag` steps after ``step``, the reach was computed, meanwhile, from older
+        news than its proof allows: count it, and say so once per robot.  What is heard of a
+        robot for the first time (an agent starting or restarting, the tokens' history) is
+        not news of a move, and is not counted."""
+        plan, where = self.latest.get((Plan.TYPE, rid)), self.places.get(rid)
+        known = max(-1 if plan is None else plan.step, -1 if where is None else where.since)
+        if known < 0 or step <= known or self.lag is None or self.step - step <= self.lag:
+            return
+        self.late[rid] = self.late.get(rid, 0) + 1
+        if self.late[rid] == 1:
+            log(
+                self.role,
+                f"news of {rid}'s place at step {step} came at step {self.step}, over the {self.lag} steps "
+                "of lag that coordinating within reach assumes; further ones are counted",
+            )
 
     def _wake(self) -> None:
         """Wake the main loop if what it waits for now holds (call with the lock held).

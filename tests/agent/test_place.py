@@ -198,3 +198,56 @@ def test_inbox_keeps_each_robots_newest_place_and_where_it_went():
     assert inbox.rejects.total == 1 and "r3" not in inbox.places
     with pytest.raises(WireError):
         keys.place_of("fleet/lab/at/r3/1_1")
+
+
+def test_inbox_counts_news_of_a_place_that_came_later_than_the_lag_allows():
+    """6.7's proof assumes that what an agent knows of a robot's place is at most PLACE_LAG steps
+    old.  The inbox measures it: a plan or place token newer than anything known of its robot,
+    taken more than PLACE_LAG steps after the step it names, is counted for that robot.  What
+    comes in time, what is older than what is known, and what is heard of a robot for the first
+    time (a start, a restart, the tokens' history) are not."""
+    keys = Keys("lab")
+    inbox, session = Inbox(keys, "agent r1"), _Session()
+    inbox.watch_places(session, PLACE_LAG)
+    put = zenoh.SampleKind.PUT
+
+    def token(robot, cell, step):
+        session.callback(SimpleNamespace(kind=put, key_expr=keys.at(robot, cell_name(cell), step)))
+
+    def plan(robot, step):
+        near = keys.near(robot, cell_name(group_of((0, 0))))
+        inbox._accept(near, _plan(robot, step, (0.0, 0.0)).encode(), Plan, True, 0.0)
+
+    inbox.release(40)
+    token("r2", (0, 0), 3)  # first heard of, long after: the history of a running fleet
+    plan("r3", 12)  # the same, by a plan
+    assert inbox.late == {}
+    plan("r2", 40 - PLACE_LAG)  # news, as late as the lag allows
+    token("r3", (1, 0), 40 - PLACE_LAG)
+    assert inbox.late == {}
+    plan("r2", 37 - PLACE_LAG)  # older than what is known: no news
+    token("r3", (0, 0), 37 - PLACE_LAG)
+    assert inbox.late == {}
+    inbox.release(41)
+    plan("r2", 40 - PLACE_LAG)  # the same step again: no news either
+    assert inbox.late == {}
+    inbox.release(45)
+    plan("r2", 44 - PLACE_LAG)  # newer, one step too late
+    token("r3", (2, 0), 42 - PLACE_LAG)
+    plan("r3", 45 - PLACE_LAG)  # newer than r3's token, and in time
+    assert inbox.late == {"r2": 1, "r3": 1}
+    assert inbox.places["r3"] == Whereabouts((2, 0), 42 - PLACE_LAG)  # counted, and still taken
+    assert inbox.get(Plan, "r2").step == 44 - PLACE_LAG
+    plan("r4", 30)
+    inbox.release(43)  # the receiver's step never goes back
+    plan("r4", 44 - PLACE_LAG)
+    assert inbox.late == {"r2": 1, "r3": 1, "r4": 1}
+    inbox.release(50)
+    plan("r2", 49 - PLACE_LAG)  # every late one is counted
+    assert inbox.late == {"r2": 2, "r3": 1, "r4": 1}
+    # A fleet whose plans go to every agent assumes no lag: nothing is measured.
+    mesh = Inbox(keys, "agent r1")
+    mesh.release(40)
+    mesh._accept(keys.plan("r2"), _plan("r2", 3, (0.0, 0.0)).encode(), Plan, True, 0.0)
+    mesh._accept(keys.plan("r2"), _plan("r2", 4, (0.0, 0.0)).encode(), Plan, True, 0.0)
+    assert mesh.late == {} and mesh.get(Plan, "r2").step == 4

@@ -28,7 +28,7 @@ import pytest
 from procfs import argv, descendants
 
 from agent.controller import TubeMPC
-from agent.coordination import Hazard, NeighbourInfo, hazard_halfplanes
+from agent.coordination import PLACE_LAG, Hazard, NeighbourInfo, hazard_halfplanes
 from agent.hazards import Guard
 from agent.tube import synthesize
 from fleet.scenes import antipodal_swap, scene_to_toml
@@ -297,6 +297,37 @@ def _safe_faulty_run(tmp_path: Path, plan: dict, exchange: str) -> tuple[dict, s
     # No committed reference was ever changed, only extended (supervisor.monitor.continues).
     assert all(r["reference_breaks"] == 0 for r in s["robots"].values()), s["robots"]
     return s, res.stderr
+
+
+def test_plans_by_place_heard_later_than_the_lag_allows_are_counted_and_said(tmp_path):
+    """Coordinating within reach assumes that what an agent knows of a robot's place is at most
+    PLACE_LAG steps old (docs/method.md §6.7).  r2's plans reach r1 three steps late (a fault
+    plan, by place on lockstep): r1 says so once, counts them in its closing line, and goes on
+    keeping clear of r2 as the late plans require; r2 and r3, whose news came in time, count
+    none.  The run stays safe."""
+    text = (SCENARIOS / "paper_three_robots.toml").read_text()
+    scn = tmp_path / "three_10s.toml"
+    scn.write_text(
+        "\n".join("duration = 10.0" if ln.startswith("duration") else ln for ln in text.splitlines())
+    )
+    faults = json.dumps(
+        {"seed": 5, "rules": [{"key": "plan/r2", "delay": PLACE_LAG + 1, "to": ["agent r1"]}]}
+    )
+    out = tmp_path / "out"
+    res = _fleet("run", str(scn), "--out", str(out), "--exchange", "place", "--faults", faults)
+    assert res.returncode in (0, 1) and "process failed" not in res.stderr, res.stderr[-3000:]
+    s = json.loads((out / "summary.json").read_text())
+    assert s["steps"] == 100 and s["collisions"] == 0, s
+    assert s["min_reference_separation_m"] >= s["required_reference_separation_m"] - 1e-9
+    late = dict(
+        re.findall(
+            rf"\[agent (r\d)\] stopped after .*?, (\d+) places heard over {PLACE_LAG} steps late", res.stderr
+        )
+    )
+    assert set(late) == {"r1", "r2", "r3"}, res.stderr[-3000:]
+    assert int(late["r1"]) >= 50 and late["r2"] == late["r3"] == "0", late
+    said = re.findall(r"\[agent r1\] news of (r\d)'s place at step (\d+) came at step (\d+)", res.stderr)
+    assert len(said) == 1 and said[0][0] == "r2" and int(said[0][2]) - int(said[0][1]) == PLACE_LAG + 1, said
 
 
 def test_lockstep_run_with_lost_plans_and_poses_is_safe_and_deterministic(tmp_path):
