@@ -12,9 +12,10 @@ drift falls on both alike.  An entry ``E/zenoh`` runs the same with Zenoh's own 
 (``ground.net.RUNTIME``).  Each run is :func:`bench_scale.fleet_run`'s, the harness of ``fleet
 bench``: deadline misses and their share of the robot-steps, the clock's real-time factor,
 collisions, pose → command latency, the cores of the agents, the tracker and the supervisor, the
-plans each agent took a step (its closing line, ``N plans taken``), and the agents' cores by
-thread: their main threads, Zenoh's runtime threads, and the Python threads Zenoh runs the
-callbacks on (sampled from ``/proc`` about once a second).  The last lines give the
+plans each agent took a step (its closing line, ``N plans taken``), the news of places that
+came later than the reach's proof assumes (``late``, over all agents: docs/method.md §6.7),
+and the agents' cores by thread: their main threads, Zenoh's runtime threads, and the Python
+threads Zenoh runs the callbacks on (sampled from ``/proc`` about once a second).  The last lines give the
 medians of each exchange and their ratios to the first's.
 """
 
@@ -45,7 +46,18 @@ RUNTIMES = {"": None, "zenoh": {"ZENOH_RUNTIME": bench_cpu.ZENOH_OWN}}
 """Environment of an ``--order`` entry's fleet by its suffix: none (the fleet's own sizing of
 Zenoh's runtime), or ``/zenoh``, Zenoh's own sizes."""
 
-FIGURES = ("miss_pct", "rtf", "agents_cores", "cores", "p99_ms", "plans", "main", "zenoh", "callbacks")
+FIGURES = (
+    "miss_pct",
+    "rtf",
+    "agents_cores",
+    "cores",
+    "p99_ms",
+    "plans",
+    "late",
+    "main",
+    "zenoh",
+    "callbacks",
+)
 
 
 def _plans_taken(run_dir: str, steps: int) -> float:
@@ -63,7 +75,8 @@ def _row(r: dict[str, Any], entry: str) -> dict[str, Any]:
         "exchange": entry, "steps": r["steps"], "misses": r["deadline_misses"],
         "miss_pct": 100.0 * r["miss_rate"], "rtf": r["rtf"], "collisions": r["collisions"],
         "agents_cores": cpu["agents_cores"], "cores": cpu["cores_used"], "p99_ms": lat["p99"],
-        "plans": _plans_taken(r["out"], r["steps"]), "load": r["loadavg_before"][0],
+        "plans": _plans_taken(r["out"], r["steps"]), "late": r["agents"]["places_late"],
+        "load": r["loadavg_before"][0],
         **cpu.get("agents_threads_cores", dict.fromkeys(("main", "zenoh", "callbacks"), math.nan)),
     }  # fmt: skip
 
@@ -94,7 +107,8 @@ def main(argv: list[str] | None = None) -> int:
         f"swap of {args.robots} robots, realtime, {args.seconds:g} s a run, default flags but --exchange"
     )
     head = f"{'exchange':<12}{'steps':>6}{'misses':>8}{'miss %':>8}{'RTF':>6}{'coll':>5}{'agents':>8}"
-    print(head + f"{'cores':>6}{'p99 ms':>8}{'plans':>7}{'load':>6}  agents' threads: main zenoh callbacks")
+    head += f"{'cores':>6}{'p99 ms':>8}{'plans':>7}{'late':>5}{'load':>6}"
+    print(head + "  agents' threads: main zenoh callbacks")
     rows = []
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -111,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             print(
                 f"{ex:<12}{r['steps']:>6}{r['misses']:>8}{r['miss_pct']:>8.2f}{r['rtf']:>6.2f}{r['collisions']:>5}"
-                f"{r['agents_cores']:>8.2f}{r['cores']:>6.2f}{r['p99_ms']:>8.1f}{r['plans']:>7.1f}{r['load']:>6.1f}"
+                f"{r['agents_cores']:>8.2f}{r['cores']:>6.2f}{r['p99_ms']:>8.1f}{r['plans']:>7.1f}{r['late']:>5}{r['load']:>6.1f}"
                 f"  {r['main']:.2f} {r['zenoh']:.2f} {r['callbacks']:.2f}",
                 flush=True,
             )

@@ -1177,9 +1177,10 @@ def _tracker_end(lines: list[str]) -> tuple[int, int] | None:
 
 
 def _agent_counters(lines: list[str]) -> dict[str, int]:
-    """Sums over the agents' final lines
-    (``stopped after K steps: S solves, F fallbacks, X tube exits, H blind holds, …``)."""
-    tot = {"solves": 0, "fallbacks": 0, "tube_exits": 0, "blind_holds": 0, "agents": 0}
+    """Sums over the agents' final lines (``stopped after K steps: S solves, F fallbacks, X tube
+    exits, H blind holds, …``); with plans by place, ``places_late``: the news of places that came
+    later than the reach's proof assumes (``… P places heard over L steps late, …``)."""
+    tot = {"solves": 0, "fallbacks": 0, "tube_exits": 0, "blind_holds": 0, "agents": 0, "places_late": 0}
     for ln in lines:
         if ln.startswith("[agent ") and "] stopped after " in ln:
             parts = ln.split(": ", 1)[1].split(", ")
@@ -1189,6 +1190,9 @@ def _agent_counters(lines: list[str]) -> dict[str, int]:
                 tot["tube_exits"] += int(parts[2].split()[0])
                 tot["blind_holds"] += int(parts[3].split()[0])
                 tot["agents"] += 1
+            late = [p for p in parts if " places heard over " in p]
+            if late and late[0].split()[0].isdigit():
+                tot["places_late"] += int(late[0].split()[0])
     return tot
 
 
@@ -1217,6 +1221,8 @@ def print_run(r: dict[str, Any], log: Callable[[str], None]) -> None:
             f"{a['fallbacks']} fallbacks, {a['tube_exits']} tube exits, {a['blind_holds']} blind holds "
             f"in {a['solves']} solves"
         )
+    if a.get("places_late"):
+        notes.append(f"{a['places_late']} places heard later than the reach's proof assumes")
     if r.get("purpose") == "capacity":
         notes.append(f"the capacity run [6], at Ts = {r['Ts_s']:g} s")
     if not r["supervisor_complete"]:

@@ -15,6 +15,7 @@ import importlib.util
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -231,6 +232,27 @@ def test_large_swap_files_match_generator(n: int, radius: float, half: float) ->
     data["controller"] = dict(COMPACT_CONTROLLER)
     generated = parse_scenario(data)
     assert dataclasses.replace(from_file, source="") == dataclasses.replace(generated, source="")
+
+
+def test_fleet_runs_sum_the_agents_closing_counts() -> None:
+    """A fleet run's row sums the counters of the agents' closing lines, the news of places
+    heard later than the reach's proof assumes among them (plans by place only)."""
+    from fleet.bench import _harness
+
+    common = "0 steered ahead, 9 plans taken ({}), {}0 injected faults, 0 rejected payloads"
+    lines = [
+        "[agent r1] stopped after 9 steps: 10 solves, 1 fallbacks, 0 tube exits, 2 blind holds, "
+        + common.format("place", "4 places heard over 2 steps late, "),
+        "[agent r2] stopped after 9 steps: 10 solves, 0 fallbacks, 3 tube exits, 0 blind holds, "
+        + common.format("place", "7 places heard over 2 steps late, "),
+        "[agent r3] stopped after 9 steps: 10 solves, 0 fallbacks, 0 tube exits, 0 blind holds, "
+        + common.format("mesh", ""),
+        "[tracker] run ended at step 9; 0 deadline misses, 0 rejected payloads",
+    ]
+    got = _harness()._agent_counters(lines)
+    assert got == {
+        "solves": 30, "fallbacks": 1, "tube_exits": 3, "blind_holds": 2, "agents": 3, "places_late": 11,
+    }  # fmt: skip
 
 
 def test_solver_variants_run_in_shuffled_order(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -467,6 +489,11 @@ def test_targets_quick_prints_and_writes_every_target(tmp_path):
     r3 = d["realtime_runs"]["3"]
     assert (r3["exchange"], r3["topology"], r3["clock"]) == ("default", "default", "realtime")
     assert t[2]["measured"] == pytest.approx(r3["miss_rate"]) and r3["collisions"] == 0
+    # By place (the realtime default), each agent counts the news of places that came later than
+    # the reach's proof assumes; the target's detail sums their closing lines.
+    late = re.findall(r"(\d+) places heard over \d+ steps late", Path(r3["out"], "fleet.stderr").read_text())
+    assert len(late) == 3 and t[2]["detail"]["places_late"] == sum(map(int, late)), late
+    assert f"2 at 3 robots: {sum(map(int, late))} places heard later than" in res.stdout
     assert t[2]["met"] == (r3["miss_rate"] < 1e-3 and r3["supervisor_complete"])
     assert t[3]["measured"] == r3["latency"]["pose_to_command_ms"]["p99"]
     assert t[3]["met"] == (t[3]["measured"] <= 5.0)
