@@ -609,7 +609,8 @@ class Agent:
 
     def close(self) -> None:
         c, guard = self.ctrl.counters, self.guard
-        heard = sum(self.inbox.late.values())
+        with self.inbox.cond:  # (Zenoh's callbacks may still be counting)
+            heard = sum(self.inbox.late.values())
         late = f"{heard} places heard over {PLACE_LAG} steps late, " if self.place else ""
         log(
             self.role,

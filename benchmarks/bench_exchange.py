@@ -71,11 +71,12 @@ def _row(r: dict[str, Any], entry: str) -> dict[str, Any]:
     if "steps" not in r:
         return {"exchange": entry, "error": r.get("error", r["verdict"])}
     cpu, lat = r["cpu"], r.get("latency", {}).get("pose_to_command_ms", {"p99": float("nan")})
+    late = r["agents"]["places_late"]  # None: not measured (every plan to every agent, relay)
     return {
         "exchange": entry, "steps": r["steps"], "misses": r["deadline_misses"],
         "miss_pct": 100.0 * r["miss_rate"], "rtf": r["rtf"], "collisions": r["collisions"],
         "agents_cores": cpu["agents_cores"], "cores": cpu["cores_used"], "p99_ms": lat["p99"],
-        "plans": _plans_taken(r["out"], r["steps"]), "late": r["agents"]["places_late"],
+        "plans": _plans_taken(r["out"], r["steps"]), "late": math.nan if late is None else late,
         "load": r["loadavg_before"][0],
         **cpu.get("agents_threads_cores", dict.fromkeys(("main", "zenoh", "callbacks"), math.nan)),
     }  # fmt: skip
@@ -125,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             print(
                 f"{ex:<12}{r['steps']:>6}{r['misses']:>8}{r['miss_pct']:>8.2f}{r['rtf']:>6.2f}{r['collisions']:>5}"
-                f"{r['agents_cores']:>8.2f}{r['cores']:>6.2f}{r['p99_ms']:>8.1f}{r['plans']:>7.1f}{r['late']:>5}{r['load']:>6.1f}"
+                f"{r['agents_cores']:>8.2f}{r['cores']:>6.2f}{r['p99_ms']:>8.1f}{r['plans']:>7.1f}{r['late']:>5.0f}{r['load']:>6.1f}"
                 f"  {r['main']:.2f} {r['zenoh']:.2f} {r['callbacks']:.2f}",
                 flush=True,
             )

@@ -1176,11 +1176,13 @@ def _tracker_end(lines: list[str]) -> tuple[int, int] | None:
     return None
 
 
-def _agent_counters(lines: list[str]) -> dict[str, int]:
+def _agent_counters(lines: list[str]) -> dict[str, Any]:
     """Sums over the agents' final lines (``stopped after K steps: S solves, F fallbacks, X tube
-    exits, H blind holds, …``); with plans by place, ``places_late``: the news of places that came
-    later than the reach's proof assumes (``… P places heard over L steps late, …``)."""
-    tot = {"solves": 0, "fallbacks": 0, "tube_exits": 0, "blind_holds": 0, "agents": 0, "places_late": 0}
+    exits, H blind holds, …``); ``places_late``: the news of places that came later than the
+    reach's proof assumes (``… P places heard over L steps late, …``), None if no agent measured
+    it (only plans by place do)."""
+    tot: dict[str, Any] = {"solves": 0, "fallbacks": 0, "tube_exits": 0, "blind_holds": 0, "agents": 0}
+    tot["places_late"] = None
     for ln in lines:
         if ln.startswith("[agent ") and "] stopped after " in ln:
             parts = ln.split(": ", 1)[1].split(", ")
@@ -1192,7 +1194,7 @@ def _agent_counters(lines: list[str]) -> dict[str, int]:
                 tot["agents"] += 1
             late = [p for p in parts if " places heard over " in p]
             if late and late[0].split()[0].isdigit():
-                tot["places_late"] += int(late[0].split()[0])
+                tot["places_late"] = (tot["places_late"] or 0) + int(late[0].split()[0])
     return tot
 
 

@@ -19,7 +19,7 @@ from ground.faults import DELIVER, FaultPlan
 from ground.geometry import Whereabouts
 from ground.net import NetConfig, load_config, loopback, size_runtime
 from ground.process import log
-from ground.wire import Digest, Goal, Keys, Message, Plan, RejectCounter, WireError, decode
+from ground.wire import Digest, Goal, Keys, Message, Plan, RejectCounter, Tick, WireError, decode
 
 M = TypeVar("M", bound=Message)
 _SENDER_KEYS = ("/clock", "/digest", "/outcome")
@@ -206,13 +206,16 @@ class Inbox:
         self._awaited: Callable[[], bool] | None = None
         """The predicate the main loop waits on; callbacks wake it only when it holds."""
         self.step = -1
-        """The receiver's current step (:meth:`release`): what the lag of place news is measured against."""
+        """The newest step the receiver knows of, its own (:meth:`release`) or the clock's (a tick
+        stored): what the lag of place news is measured against."""
+        self.first_step: int | None = None
+        """The receiver's first step (:meth:`release`): 0 if it started with the fleet."""
         self.lag: int | None = None
         """Plans by place (:meth:`watch_places`): the steps of lag that coordinating within reach
         assumes (docs/method.md §6.7); None: nothing assumed, nothing measured."""
         self.late: dict[str, int] = {}
         """Per robot, the news of its place (a plan, or a place token, newer than any known) that
-        came more than :attr:`lag` steps after the step it names."""
+        came more than :attr:`lag` steps after the step it names (:meth:`_place_news`)."""
 
     def subscribe(
         self, session: Any, key: str, typ: type[M], keep: bool = False, remote: bool = False,
@@ -332,7 +335,9 @@ class Inbox:
     def _store(self, type_name: str, msg: Any, keep: bool) -> None:
         """Record ``msg`` (lock held): ``latest`` never goes back to an older step."""
         step = _step_of(msg)
-        if type_name == Plan.TYPE and self.lag is not None:
+        if type_name == Tick.TYPE:
+            self.step = max(self.step, msg.step)
+        elif type_name == Plan.TYPE and self.lag is not None:
             self._place_news(msg.robot, msg.step)
         old = self.latest.get((type_name, msg.robot))
         if step is None or old is None or (_step_of(old) or 0) <= step:
@@ -344,6 +349,8 @@ class Inbox:
         """Deliver the delayed messages due by ``step`` (the receiver's current step)."""
         with self.cond:
             self.step = max(self.step, step)
+            if self.first_step is None:
+                self.first_step = step
             due = [h for h in self.held if h[0] <= step]
             if due:
                 self.held = [h for h in self.held if h[0] > step]
@@ -405,13 +412,21 @@ class Inbox:
     def _place_news(self, rid: str, step: int) -> None:
         """News of where robot ``rid`` is as of ``step``, before it is stored (lock held): if it
         is newer than what was known of it (its newest plan, its place token) and came more
-        than :attr:`lag` steps after ``step``, the reach was computed, meanwhile, from older
-        news than its proof allows: count it, and say so once per robot.  What is heard of a
-        robot for the first time (an agent starting or restarting, the tokens' history) is
-        not news of a move, and is not counted."""
+        than :attr:`lag` steps after ``step`` (by :attr:`step`), the reach may have been
+        computed, meanwhile, from older news than its proof allows: count it, and say so once
+        per robot.  A receiver that started with the fleet knew every robot at its start, as
+        of step 0; one that joined a running fleet hears of each robot for the first time from
+        the tokens' history or its first plan, which is not news of a move and is not counted.
+
+        The count errs on the side of counting: a late plan counts even if the robot's token
+        said in time where it went, and the delayed messages a jump releases count each."""
         plan, where = self.latest.get((Plan.TYPE, rid)), self.places.get(rid)
         known = max(-1 if plan is None else plan.step, -1 if where is None else where.since)
-        if known < 0 or step <= known or self.lag is None or self.step - step <= self.lag:
+        if known < 0:
+            if self.first_step != 0:
+                return
+            known = 0
+        if step <= known or self.lag is None or self.step - step <= self.lag:
             return
         self.late[rid] = self.late.get(rid, 0) + 1
         if self.late[rid] == 1:

@@ -19,7 +19,7 @@ from ground.bus import Inbox
 from ground.geometry import Whereabouts, block, cell_centre, cell_name, cell_of, cells_apart, parse_cell
 from ground.process import exchange_for
 from ground.scenario import load_scenario
-from ground.wire import BLIND, Keys, Plan, WireError
+from ground.wire import BLIND, Keys, Plan, Tick, WireError
 
 SCN = load_scenario(Path(__file__).resolve().parents[2] / "scenarios" / "swap_16.toml")
 DESIGN = validated_design(SCN)
@@ -204,8 +204,8 @@ def test_inbox_counts_news_of_a_place_that_came_later_than_the_lag_allows():
     """6.7's proof assumes that what an agent knows of a robot's place is at most PLACE_LAG steps
     old.  The inbox measures it: a plan or place token newer than anything known of its robot,
     taken more than PLACE_LAG steps after the step it names, is counted for that robot.  What
-    comes in time, what is older than what is known, and what is heard of a robot for the first
-    time (a start, a restart, the tokens' history) are not."""
+    comes in time, what is older than what is known, and what an agent that joined a running
+    fleet hears of a robot for the first time (the tokens' history, a first plan) are not."""
     keys = Keys("lab")
     inbox, session = Inbox(keys, "agent r1"), _Session()
     inbox.watch_places(session, PLACE_LAG)
@@ -245,6 +245,29 @@ def test_inbox_counts_news_of_a_place_that_came_later_than_the_lag_allows():
     inbox.release(50)
     plan("r2", 49 - PLACE_LAG)  # every late one is counted
     assert inbox.late == {"r2": 2, "r3": 1, "r4": 1}
+    # A receiver that started with the fleet knew every robot at its start, as of step 0: a first
+    # token is news if it names a later step, and its lag counts against the newest step the
+    # receiver knows of, its own or the clock's.
+    start = Inbox(keys, "agent r1")
+    start_session = _Session()
+    start.watch_places(start_session, PLACE_LAG)
+
+    def first(robot, cell, step):
+        start_session.callback(SimpleNamespace(kind=put, key_expr=keys.at(robot, cell_name(cell), step)))
+
+    start.release(0)
+    first("r2", (0, 0), 0)  # where it started: no news
+    start.release(5)
+    first("r3", (1, 0), 2)  # moved at step 2, heard of at step 5
+    first("r4", (0, 0), 3)  # moved at step 3: as late as the lag allows
+    assert start.late == {"r3": 1}
+    clock = keys.clock
+    start._accept(
+        clock, Tick(robot="tracker", step=9, t=0.9, stop=False, misses=0).encode(), Tick, False, 0.0
+    )
+    assert start.step == 9  # the clock is ahead of this receiver's own step
+    start._accept(keys.near("r2", cell_name((0, 0))), _plan("r2", 6, (0.0, 0.0)).encode(), Plan, True, 0.0)
+    assert start.late == {"r2": 1, "r3": 1}
     # A fleet whose plans go to every agent assumes no lag: nothing is measured.
     mesh = Inbox(keys, "agent r1")
     mesh.release(40)

@@ -302,9 +302,9 @@ def _safe_faulty_run(tmp_path: Path, plan: dict, exchange: str) -> tuple[dict, s
 def test_plans_by_place_heard_later_than_the_lag_allows_are_counted_and_said(tmp_path):
     """Coordinating within reach assumes that what an agent knows of a robot's place is at most
     PLACE_LAG steps old (docs/method.md §6.7).  r2's plans reach r1 three steps late (a fault
-    plan, by place on lockstep): r1 says so once, counts them in its closing line, and goes on
-    keeping clear of r2 as the late plans require; r2 and r3, whose news came in time, count
-    none.  The run stays safe."""
+    plan, by place on lockstep): r1 says so once and counts them in its closing line; r2 and r3,
+    whose news came in time, count none.  The run stays safe: no collision, and the committed
+    references kept their separation."""
     text = (SCENARIOS / "paper_three_robots.toml").read_text()
     scn = tmp_path / "three_10s.toml"
     scn.write_text(
