@@ -403,8 +403,7 @@ class Inbox:
             with self.cond:
                 had = self.places.get(rid)
                 if had is None or had.since <= step:
-                    if self.lag is not None:
-                        self._place_news(rid, step)
+                    self._place_news(rid, step)
                     self.places[rid] = Whereabouts(cell, step)
 
         return session.liveliness().declare_subscriber(self.keys.at(), on_token, history=True)
@@ -420,13 +419,15 @@ class Inbox:
 
         The count errs on the side of counting: a late plan counts even if the robot's token
         said in time where it went, and the delayed messages a jump releases count each."""
+        if self.lag is None or self.step - step <= self.lag:
+            return
         plan, where = self.latest.get((Plan.TYPE, rid)), self.places.get(rid)
         known = max(-1 if plan is None else plan.step, -1 if where is None else where.since)
         if known < 0:
             if self.first_step != 0:
                 return
             known = 0
-        if step <= known or self.lag is None or self.step - step <= self.lag:
+        if step <= known:
             return
         self.late[rid] = self.late.get(rid, 0) + 1
         if self.late[rid] == 1:
