@@ -35,7 +35,7 @@ from pathlib import Path
 from typing import IO, Any, Protocol
 
 from ground.net import NetConfig, free_port, loopback
-from ground.process import exchange_for
+from ground.process import exchange_for, wait_owning
 from ground.scenario import load_scenario
 from supervisor.judge import verdict
 
@@ -213,7 +213,7 @@ class ForkServer:
                 left = None if deadline is None else deadline - time.monotonic()
                 if left is not None and left <= 0:
                     return None
-                self._cond.wait(min(0.1, left or 0.1) if self._gone else left)
+                wait_owning(self._cond, min(0.1, left or 0.1) if self._gone else left)
             return code
 
     def _known(self, pid: int) -> int | None:

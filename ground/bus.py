@@ -18,7 +18,7 @@ from typing import Any, TypeVar
 from ground.faults import DELIVER, FaultPlan
 from ground.geometry import Whereabouts
 from ground.net import NetConfig, load_config, loopback, size_runtime
-from ground.process import log
+from ground.process import log, wait_owning
 from ground.wire import Digest, Goal, Keys, Message, Plan, RejectCounter, Tick, WireError, decode
 
 M = TypeVar("M", bound=Message)
@@ -457,7 +457,7 @@ class Inbox:
                     left = deadline - time.monotonic()
                     if left <= 0:
                         return False
-                    self.cond.wait(left)
+                    wait_owning(self.cond, left)
                 return True
             finally:
                 self._awaited = None

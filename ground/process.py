@@ -14,7 +14,8 @@ import gc
 import json
 import os
 import sys
-from typing import Any, NoReturn
+import threading
+from typing import Any, NoReturn, cast
 
 from ground.faults import FaultPlan, FaultPlanError
 from ground.net import MODES, NetConfig, lease_seconds
@@ -145,6 +146,21 @@ def log(role: str, msg: str) -> None:
     ``print`` writes the text and the newline separately, which interleaves lines."""
     sys.stderr.write(f"[{role}] {msg}\n")
     sys.stderr.flush()
+
+
+def wait_owning(cond: threading.Condition, timeout: float | None) -> None:
+    """``cond.wait(timeout)`` that holds the lock again however it ends.
+
+    A signal's exception (Ctrl-C in a notebook or a script) can land inside CPython's
+    ``Condition.wait`` after it has let go of the lock and before the ``try`` that takes it
+    back. The caller's ``with`` would then release a lock it no longer holds, and a
+    KeyboardInterrupt would turn into "cannot release un-acquired lock"."""
+    try:
+        cond.wait(timeout)
+    except BaseException:
+        if not cast(Any, cond)._is_owned():
+            cond.acquire()
+        raise
 
 
 def exit_process(code: int) -> NoReturn:

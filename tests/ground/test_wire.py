@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import threading
 import zlib
 
 import msgpack
@@ -406,3 +407,41 @@ def test_tick_says_which_plans_each_robot_side_executed():
     assert Tick(robot="tracker", step=3, t=0.3, stop=False, misses=0).executed("r2") is None
     outcome = SAMPLES["outcome"]  # the same, of its own step
     assert [outcome.executed(r) for r in ("r1", "r2", "r3")] == [None, 9, -1]
+
+
+class _Interrupted(threading.Condition):
+    """A condition whose wait is interrupted by Ctrl-C, either at CPython's worst moment (the
+    lock let go, the KeyboardInterrupt raised before ``Condition.wait`` could take it back) or
+    at its usual one (while waiting, the lock taken back on the way out)."""
+
+    def __init__(self, worst: bool) -> None:
+        super().__init__()
+        self.worst = worst
+
+    def wait(self, timeout: float | None = None) -> bool:
+        if self.worst:
+            self._release_save()  # type: ignore[attr-defined]
+        raise KeyboardInterrupt
+
+
+@pytest.mark.parametrize("worst", [True, False], ids=["lock-let-go", "lock-taken-back"])
+def test_an_interrupt_inside_a_wait_leaves_the_inbox_lock_free_and_says_keyboardinterrupt(worst):
+    """Ctrl-C during ``Inbox.wait`` raises KeyboardInterrupt (not a lock error), and afterwards
+    the lock is free: a receiving thread can take it, and the next wait works."""
+    inbox = Inbox(Keys("lab"), "operator")
+    inbox.cond = _Interrupted(worst)
+    with pytest.raises(KeyboardInterrupt):
+        inbox.wait(lambda: False, 5.0)
+    taken = []
+
+    def take() -> None:
+        if inbox.cond.acquire(timeout=5.0):
+            taken.append(True)
+            inbox.cond.release()
+
+    other = threading.Thread(target=take)
+    other.start()
+    other.join(10.0)
+    assert taken == [True], "the lock was left held"
+    inbox.cond = threading.Condition()
+    assert inbox.wait(lambda: True, 0.1) and not inbox.wait(lambda: False, 0.01)
