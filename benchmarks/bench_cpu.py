@@ -13,6 +13,9 @@ robot-steps between them, is the marginal CPU per robot-step: start-up and shut-
   (:data:`ground.net.RUNTIME`): what Zenoh's own threads cost.
 * ``fleet run --no-delay-compensation``: each agent solving its plan after the tick instead of
   a step ahead (one message less a step: no outcome from the tracker).
+* ``fleet run --exchange place``: plans by place, the realtime clock's default, here on
+  lockstep, where the default sends every plan to every agent: what taking only the plans
+  within reach saves when the fleet runs as fast as its CPU allows.
 * ``fleet run --ros2``: the defaults plus the fleet's ROS 2 face (``python -m ros2_link``), a
   process of its own that observes the fleet and republishes it as ROS 2 messages.  Its CPU
   is its role's ("ros2") in the split, set against the whole fleet's and the agents'; and the
@@ -62,6 +65,7 @@ CONFIGS: dict[str, list[str]] = {
     ZENOH_OWN_ROW: [],
     "fleet run --ros2": ["--ros2"],
     "fleet run --no-delay-compensation": ["--no-delay-compensation"],
+    "fleet run --exchange place": ["--exchange", "place"],
     "fleet run --exchange relay --topology star": ["--exchange", "relay", "--topology", "star"],
 }
 """``fleet run``'s flags by row label; ``--ros2`` next to the defaults it is compared with."""

@@ -106,9 +106,10 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--jobs", type=int, default=2, help="--liveness: processes (default 2)")
     ap.add_argument(
         "--cpu", type=int, default=None, metavar="N",
-        help="instead: the marginal CPU per robot-step of fleet run (defaults, --ros2, and relay + "
-        "star) against fleet simulate on the swap of N robots (3, 8, 16, 32), split by process "
-        "(agents, tracker, supervisor, the ROS 2 face) and thread",
+        help="instead: the marginal CPU per robot-step of fleet run (defaults, --ros2, "
+        "--no-delay-compensation, place, relay + star) against fleet simulate on the swap of N "
+        "robots (3, 8, 16, 32), split by process (agents, tracker, supervisor, the ROS 2 face) "
+        "and thread",
     )  # fmt: skip
     ap.add_argument(
         "--targets", action="store_true",

@@ -310,8 +310,8 @@ def test_cpu_figures_cover_a_window_shorter_than_the_sampling_period() -> None:
 
 def test_cpu_harness_splits_a_fleets_cpu_by_process_and_thread(tmp_path):
     """``fleet bench --cpu 3``: the marginal CPU per robot-step of ``fleet run`` (defaults,
-    ``--ros2``, ``--no-delay-compensation`` and relay + star) next to ``fleet simulate``'s, from two
-    run lengths, with its split by process role and by thread.  A fleet of processes costs more
+    ``--ros2``, ``--no-delay-compensation``, place, relay + star) next to ``fleet simulate``'s,
+    from two run lengths, with its split by process role and by thread.  A fleet of processes costs more
     than the one-process simulator (it does the same math and talks besides).  The split of three
     robots' short runs is mostly start-up noise, so only its parts and their accounting are
     checked here, not their sizes: the ROS 2 face's CPU is its own role's ("ros2"), in the
@@ -329,7 +329,7 @@ def test_cpu_harness_splits_a_fleets_cpu_by_process_and_thread(tmp_path):
     ros2 = importlib.util.find_spec("rosbags") is not None  # the ros2 extra, in the test extras
     labels = ["fleet run (defaults)", "fleet run (defaults), Zenoh's own sizes",
               *(["fleet run --ros2"] if ros2 else []), "fleet run --no-delay-compensation",
-              "fleet run --exchange relay --topology star"]  # fmt: skip
+              "fleet run --exchange place", "fleet run --exchange relay --topology star"]  # fmt: skip
     assert sim["config"] == "fleet simulate" and [r["config"] for r in fleets] == labels
     for r in d["rows"]:
         assert r["steps"][1] > r["steps"][0] > 0 and math.isfinite(r["ms_per_robot_step"]), r
