@@ -11,13 +11,14 @@ from ground.geometry import Array
 from ground.wire import Command, Plan
 
 
-def plan_message(robot: str, k: int, ctrl: TubeMPC, out: StepOutput) -> Plan:
-    """The plan ``robot`` committed at step ``k`` (``out``, the step's output of ``ctrl``)."""
+def plan_message(robot: str, k: int, ctrl: TubeMPC, out: StepOutput, late: int = 0) -> Plan:
+    """The plan ``robot`` committed at step ``k`` (``out``, the step's output of ``ctrl``);
+    ``late``: the places its agent has heard over the lag bound late so far."""
     Ts = ctrl.params.Ts
     return Plan(
         robot=robot, step=k, t0=(k + 1) * Ts, Ts=Ts, committed=out.committed, nominal=out.plan,
         footprint=ctrl.r, priority=ctrl.priority, rank=ctrl.rank, phase=ctrl.phase, target=out.target,
-        phase_age=ctrl.phase_age,
+        phase_age=ctrl.phase_age, late=late,
         goal=ctrl.goal, status=out.status, solve_time=out.solve_time, tube_ok=out.tube_ok,
     )  # fmt: skip
 

@@ -286,7 +286,7 @@ class Agent:
         # The command first: the robot side waits on it; the neighbours need the plan only at
         # the next step, which cannot start before the robots move.
         self.link.pub_cmd.put(command_message(self.me, k, ctrl, out, follow=not blind).encode())
-        self.link.put_plan(plan_message(self.me, k, ctrl, out))
+        self.link.put_plan(plan_message(self.me, k, ctrl, out, self.inbox.heard_late))
         inbox.prune(k - 2)
         if self.dc:
             self.sent[k] = out
@@ -344,7 +344,9 @@ class Agent:
         with inbox.cond:  # ready before the plan goes out
             self.ready = ready
             self._answer(None)  # tick k + 1 may be in already (it does not wait for this plan)
-        self.link.put_plan(replace(plan_message(me, k + 1, ctrl, out), tube_ok=tube_ok))
+        self.link.put_plan(
+            replace(plan_message(me, k + 1, ctrl, out, self.inbox.heard_late), tube_ok=tube_ok)
+        )
 
     def _told(self, k: int) -> bool:
         """The outcome of step k is in, or lost (fault plan); on the realtime clock, or the next
@@ -609,9 +611,7 @@ class Agent:
 
     def close(self) -> None:
         c, guard = self.ctrl.counters, self.guard
-        with self.inbox.cond:  # (Zenoh's callbacks may still be counting)
-            heard = sum(self.inbox.late.values())
-        late = f"{heard} places heard over {PLACE_LAG} steps late, " if self.place else ""
+        late = f"{self.inbox.heard_late} places heard over {PLACE_LAG} steps late, " if self.place else ""
         log(
             self.role,
             f"stopped after {self.k} steps: {c.solves} solves, {c.fallbacks} fallbacks, "

@@ -229,11 +229,14 @@ def cmd_run(args: argparse.Namespace) -> int:
             delay_compensation=args.delay_compensation,
         )  # fmt: skip
     if summary is not None:
+        # Plans by place assume news of places within the lag (docs/method.md §6.7): how often not.
+        late = summary.get("places_heard_late", 0) if summary.get("exchange") == "place" else None
         print(
             f"{scn.name}: {summary['steps']} steps in {summary['wall_time_s']:.1f} s over "
             f"{len(summary.get('processes', {}))} processes ({clock}); "
             f"collisions {summary['collisions']}, "
             f"deadline misses {summary.get('deadline_misses', 0)}, "
+            f"{'' if late is None else f'places heard late {late}, '}"
             f"goals reached {sum(r['reached_goal'] for r in summary['robots'].values())}"
             f"/{len(summary['robots'])}"
         )

@@ -216,6 +216,8 @@ class Inbox:
         self.late: dict[str, int] = {}
         """Per robot, the news of its place (a plan, or a place token, newer than any known) that
         came more than :attr:`lag` steps after the step it names (:meth:`_place_news`)."""
+        self.heard_late = 0
+        """The sum of :attr:`late` [messages]: one int, which any thread reads without the lock."""
 
     def subscribe(
         self, session: Any, key: str, typ: type[M], keep: bool = False, remote: bool = False,
@@ -430,6 +432,7 @@ class Inbox:
         if step <= known:
             return
         self.late[rid] = self.late.get(rid, 0) + 1
+        self.heard_late += 1
         if self.late[rid] == 1:
             log(
                 self.role,

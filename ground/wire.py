@@ -361,6 +361,10 @@ class Plan(Message):
     phase_age: int = 0
     """Steps the robot has been in ``phase`` as of this step [steps]: among returning
     robots the one displaced first goes first (docs/method.md §7)."""
+    late: int = 0
+    """News of other robots' places this agent heard later than the reach's lag bound allows,
+    so far [messages] (its inbox's count, docs/method.md §6.7); 0 where nothing is measured
+    (every plan to every agent, ``fleet simulate``)."""
 
     @classmethod
     def _check(cls, d: dict[str, Any]) -> dict[str, Any]:
@@ -383,6 +387,7 @@ class Plan(Message):
             "rank": _int(d["rank"], "rank", 0, 2**31),
             "phase": _int(d["phase"], "phase", 0, 2),
             "phase_age": _int(d["phase_age"], "phase_age", 0, MAX_AGE),
+            "late": _int(d["late"], "late", 0, 2**31),
             "target": decode_array(d["target"], "target", (2,)),
             "goal": decode_array(d["goal"], "goal", (2,)),
             "status": _str(d["status"], "status"),
@@ -659,7 +664,8 @@ class Digest(Message):
 
     def plans(self) -> list[Plan]:
         """The relayed plans.  They carry no nominal plan (shape (0, 2)), status
-        ``"relayed"``, solve time 0 and ``tube_ok`` True: a neighbour does not use those."""
+        ``"relayed"``, solve time 0, ``tube_ok`` True and ``late`` 0: a neighbour does not use
+        those."""
         empty = np.zeros((0, 2))
         Ts, fp = self.Ts, self.footprint.tolist()
         out: list[Plan] = []
@@ -668,7 +674,7 @@ class Digest(Message):
                 Plan, robot=rid, step=k, t0=(k + 1) * Ts, Ts=Ts, committed=self.committed[i], nominal=empty,
                 footprint=fp[i], priority=self.priority[i], rank=self.rank[i], phase=self.phase[i],
                 phase_age=self.phase_age[i], target=self.target[i], goal=self.goal[i], status="relayed",
-                solve_time=0.0, tube_ok=True,
+                solve_time=0.0, tube_ok=True, late=0,
             )  # fmt: skip
             out.append(plan)
         return out

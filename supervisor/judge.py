@@ -83,7 +83,7 @@ class Judge:
         """Per robot, recent steps whose plan was reported not executed."""
         self.robot: dict[str, dict[str, Any]] = {
             r: {"solves": 0, "failures": 0, "tube_exits": 0, "status": {}, "solve_ms": [], "candidate": 0,
-                "braked": 0, "breaks": 0, "blind": 0, "link_losses": 0}
+                "braked": 0, "breaks": 0, "blind": 0, "link_losses": 0, "late": 0}
             for r in self.ids
         }  # fmt: skip
         self.extras: dict[str, dict[str, Any]] = {r: {} for r in self.ids}
@@ -172,6 +172,7 @@ class Judge:
             if made is None:
                 continue
             st = self.robot[a]
+            st["late"] = max(st["late"], made.late)  # the agent's count so far
             st["status"][made.status] = st["status"].get(made.status, 0) + 1
             if made.status == BLIND:  # no measurement, no QP: the robot braked
                 st["blind"] += 1
@@ -238,6 +239,7 @@ class Judge:
             "all_goals_reached": all(v["reached_goal"] for v in robots.values()),
             "footprint_radius_m": self.footprint,
             "unjudged_steps": self.skipped_steps,
+            "places_heard_late": sum(v["places_heard_late"] for v in robots.values()),
             "robots": robots,
         }
         steps_ms = [v for r in self.ids for v in self.extras[r].get("step_ms", [])]
@@ -265,6 +267,7 @@ class Judge:
             "steps_braked": st["braked"],
             "steps_blind": st["blind"],
             "link_losses": st["link_losses"],
+            "places_heard_late": st["late"],
             "reference_breaks": st["breaks"],
             "status_counts": dict(st["status"]),
             "max_reference_deviation_m": self.deviation(r),

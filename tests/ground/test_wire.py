@@ -46,7 +46,7 @@ def _plan(robot="r1", n=20):
         robot=robot, step=7, t0=0.8, Ts=0.1, committed=rng.uniform(-1, 1, (n, 2)),
         nominal=rng.uniform(-1, 1, (n + 1, 2)), footprint=0.134,
         priority=1, rank=2, phase=0, target=np.array([0.1, 0.2]), goal=np.array([0.5, -0.5]),
-        status="PROXQP_SOLVED", solve_time=2.5e-4, tube_ok=True,
+        status="PROXQP_SOLVED", solve_time=2.5e-4, tube_ok=True, late=3,
     )  # fmt: skip
 
 
@@ -163,6 +163,8 @@ BAD = [
     ("bool as number", lambda: _mutate(SAMPLES["pose"], y=True), Pose, "y"),
     ("string as number", lambda: _mutate(SAMPLES["pose"], theta="1.0"), Pose, "theta"),
     ("negative seq", lambda: _mutate(SAMPLES["pose"], seq=-1), Pose, "seq"),
+    ("plan: negative late count", lambda: _mutate(SAMPLES["plan"], late=-1), Plan, "late"),
+    ("plan: late count of a float", lambda: _mutate(SAMPLES["plan"], late=2.0), Plan, "late"),
     ("bad robot id", lambda: _mutate(SAMPLES["pose"], robot="r1/../x"), Pose, "robot"),
     ("NaN in array", lambda: _mutate(SAMPLES["goal"], goal=encode_array(np.array([np.nan, 0.0]))), Goal,
      "goal"),
@@ -257,7 +259,7 @@ def test_a_digest_relays_what_neighbours_use_of_each_plan():
     plans = [_plan("r1"), _plan("r2", n=20), _plan("r3")]
     plans[1] = Plan(**{
         **plans[1].__dict__, "committed": plans[1].committed + 0.5, "priority": 4, "rank": 1, "phase": 1,
-        "phase_age": 37,
+        "phase_age": 37, "late": 4,
     })  # fmt: skip
     plans[2] = Plan(**{**plans[2].__dict__, "step": 5, "t0": 0.6})  # late: relayed again in a later digest
     d = decode(Digest.of("tracker", 7, 0.1, 20, plans).encode(), Digest)
@@ -269,6 +271,7 @@ def test_a_digest_relays_what_neighbours_use_of_each_plan():
         assert (got.footprint, got.priority, got.rank, got.phase, got.phase_age) == (
             sent.footprint, sent.priority, sent.rank, sent.phase, sent.phase_age)  # fmt: skip
         assert got.t0 == pytest.approx(sent.t0) and got.status == "relayed"
+        assert got.late == 0  # the relaying agent's count is its own, not relayed
         # Made without the dataclass __init__ (ground.wire._checked), yet a whole Plan: with
         # a nominal plan (a relayed one has none) it passes the receiving checks as it is.
         whole = dataclasses.replace(got, nominal=sent.nominal)

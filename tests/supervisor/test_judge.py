@@ -113,6 +113,31 @@ def test_a_plan_whose_command_was_not_applied_is_not_what_is_checked() -> None:
         assert mon.robot["r2"]["solves"] == 2
 
 
+def test_the_summary_carries_each_agents_count_of_places_heard_late() -> None:
+    """Each plan carries its agent's count so far of places heard over the lag bound late; the
+    summary keeps each robot's newest (the largest: a count never falls, even if its plans
+    come out of order) and their sum."""
+    from pathlib import Path
+
+    from ground.scenario import load_scenario
+    from supervisor.judge import Judge
+
+    scn = load_scenario(Path(__file__).resolve().parents[2] / "scenarios" / "paper_two_robots.toml")
+
+    def plan(robot: str, step: int, late: int) -> Plan:
+        pl = _plan(robot, step)
+        ends = {"r1": (0.0, 0.0), "r2": (1.0, 0.0)}
+        return Plan(**{**pl.__dict__, "committed": np.tile(ends[robot], (20, 1)), "late": late})
+
+    mon = Judge(scn)
+    for k, (l1, l2) in enumerate([(0, 0), (2, 0), (5, 0), (4, 1)]):  # r1's 4 came after its 5
+        mon.truth({r: (0.0, 0.0, 0.0) for r in IDS})
+        mon.plans({"r1": plan("r1", k, l1), "r2": plan("r2", k, l2)})
+    s = mon.summary(False, 1.0)
+    assert s["robots"]["r1"]["places_heard_late"] == 5 and s["robots"]["r2"]["places_heard_late"] == 1
+    assert s["places_heard_late"] == 6
+
+
 def test_a_committed_reference_is_only_ever_extended() -> None:
     """``continues``: the next executed plan keeps every reference point its predecessor
     committed, with "stay put" over steps that were not executed; the judge counts a break

@@ -303,8 +303,9 @@ def test_plans_by_place_heard_later_than_the_lag_allows_are_counted_and_said(tmp
     """Coordinating within reach assumes that what an agent knows of a robot's place is at most
     PLACE_LAG steps old (docs/method.md §6.7).  r2's plans reach r1 three steps late (a fault
     plan, by place on lockstep): r1 says so once and counts them in its closing line; r2 and r3,
-    whose news came in time, count none.  The run stays safe: no collision, and the committed
-    references kept their separation."""
+    whose news came in time, count none.  The counts travel in the agents' plans to the run's
+    summary and its last line.  The run stays safe: no collision, and the committed references
+    kept their separation."""
     text = (SCENARIOS / "paper_three_robots.toml").read_text()
     scn = tmp_path / "three_10s.toml"
     scn.write_text(
@@ -326,6 +327,11 @@ def test_plans_by_place_heard_later_than_the_lag_allows_are_counted_and_said(tmp
     )
     assert set(late) == {"r1", "r2", "r3"}, res.stderr[-3000:]
     assert int(late["r1"]) >= 50 and late["r2"] == late["r3"] == "0", late
+    # The summary has r1's count as of its last plan: its closing count, less what came after.
+    in_summary = {r: v["places_heard_late"] for r, v in s["robots"].items()}
+    assert int(late["r1"]) - PLACE_LAG - 2 <= in_summary["r1"] <= int(late["r1"]), (in_summary, late)
+    assert in_summary["r2"] == in_summary["r3"] == 0 and s["places_heard_late"] == in_summary["r1"]
+    assert s["exchange"] == "place" and f"places heard late {in_summary['r1']}, " in res.stdout, res.stdout
     said = re.findall(r"\[agent r1\] news of (r\d)'s place at step (\d+) came at step (\d+)", res.stderr)
     # Three steps late by r1's own step; the clock's tick may be a step ahead of it when the
     # plan is released, and the lag counts against the newest step r1 knows of.
