@@ -50,14 +50,15 @@ from numpy.typing import NDArray
 
 from ground.geometry import Cell, parse_cell
 
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 """The version of every message's layout; a message of another version is rejected.
 
 2: :class:`Command` carries the shifted candidate and :class:`Tick` what the robot side applied;
 3: :class:`Command` carries the ancillary gain K, so the robot side needs no tube design;
 4: :class:`Goal` carries the goals given together with it (``batch``), checked in their place,
 and :class:`Script` lets a script hold the lockstep clock and end the run;
-5: :class:`Plan` and :class:`Digest` carry the age of each robot's precedence phase (``phase_age``)."""
+5: :class:`Plan` and :class:`Digest` carry the age of each robot's precedence phase (``phase_age``);
+6: :class:`Plan` carries its agent's count of places heard late (``late``)."""
 MAX_AGE = 2**31
 """Largest ``phase_age`` a plan carries [steps] (an agent's count stops there)."""
 MAX_PAYLOAD = 64 * 1024
