@@ -230,7 +230,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         )  # fmt: skip
     if summary is not None:
         # Plans by place assume news of places within the lag (docs/method.md §6.7): how often not.
-        late = summary.get("places_heard_late", 0) if summary.get("exchange") == "place" else None
+        by_place = summary.get("network", {}).get("exchange") == "place"
+        late = summary.get("places_heard_late", 0) if by_place else None
         print(
             f"{scn.name}: {summary['steps']} steps in {summary['wall_time_s']:.1f} s over "
             f"{len(summary.get('processes', {}))} processes ({clock}); "

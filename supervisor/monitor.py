@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from ground.bus import Inbox, open_session
-from ground.process import add_common_args, announce, exchange_for, log
+from ground.process import add_common_args, announce, log
 from ground.scenario import ConfigError, Scenario, load_scenario
 from ground.wire import Keys, LinkState, Plan, Pose, Tick, Truth
 from supervisor.judge import Judge
@@ -94,7 +94,6 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         summary = watch.summary(completed)
         summary["clock"] = args.clock
-        summary["exchange"] = exchange_for(args.clock, args.exchange)
         watch.trace().save(out / "trace.npz")
         watch.recorder.close()
         (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")

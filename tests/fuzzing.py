@@ -78,6 +78,7 @@ INTS: dict[str, dict[str, tuple[int, int]]] = {
         "rank": (0, 2**31),
         "phase": (0, 2),
         "phase_age": (0, 2**31),
+        "late": (0, 2**31),
     },
     "cmd": {"step": _SEQ},
     "goal": {},
@@ -253,7 +254,7 @@ def realistic(name: str, robot: str, rng: np.random.Generator) -> Message:
         robot=robot, step=k, t0=t + 0.1, Ts=0.1, committed=path[1:], nominal=path, footprint=0.134,
         priority=int(rng.integers(0, 3)), rank=int(rng.integers(0, 3)), phase=int(rng.integers(0, 3)),
         phase_age=int(rng.integers(0, 500)), target=path[-1].copy(), goal=rng.uniform(-0.7, 0.7, 2),
-        status="PROXQP_SOLVED", solve_time=u(1e-4, 2e-3), tube_ok=True,
+        status="PROXQP_SOLVED", solve_time=u(1e-4, 2e-3), tube_ok=True, late=int(rng.integers(0, 50)),
     )  # fmt: skip
 
 
