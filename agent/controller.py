@@ -43,9 +43,9 @@ from agent.navigator import Navigator
 from agent.qp import StepData, TubeQP
 from agent.sets import Array
 from agent.tube import TubeDesign
-from ground.model import ancillary_law
-from ground.scenario import AT_GOAL
-from ground.wire import BLIND, MAX_AGE
+from ground.model import ancillary_law, brake_input
+from ground.scenario import AT_GOAL, GOAL_MARGIN
+from ground.wire import BLIND, LINK_DOWN, MAX_AGE
 
 TUBE_TOL = 2e-5
 """Tolerance of the tube check x − x̂ ∈ Z [m, m/s]: twice ProxSuite's eps_abs,
@@ -88,6 +88,10 @@ class StepOutput:
     v_next: Array = field(default_factory=lambda: np.zeros((1, 2)))
     """... and its nominal inputs v̂_{t+1} … v̂_{t+N}, (N, 2) [m/s²]: what the robot side
     follows if the next commands miss their deadline (:func:`chain_input`)."""
+    hazards: Sequence[Hazard] = ()
+    """The discs the step kept clear of (:class:`Hazard`)."""
+    blocked: str = ""
+    """The robot whose static disc covers the goal this step, or "" (:meth:`TubeMPC.blocker`)."""
 
 
 @dataclass
@@ -101,6 +105,8 @@ class Counters:
     status_counts: dict[str, int] = field(default_factory=dict)
     holds: int = 0
     """Steps without a usable measurement: braked, nothing new committed (:meth:`TubeMPC.hold`)."""
+    uncontrolled: int = 0
+    """Steps held while the robot's radio link was down: nothing solved (:meth:`TubeMPC.hold`)."""
     row_overflows: int = 0
     """Steps with more coordination rows than the QP holds (the rest checked after the solve)."""
     ahead: int = 0
@@ -159,6 +165,11 @@ class TubeMPC:
         """States (ξ, ỹ, x̃) before each of the last SNAPSHOTS steps, oldest first."""
         self._candidate: tuple[tuple[Array, Array, Array], Array] | None = None
         """The candidate of the state (ξ, ỹ, x̃) it was made for (:meth:`candidate`)."""
+        self.parking: Array | None = None
+        """While a stopped robot's disc covers the goal (:meth:`_static`): the point nearest the goal
+        clear of the static discs, where the robot parks instead (2,) [m]; None otherwise."""
+        self._discs_changed = False
+        """The static discs the navigator plans around changed at this step (:meth:`_static`)."""
         self._ahead: tuple[Array, Array, str] | None = None
         """The next step's target chosen ahead (:meth:`steer_ahead`): the committed reference
         ỹ it was chosen for, the target (2,) [m] and the mode."""
@@ -196,7 +207,11 @@ class TubeMPC:
 
     @property
     def phase(self) -> int:
-        """Precedence phase (:data:`agent.coordination.UNDER_WAY` …)."""
+        """Precedence phase (:data:`agent.coordination.UNDER_WAY` …).  While a stopped robot covers
+        the goal, parked: the robot can get no closer than :attr:`parking`, where it waits as a
+        robot at its goal does, yielded to by nobody (docs/method.md §7)."""
+        if self.parking is not None:
+            return PARKED  # nobody waits on it, and it makes way for those that move
         d = float(np.linalg.norm(self.y_ref[-1] - self.goal))
         if not self.reached_once and d < AT_GOAL:
             self.reached_once = True
@@ -263,10 +278,11 @@ class TubeMPC:
 
         ``known`` are the other robots the navigator plans around and yields to.
         Shaping only: whatever it returns, the step's constraints are the same."""
+        goal = self.goal if self.parking is None else self.parking
         if not self.params.deadlock:
-            return self.goal, "goal"
+            return goal, "goal"
         self.nav.phase, self.nav.phase_age = self.phase, self.phase_age
-        return self.nav.target(self.last_point, self.goal, known)
+        return self.nav.target(self.last_point, goal, known)
 
     def steer_ahead(self, known: Sequence[NeighbourInfo]) -> None:
         """Choose the next step's target now, between steps.
@@ -310,8 +326,11 @@ class TubeMPC:
         hn, hb = hazard_halfplanes(c_i, self.r, hazards, p.epsilon)
         normals += hn
         bounds += hb
+        blocked = self._static(hazards, neighbours)
         ahead, self._ahead = self._ahead, None
-        if ahead is not None and ahead[0] is self.y_ref:  # replaced, never changed in place
+        if (
+            ahead is not None and ahead[0] is self.y_ref and not self._discs_changed
+        ):  # replaced, never changed in place
             self.target, mode = ahead[1], ahead[2]
             self.counters.ahead += 1
         else:
@@ -401,27 +420,54 @@ class TubeMPC:
             iterations=res.iterations,
             x_next=nxt[0:4].copy(),
             v_next=nxt[qp.iv].reshape(self.N, 2),
+            hazards=tuple(hazards),
+            blocked=blocked,
         )
 
-    def hold(self, x: Array) -> StepOutput:
-        """A step without a usable measurement: brake and hold, commit nothing new.
+    def _static(self, hazards: Sequence[Hazard], neighbours: Sequence[NeighbourInfo]) -> str:
+        """Hand the static discs (robots off their plans for good) to the navigator, which plans
+        around them, and say which one covers the goal, if any: the hazard row keeps ȳ at least
+        r_i + its radius from its centre, so a goal closer than that cannot be reached while that
+        robot stands there.  The navigator then steers to the nearest point it may park at, clear
+        of them and as far from the other robots' goals as goals must be apart (:attr:`parking`)."""
+        static = [(h.centre, self.r + h.radius) for h in hazards if h.static]
+        self._discs_changed = self.nav.set_discs(static)
+        for h in hazards:
+            if h.static and math.hypot(*(self.goal - h.centre)) < self.r + h.radius:
+                others = [*neighbours, *(x.info for x in hazards if x.info is not None)]
+                goals = [
+                    (nb.goal, self.r + nb.footprint + GOAL_MARGIN) for nb in others if nb.goal is not None
+                ]
+                self.parking = self.nav.clear_goal(self.goal, goals)
+                return h.id
+        self.parking = None
+        return ""
+
+    def hold(self, x: Array, status: str = BLIND) -> StepOutput:
+        """A step without a usable measurement, or whose commands cannot reach the robot: hold,
+        commit nothing new.
 
         ``x`` (4,) [m, m/s] is the predicted state.  No QP is built: the shifted
         candidate is applied and "stay put" appended (the references already
         committed stay valid for the neighbours), and the command brakes the
-        predicted velocity to rest at up to ``a_max`` per axis [m/s²]."""
+        predicted velocity to rest at up to ``a_max`` per axis [m/s²].  ``status`` says why:
+        :data:`~ground.wire.BLIND` (no poses) or :data:`~ground.wire.LINK_DOWN` (the robot's
+        radio link is down; it drives on uncontrolled, and is not counted as a blind hold)."""
         t0 = time.perf_counter()
         self._snapshot()
         p, qp = self.params, self.qp
         cand = self._take_candidate()
-        a = np.clip(-np.asarray(x)[[1, 3]] / p.Ts, -p.a_max, p.a_max)
-        self.counters.holds += 1
+        a = brake_input(np.asarray(x)[[1, 3]], p.Ts, p.a_max)
+        if status == LINK_DOWN:
+            self.counters.uncontrolled += 1
+        else:
+            self.counters.holds += 1
         self.k += 1
         self._age_phase()
         nxt = self.candidate()
         return StepOutput(
             a=a, committed=self.y_ref.copy(), plan=(qp.S_pos @ cand).reshape(self.N + 1, 2),
-            x_hat=cand[0:4].copy(), status=BLIND, fallback=True, solve_time=0.0,
+            x_hat=cand[0:4].copy(), status=status, fallback=True, solve_time=0.0,
             step_time=time.perf_counter() - t0, candidate_violation=0.0, tube_ok=True, min_slack=math.inf,
             target=np.asarray(self.target, dtype=float).copy(), mode="hold", x_next=nxt[0:4].copy(),
             v_next=nxt[qp.iv].reshape(self.N, 2),
@@ -469,12 +515,17 @@ class TubeMPC:
         robots pressed together would erode the separation by that much each
         step.  Every ȳ constraint is convex and holds exactly at c_i (stay
         put), so ``c_i + λ(ȳ − c_i)`` with the largest feasible λ ∈ [0, 1]
-        is exactly feasible and moves ȳ by at most the solver tolerance."""
+        is exactly feasible and moves ȳ by at most the solver tolerance.
+
+        The one exception is the row of a disc that comes on (``Hazard.drift``), which asks ȳ to
+        move away from where c_i is: pulling ȳ back towards c_i would undo that every step,
+        so such a row is left to the solver's tolerance and the pull serves the others."""
         c = self.last_point
         if data.coord_bounds.size == 0:
             return ybar
         at_y = data.coord_normals @ ybar
-        bad = at_y < data.coord_bounds
+        # (c_i meets the others exactly, up to rounding: a row it is on counts as met.)
+        bad = (at_y < data.coord_bounds) & (data.coord_normals @ c >= data.coord_bounds - 1e-9)
         if not np.any(bad):
             return ybar
         at_c = data.coord_normals[bad] @ c

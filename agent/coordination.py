@@ -29,6 +29,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from agent.sets import Array
+from ground.wire import OFF_PLAN
 
 SQRT2 = math.sqrt(2.0)
 
@@ -160,21 +161,40 @@ def obstacle_halfplanes(
 
 @dataclass
 class Hazard:
-    """A neighbour that agent i can no longer coordinate with, as a static disc.
+    """A neighbour that agent i can no longer coordinate with, as a disc.
 
     A neighbour whose plan of the previous step is missing (lost, late or a
     dead agent) cannot take its share of the split rule with fresh data, so i
     keeps its own appended point clear of every place the neighbour's can be:
     j's last known committed point grown by ε per step it may have moved
-    since (docs/method.md §6)."""
+    since, or, once its robot is off its plans for good, the bound of where it
+    can still go (docs/method.md §6.4)."""
 
     id: str
     centre: Array
-    """j's last known committed point ĉ_j (2,) [m], world frame."""
+    """The disc's centre (2,) [m], world frame: j's last known committed point ĉ_j, or where
+    the camera saw its controlled point."""
     radius: float
     """r_j plus the growth [m]: where j's appended point can be now."""
     info: NeighbourInfo | None = None
     """What j's last plan said (for the navigator's yielding; None for a dead robot)."""
+    kind: str = "stale"
+    """Why (:data:`ground.wire.DISC_KINDS`)."""
+    rest: bool = False
+    """The disc is about j's measured controlled point with its robot known to stand still
+    (its robot side braked it long enough to stop): it stays put."""
+    drift: float = 0.0
+    """How far [m] the disc's edge may come towards any point in one step, by its centre moving
+    and its radius growing: a robot that drives on uncontrolled moves up to its speed times Ts
+    a step (:meth:`agent.hazards.Guard._loose`); 0 for a disc whose robot is steered by a plan
+    or stops (its growth bounds where a plan or a brake can take it, not where it heads)."""
+
+    @property
+    def static(self) -> bool:
+        """j's robot is off its plans for good (:data:`ground.wire.OFF_PLAN`): the disc stays put, and holds
+        every place j's robot can still reach, so paths plan around it and a goal inside it
+        cannot be reached while it stands."""
+        return self.kind in OFF_PLAN
 
 
 def hazard_halfplanes(
@@ -182,11 +202,20 @@ def hazard_halfplanes(
 ) -> tuple[list[Array], list[float]]:
     """Rows ``nᵀ ȳ ≥ b`` keeping ȳ at least ``r_i + radius`` from each hazard's centre.
 
-    n is the unit vector from the centre to c_i and b = nᵀo + min(r_i + radius, ‖c_i − o‖):
+    n is the unit vector from the centre to c_i and b = nᵀo + min(r_i + radius, ‖c_i − o‖ + δ):
     when c_i is already closer than the margin (the hazard appeared or grew onto
-    it), the row asks only not to come closer.  Staying put always satisfies
-    it, so the QP stays feasible; if nothing else is safe the robot stays put
-    ("stops in its tube")."""
+    it), the row asks only not to come closer.  For a disc whose robot is steered by a
+    plan or stops, δ = 0: staying put always satisfies the row, so the QP stays feasible; if
+    nothing else is safe the robot stays put ("stops in its tube").
+
+    A robot driving on uncontrolled (``Hazard.drift`` > 0) comes on whatever this one does,
+    and "not closer" to where it is now would let the margin wear down by its step every step,
+    until it drives into a robot that stood still (measured: a crossing robot held at the edge
+    of the disc of one whose link was cut, the gap closing at the cut robot's speed until they
+    touched).  For it δ is its drift, capped at what the ε box lets ȳ move along n
+    (ε·(|n_x| + |n_y|)): a margin met at the step before (‖c_i − o‖ ≥ r_i + radius − drift)
+    is kept in full, and one already short is not shortened.  Near a wall the box may not
+    allow it; then the QP is infeasible and the controller's fallback is taken (and counted)."""
     normals: list[Array] = []
     bounds: list[float] = []
     for hz in hazards:
@@ -196,8 +225,9 @@ def hazard_halfplanes(
         if dist - need >= SQRT2 * eps * 1.01:
             continue  # implied by the ε box
         n = d / dist if dist > 1e-9 else np.array([1.0, 0.0])
+        push = min(hz.drift, 0.99 * eps * (abs(float(n[0])) + abs(float(n[1]))))
         normals.append(n)
-        bounds.append(float(n @ hz.centre + min(need, dist)))
+        bounds.append(float(n @ hz.centre + min(need, dist + push)))
     return normals, bounds
 
 

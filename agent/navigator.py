@@ -145,6 +145,17 @@ class GridPlanner:
         return goal
 
 
+PARKING_REACH = 0.6
+"""How far from a goal a stopped robot covers the navigator looks for a point to park at [m]."""
+_ANGLES = np.linspace(0.0, 2.0 * math.pi, 36, endpoint=False)
+PARKING_RINGS = np.vstack(
+    [
+        rho * np.column_stack([np.cos(_ANGLES), np.sin(_ANGLES)])
+        for rho in np.arange(0.02, PARKING_REACH, 0.02)
+    ]
+)
+"""Offsets (k, 2) [m] the navigator tries about a covered goal, ring by ring outwards."""
+
 CORRIDOR_MARGIN = 0.05
 """Extra half-width of the corridor of a robot that goes first, beyond r_i + r_j [m]."""
 
@@ -213,6 +224,8 @@ class Navigator:
     _rng: np.random.Generator | None = None
     _best_dist: float = math.inf
     _stall: int = 0
+    _discs: list[tuple[Array, float]] = field(default_factory=list)
+    _discs_key: tuple[tuple[float, float, float], ...] = ()
 
     def __post_init__(self) -> None:
         self._grid = GridPlanner(self.arena, self.footprint, self.obstacles)
@@ -234,10 +247,56 @@ class Navigator:
         self._best_dist = math.inf
         self._stall = 0
 
+    def set_discs(self, discs: Sequence[tuple[Array, float]]) -> bool:
+        """The static discs of robots off their plans for good (docs/method.md §6.4), each as
+        (centre (2,) [m], clearance [m]: r_i plus the disc's radius, within which ȳ may not
+        come).  Paths go around them as around a static obstacle, and a goal inside one gives way
+        to a point to park at (:meth:`clear_goal`).  Returns whether they
+        changed since the last call; a change replans at the next waypoint."""
+        key = tuple((round(float(c[0]), 4), round(float(c[1]), 4), round(float(r), 4)) for c, r in discs)
+        if key == self._discs_key:
+            return False
+        self._discs_key = key
+        self._discs = [(np.array(c, dtype=float), float(r)) for c, r in discs]
+        self._since_plan = self.replan_steps  # replan at the next waypoint
+        return True
+
+    def clear_goal(self, goal: Array, goals: Sequence[tuple[Array, float]] = ()) -> Array:
+        """``goal`` (2,) [m] itself if no static disc (:meth:`set_discs`) covers it; else the point
+        nearest it, on rings 2 cm apart up to :data:`PARKING_REACH`, where the robot may park:
+        clear of every disc by 1 cm, clear of the walls and obstacles (the grid's free cells),
+        inside the walls by the footprint, and as far from every other robot's goal as goals must
+        be apart (``goals``: (goal (2,) [m], the distance [m]), so that each can still park at its
+        own).  The goal itself if there is none (shaping only: the constraints keep ȳ out of
+        the discs)."""
+        p = np.array(goal, dtype=float)
+        if not any(math.hypot(*(p - c)) < r for c, r in self._discs):
+            return p
+        g = self._grid
+        assert g is not None
+        P = p + PARKING_RINGS
+        xmin, xmax, ymin, ymax = self.arena
+        r = self.footprint
+        ok = (P[:, 0] >= xmin + r) & (P[:, 0] <= xmax - r) & (P[:, 1] >= ymin + r) & (P[:, 1] <= ymax - r)
+        ix = np.clip(((P[:, 0] - g.x0) / g.hx).astype(int), 0, g.nx - 1)
+        iy = np.clip(((P[:, 1] - g.y0) / g.hy).astype(int), 0, g.ny - 1)
+        ok &= g.static[ix * g.ny + iy] < GridPlanner.BLOCKED
+        for c, rad in self._discs:
+            ok &= np.hypot(P[:, 0] - c[0], P[:, 1] - c[1]) >= rad + 0.01
+        for q, apart in goals:
+            ok &= np.hypot(P[:, 0] - q[0], P[:, 1] - q[1]) >= apart
+        if not np.any(ok):
+            return p
+        return P[int(np.argmax(ok))].copy()  # the rings go outwards: the first is the nearest
+
     def _plan(self, c: Array, goal: Array, neighbours: Sequence[NeighbourInfo]) -> None:
         g = self._grid
         assert g is not None
         cost = g.static.copy()
+        if self._discs:  # robots off their plans for good: as static obstacles
+            g.add_discs(
+                cost, [c for c, _ in self._discs], [r for _, r in self._discs], [g.BLOCKED] * len(self._discs)
+            )
         me = self.precedence
         pts, radii, extras = [], [], []
         for nb in neighbours:
@@ -345,6 +404,8 @@ class Navigator:
         ix = np.clip(((P[:, 0] - g.x0) / g.hx).astype(int), 0, g.nx - 1)
         iy = np.clip(((P[:, 1] - g.y0) / g.hy).astype(int), 0, g.ny - 1)
         free = g.static[ix * g.ny + iy] < GridPlanner.BLOCKED
+        for q, r in self._discs:
+            free &= np.hypot(P[:, 0] - q[0], P[:, 1] - q[1]) >= r
         if not np.any(free):
             return c.copy()
         score = 0.5 * radius * self._ring_norm + 0.2 * np.hypot(wp[0] - P[:, 0], wp[1] - P[:, 1])

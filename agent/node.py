@@ -36,6 +36,8 @@ then ends the agent only once the tracker is gone too (its liveliness token).
 from __future__ import annotations
 
 import argparse
+import os
+import signal
 import sys
 import threading
 import time
@@ -48,7 +50,7 @@ import numpy as np
 
 from agent.controller import SNAPSHOTS, TUBE_TOL, StepOutput, TubeMPC
 from agent.coordination import PLACE_LAG, NeighbourInfo, place_side
-from agent.hazards import Guard, in_reach, loose, neighbour_of
+from agent.hazards import Guard, in_reach, loose, neighbour_of, starts_of
 from agent.messages import command_message, plan_message
 from agent.tube import validated_design
 from ground.bus import Inbox, goal_reply, open_session, publisher, put, remember_steps
@@ -65,6 +67,7 @@ from ground.model import ancillary_law, chain_input
 from ground.process import add_common_args, announce, exchange_for, fault_plan, log
 from ground.scenario import ConfigError, Scenario, goal_problem, load_scenario
 from ground.wire import (
+    LINK_DOWN,
     Command,
     Digest,
     Goal,
@@ -83,6 +86,8 @@ REJOIN_GAP = 5
 """Steps missed (0.5 s at Ts = 0.1 s, the link watchdog's time) after which an agent re-initialises."""
 TRACKER = "tracker"
 """The tracker's id: the sender of the ticks, and its liveliness token in a scripted run."""
+UNMEASURED_SAY = 50
+"""Steps without a state to plan from after which the agent says why it cannot join (once)."""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -165,13 +170,7 @@ class Agent:
         )
         self.inbox = self.link.inbox
         self.others = [r for r in ids if r != me]
-        self.starts = {
-            r.id: NeighbourInfo(
-                id=r.id, last_point=controlled_point(r.start, p.lookahead), footprint=design.footprint,
-                priority=r.priority, rank=i, target=np.array(r.goal, float), goal=np.array(r.goal, float),
-            )
-            for i, r in enumerate(scn.robots)
-        }  # fmt: skip
+        self.starts = starts_of(scn.robots, p.lookahead, design.footprint)
         self.guard = Guard(me, p, partial(log, self.role), side=self.side)
         self.k = 0
         self.joined = False
@@ -213,6 +212,10 @@ class Agent:
         the agent predicts what its robot side applied when it followed one's candidate."""
         self.places: dict[str, Whereabouts] = {}
         """The place tokens as :meth:`_reach` last read them (with plans by place)."""
+        self.unmeasured = 0
+        """Steps in a row without a state to plan from (not joined, nothing measured)."""
+        self.cut_since: int | None = None
+        """The step this robot's radio link was found down at, while it is (None: up)."""
         self.link.go_live(self._answer_goal)
 
     def step(self) -> int | None:
@@ -251,6 +254,7 @@ class Agent:
             if tick.stop:
                 return 0
         k = self.k
+        self._die_if_planned(k)
         if k == 0 and self.lockstep:
             # The tracker started the clock once every agent was live in its view; wait
             # (bounded) until they are in this agent's view too.  Otherwise who counts as live
@@ -259,7 +263,8 @@ class Agent:
             inbox.wait(lambda: set(self.others) <= inbox.live, args.timeout)
         x, answered = self._measure(k)
         ahead, self.ahead = self.ahead, None
-        if ahead is not None and ahead.step == k and self.joined:
+        cut = self._cut(k)
+        if ahead is not None and ahead.step == k and self.joined and not cut:
             # The plan of step k, made during step k − 1: apply it to x, the ancillary law,
             # unless Zenoh's callback did so already, on the same pose and odometry.
             assert x is not None
@@ -272,26 +277,43 @@ class Agent:
         fresh, live, goal, reach = self._neighbours(k, tick.braked)
         if x is None:
             # Not joined yet and nothing measured: keep the robot still, commit nothing.
-            self.link.pub_cmd.put(Command(robot=self.me, step=k, ax=0.0, ay=0.0).encode())
+            self.link.pub_cmd.put(Command(robot=self.me, step=k, ax=0.0, ay=0.0, brake=True).encode())
+            self.unmeasured += 1
+            if self.unmeasured == UNMEASURED_SAY:
+                with inbox.cond:
+                    pose, odom = inbox.get(Pose, self.me), inbox.get(Odom, self.me)
+                newest = {
+                    t.TYPE: "none" if m is None else f"step {m.seq}" for t, m in ((Pose, pose), (Odom, odom))
+                }
+                log(
+                    self.role,
+                    f"step {k}: cannot join: no pose and odometry of its own of the same step for "
+                    f"{self.unmeasured} steps (newest {newest}); the robot is held braked",
+                )
             self.k += 1
             return None
+        self.unmeasured = 0
         self._goals(goal, k)
         ctrl, blind = self.ctrl, self.blind > args.blind_steps
-        nbs, hazards = self.guard.classify(
-            k, reach, fresh, self.last, live, self.starts, set(tick.braked), self.links, self.places
-        )
-        out = ctrl.hold(x) if blind else ctrl.step(x, nbs, hazards)
+        nbs, hazards = self._classify(k, reach, fresh, live, tick.braked)
+        if cut:
+            out = ctrl.hold(x, LINK_DOWN)
+        else:
+            out = ctrl.hold(x) if blind else ctrl.step(x, nbs, hazards)
         self.ran.append(k)
         self.x_est, self.a_prev = x, out.a
         # The command first: the robot side waits on it; the neighbours need the plan only at
         # the next step, which cannot start before the robots move.
-        self.link.pub_cmd.put(command_message(self.me, k, ctrl, out, follow=not blind).encode())
+        command = command_message(self.me, k, ctrl, out, follow=not (blind or cut), brake=blind)
+        self.link.pub_cmd.put(command.encode())
         self.link.put_plan(plan_message(self.me, k, ctrl, out, self.inbox.heard_late))
         inbox.prune(k - 2)
-        if self.dc:
+        if self.dc and not cut:
             self.sent[k] = out
             self._plan_ahead(k, x, out.a)
-        elif self.link.drained and not blind:  # realtime relay, not holding blind: off the deadline's path
+        elif self.link.drained and not (
+            blind or cut
+        ):  # realtime relay, not holding blind: off the deadline's path
             _steer_ahead(ctrl, inbox, self.others, self.withdrawn, self.last, self.starts, k, self.p.Ts)
         self.k += 1
         return None
@@ -316,9 +338,10 @@ class Agent:
         self._take_report(k + 1, outcome)
         for s in [s for s in self.sent if s < k - 2 * SNAPSHOTS]:
             del self.sent[s]
-        if not self.joined or self.blind >= max(args.blind_steps, 1):
+        if not self.joined or self.blind >= max(args.blind_steps, 1) or self._cut(k + 1):
             # Braked: it starts again where it stands.  Without poses for --blind-steps steps:
-            # the next step decides, on its own pose or its absence, to plan or to hold.
+            # the next step decides, on its own pose or its absence, to plan or to hold.  Its
+            # robot's link down: nothing it plans reaches the robot (the next step holds).
             return
         j = outcome.executed(me)
         if j is not None:  # the robot side followed the candidate of its command of step j
@@ -332,9 +355,7 @@ class Agent:
         fresh, live, goal, reach = self._neighbours(k + 1, outcome.braked)
         self._goals(goal, k + 1)
         x_next = np.asarray(design.A @ x + design.B @ a)
-        nbs, hazards = self.guard.classify(
-            k + 1, reach, fresh, self.last, live, self.starts, set(outcome.braked), self.links, self.places
-        )
+        nbs, hazards = self._classify(k + 1, reach, fresh, live, outcome.braked)
         out = ctrl.step(x_next, nbs, hazards, predicted=True)
         self.ran.append(k + 1)
         self.ahead = ready = _Ready(
@@ -347,6 +368,53 @@ class Agent:
         self.link.put_plan(
             replace(plan_message(me, k + 1, ctrl, out, self.inbox.heard_late), tube_ok=tube_ok)
         )
+
+    def _classify(
+        self, k: int, reach: list[str], fresh: dict[str, Plan | None], live: set[str], braked: Collection[str]
+    ) -> tuple[list[NeighbourInfo], list[Any]]:
+        """The neighbours and the discs of step k (:meth:`Guard.classify`), with the camera poses
+        of the robots off their plans that it watches; then subscribe to the poses of those it
+        watches now, and drop the rest."""
+        guard, inbox, lookahead = self.guard, self.inbox, self.p.lookahead
+        poses: dict[str, tuple[int, np.ndarray]] = {}
+        with inbox.cond:
+            for j in self.link.poses:
+                pose = inbox.get(Pose, j)
+                if pose is not None:
+                    poses[j] = (pose.seq, controlled_point((pose.x, pose.y, pose.theta), lookahead))
+        out = guard.classify(
+            k, reach, fresh, self.last, live, self.starts, set(braked), self.links, self.places, poses
+        )
+        self.link.watch_poses(guard.watched)
+        return out
+
+    def _die_if_planned(self, k: int) -> None:
+        """The fault plan kills this agent at step k or before (:attr:`ground.faults.FaultPlan.kills`):
+        it sends itself SIGKILL, a hard death, before anything of step k goes out."""
+        plan = self.inbox.faults
+        if plan is not None and plan.kills.get(self.me, k + 1) <= k:
+            log(self.role, f"step {k}: killed by the fault plan (SIGKILL)")
+            sys.stderr.flush()
+            os.kill(os.getpid(), signal.SIGKILL)
+
+    def _cut(self, k: int) -> bool:
+        """This robot's radio link is down, or back with the robot held until the step its agent
+        starts again at (:class:`~ground.wire.LinkState`): the robot drives on (or stands)
+        uncontrolled, and nothing planned now reaches it.  Logged once an outage."""
+        with self.inbox.cond:
+            ls = self.inbox.get(LinkState, self.me)
+        cut = ls is not None and (not ls.up or k < ls.back)
+        if cut and self.cut_since is None:
+            self.cut_since = k
+            log(
+                self.role,
+                f"step {k}: the robot's link is down; it drives on uncontrolled, so nothing is "
+                "solved until the link is back",
+            )
+        elif not cut and self.cut_since is not None:
+            log(self.role, f"step {k}: the robot's link is back after {k - self.cut_since} steps")
+            self.cut_since = None
+        return cut
 
     def _told(self, k: int) -> bool:
         """The outcome of step k is in, or lost (fault plan); on the realtime clock, or the next
@@ -378,6 +446,7 @@ class Agent:
         inbox, me = self.inbox, self.me
         if not _tick_is(inbox, ready.step):
             return
+        self._die_if_planned(ready.step)
         if self.link.drained:  # realtime: its pose and odometry came just before the tick
             inbox.drain()  # (their own calls of this find the tick and may answer first)
             if self.ready is not ready:
@@ -423,6 +492,14 @@ class Agent:
         for j, done in (*report.fallback.items(), *report.braked.items()):
             if j in self.withdrawn:  # the plans of steps done + 1 … k − 1 were never executed
                 remember_steps(self.withdrawn[j], range(done + 1, k), k)  # only the recent part is kept
+                had = self.last.get(j)
+                if had is not None and had.step > done:
+                    # The newest plan known of j was never executed: its robot kept to the one
+                    # before, which a disc about j must be about (docs/method.md §6.4).
+                    with self.inbox.cond:
+                        executed_plan = self.inbox.newest(Plan, j, done, self.withdrawn[j])
+                    if executed_plan is not None:
+                        self.last[j] = executed_plan
         executed = report.executed(me)
         if self.joined and executed is not None:
             # The robot side did not apply the command of step k − 1.  It followed the shifted
@@ -454,11 +531,14 @@ class Agent:
 
         Realtime: the wait may not hold up this step's deadline; a withheld message (fault plan)
         is never waited for.  In realtime relay, own pose and odometry come just before the
-        tick on one link and are drained (:class:`_Link`)."""
+        tick on one link and are drained (:class:`_Link`).  On either clock the wait ends when
+        a later tick comes: the clock went on without this agent (it is joining again, and
+        what was published while its session was being made again never reaches it), so the
+        pose of step k will not come, and the next step's will."""
         args, inbox, me = self.args, self.inbox, self.me
         limit = args.timeout if self.lockstep else 0.3 * self.p.Ts
         wait = inbox.drain_until if self.link.drained else inbox.wait
-        wait(partial(_measured, inbox, me, k), limit)
+        wait(lambda: _measured(inbox, me, k) or _tick_at_least(inbox, k + 1), limit)
         with inbox.cond:
             answered, self.ready, self.answered = self.answered, None, None
             pose = inbox.get(Pose, me, k)
@@ -479,8 +559,11 @@ class Agent:
         # (Mesh plans come by callback, which wakes a wait; only relay drains while it waits.)
         wait = inbox.drain_until if self.link.drained and self.relay else inbox.wait
         if k > 0:
-            plans_in = _relayed if self.relay else _plans_in
-            wait(partial(plans_in, inbox, self._reach(braked), k - 1), limit)
+            plans_in = partial(_relayed if self.relay else _plans_in, inbox, self._reach(braked), k - 1)
+            # Tick k + 1 cannot go out before this agent's command of step k unless the clock no
+            # longer waits for it (it is joining again): then the fleet has moved on, and plans of
+            # step k − 1 missed while it rejoined will never come.
+            wait(lambda: plans_in() or _tick_at_least(inbox, k + 1), limit)
         with inbox.cond:
             # Plans of step k − 1, and of no later step than each robot side executed
             # (Tick.fallback, Tick.braked): a plan whose command missed its deadline was never
@@ -615,7 +698,8 @@ class Agent:
         log(
             self.role,
             f"stopped after {self.k} steps: {c.solves} solves, {c.fallbacks} fallbacks, "
-            f"{c.tube_exits} tube exits, {c.holds} blind holds, {c.unapplied} steps on the candidate, "
+            f"{c.tube_exits} tube exits, {c.holds} blind holds, {c.uncontrolled} steps held with the link "
+            f"down, {c.unapplied} steps on the candidate, "
             f"{c.ahead} steered ahead, {self.on_arrival} commands put on arrival "
             f"({self.by_callback} by Zenoh's callback), "
             f"{guard.hazard_steps} neighbour-steps kept clear of as static discs ({guard.transitions} "
@@ -683,6 +767,8 @@ class _Link:
         self.block: dict[Cell, Any] = {}
         """The subscriptions to the plans of the groups of cells about :attr:`cell`'s (:data:`GROUP`)."""
         self.place_token: Any = None
+        self.poses: dict[str, Any] = {}
+        """The subscriptions to other robots' camera poses, by robot (:meth:`watch_poses`)."""
         if side is not None:
             self.subs.append(inbox.watch_places(self.session, PLACE_LAG))
             assert start is not None
@@ -728,6 +814,16 @@ class _Link:
                 self.session, self.keys.near("*", cell_name(c)), Plan, keep=True, remote=True
             )
 
+    def watch_poses(self, robots: Collection[str]) -> None:
+        """Take the camera poses of exactly ``robots`` (the robots off their plans whose stand
+        the guard waits for, :attr:`agent.hazards.Guard.watched`): declared when a robot comes,
+        undeclared when it goes, so a fleet with no fault takes none."""
+        for j in [j for j in self.poses if j not in robots]:
+            self.inbox.unsubscribe(self.poses.pop(j))
+        for j in robots:
+            if j not in self.poses:
+                self.poses[j] = self.inbox.subscribe(self.session, self.keys.pose(j), Pose)
+
     def go_live(self, on_goal: Any) -> None:
         """Answer goal queries with ``on_goal``, then declare the liveliness token."""
         args, keys, me = self.args, self.keys, self.me
@@ -743,7 +839,7 @@ class _Link:
         for token in (self.token, self.place_token):
             if token is not None:
                 token.undeclare()
-        for sub in [*self.subs, *self.block.values()]:
+        for sub in [*self.subs, *self.block.values(), *self.poses.values()]:
             sub.undeclare()
         self.session.close()
 
@@ -778,10 +874,23 @@ def _measured(inbox: Inbox, me: str, k: int) -> bool:
 
 
 def _plans_in(inbox: Inbox, others: list[str], step: int) -> bool:
-    """Every live neighbour's plan of ``step`` has arrived (or was withheld by the fault plan)."""
+    """Every live neighbour's plan of ``step`` has arrived (or was withheld by the fault plan), of
+    the neighbours that planned the step before.  One silent since (hung, or alive again after
+    a stop and joining) is not waited for: it is kept clear of as a disc until its plans come, as
+    on the realtime clock, and a lockstep fleet does not stall a timeout a step on it."""
     return all(
-        inbox.get(Plan, j, step) is not None or inbox.lost(Plan, j, step) for j in others if j in inbox.live
+        inbox.get(Plan, j, step) is not None or inbox.lost(Plan, j, step)
+        for j in others
+        if j in inbox.live and _planning(inbox, j, step)
     )
+
+
+def _planning(inbox: Inbox, j: str, step: int) -> bool:
+    """Robot j's agent made (or the fault plan withheld) a plan of ``step`` − 1 or later."""
+    if step <= 0:
+        return True
+    newest = inbox.get(Plan, j)
+    return (newest is not None and newest.step >= step - 1) or inbox.lost(Plan, j, step - 1)
 
 
 def _relayed(inbox: Inbox, others: list[str], step: int) -> bool:

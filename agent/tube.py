@@ -16,6 +16,8 @@ Synthesised objects:
   mRPI set of the lag ``e = x̃ − Eỹ``: ``e⁺ = (A − BK_r)(e − EΔ)``, Δ ∈ B_ε.
 * ρ = max ‖C(Z ⊕ Ψ) ⊕ Δ^z‖₂ + ε + √2·η (η the pose noise on the controlled
   point, per axis) and the footprint r = robot_radius + ℓ + ρ.
+* The wheel speed bound √2·v_max·√(1 + (L/2ℓ)²) of the look-ahead inner loop
+  inside X, checked against the wheels' limit (:func:`wheel_speed_bound`).
 
 Every admissibility failure is reported with the bound that fails and by
 how much (:class:`InadmissibleDesign`).
@@ -95,6 +97,46 @@ def max_norm_2d(h_of: object, count: int = 7200) -> float:
     return float(np.max(h_of(d))) / float(np.cos(np.pi / count))  # type: ignore[operator]
 
 
+def wheel_speed_bound(p: ControllerParams) -> float:
+    """Largest wheel rim speed [m/s] the look-ahead inner loop asks while |vx|, |vy| ≤ v_max.
+
+    The loop commands v = cos θ·q_x + sin θ·q_y and ℓω = −sin θ·q_x + cos θ·q_y
+    (docs/method.md §1.2), so a wheel turns at v ± ωL/2, which over all headings is at most
+    ‖q‖·√(1 + (L/2ℓ)²), reached at some heading; with ‖q‖ ≤ √2·v_max at a corner of X's
+    velocity box the bound is √2·v_max·√(1 + (L/2ℓ)²), L = ``p.wheel.axle``.  Infinite for
+    ℓ ≤ 0: the axle centre cannot move sideways."""
+    if p.lookahead <= 0:
+        return math.inf
+    return math.sqrt(2.0) * p.v_max * math.hypot(1.0, p.wheel.axle / (2.0 * p.lookahead))
+
+
+def _wheel_failure(p: ControllerParams, asked: float) -> str:
+    """One line for a design whose wheel speed bound ``asked`` [m/s] exceeds the wheels' limit:
+    the amount, the smallest ℓ for this v_max (if any) and the largest v_max for this ℓ, each
+    rounded towards passing at four significant digits."""
+    limit = p.wheel.max_wheel_speed
+    L = p.wheel.axle
+    v_top = _round_sig(limit / (math.sqrt(2.0) * math.hypot(1.0, L / (2.0 * p.lookahead))), up=False)
+    ratio = limit / (math.sqrt(2.0) * p.v_max)  # √(1 + (L/2ℓ)²) may be at most this
+    if ratio > 1.0:
+        ell_min = _round_sig(L / (2.0 * math.sqrt(ratio**2 - 1.0)))
+        fix = f"the smallest lookahead for this v_max is {ell_min:.4g} m"
+    else:
+        fix = f"no lookahead is enough for this v_max (√2·v_max ≥ {limit:.4g} m/s)"
+    return (
+        f"wheel speed bound √2·v_max·√(1 + (L/2ℓ)²) = {asked:.4g} m/s (v_max {p.v_max:.4g} m/s, "
+        f"lookahead ℓ {p.lookahead:.4g} m, axle L {L:.4g} m) exceeds the wheels' limit {limit:.4g} m/s "
+        f"by {asked - limit:.4g} m/s, so the wheels saturate inside X: {fix}, "
+        f"the largest v_max for this lookahead {v_top:.4g} m/s"
+    )
+
+
+def _round_sig(x: float, up: bool = True) -> float:
+    """``x`` > 0 rounded up (or down) to four significant digits."""
+    step = 10.0 ** (math.floor(math.log10(x)) - 3)
+    return (math.ceil(x / step) if up else math.floor(x / step)) * step
+
+
 @dataclass
 class TubeDesign:
     """A synthesised, admissibility-checked tube design.  See module docstring."""
@@ -129,6 +171,9 @@ class TubeDesign:
     """Footprint radius r_i = robot_radius + ℓ + ρ [m]."""
     noise_margin: float = 0.0
     """√2·``point_noise``: the part of ρ that covers the pose measurement error [m]."""
+    wheel_speed: float = 0.0
+    """:func:`wheel_speed_bound`: the largest wheel speed the inner loop asks inside X [m/s]
+    (infinite for ℓ = 0); admissible only up to ``params.wheel.max_wheel_speed``."""
     failures: list[str] = field(default_factory=list)
 
     @property
@@ -192,6 +237,8 @@ class TubeDesign:
             "noise_margin_m": self.noise_margin,
             "rho_m": self.rho,
             "footprint_radius_m": self.footprint,
+            "wheel_speed_m_s": self.wheel_speed,
+            "wheel_limit_m_s": self.params.wheel.max_wheel_speed,
             "admissible": self.admissible,
             "failures": list(self.failures),
         }
@@ -205,7 +252,20 @@ def synthesize(
     ``arena`` = (xmin, xmax, ymin, ymax) [m]; without it the arena checks are
     skipped.  Raises :class:`agent.sets.SetComputationError` if an mRPI
     approximation does not converge.  Admissibility failures are collected in
-    ``TubeDesign.failures`` (call :func:`require_admissible` to raise)."""
+    ``TubeDesign.failures`` (call :func:`require_admissible` to raise).
+
+    X̂ and Û must be non-empty and "stay put" admissible (docs/method.md §4) on both velocity
+    axes (x, y) and both input rows (ax, ay), each failure naming its axis or input: h_Ψ(e_v) ≤
+    (1 − m)·X̂'s bound on that velocity axis and h_{K_r(Ψ⊕EB_ε)}(e_j) ≤ (1 − m)·Û's bound on
+    that input row, m = ``admissibility_margin``.
+
+    The wheels (docs/method.md §1.2): :func:`wheel_speed_bound` must not exceed
+    ``params.wheel.max_wheel_speed``, with no margin: a wheel may run at its limit
+    (``epuck_link/unicycle.py`` ``wheel_speeds`` scales only above it).  The margin m is for
+    the QP, where borderline designs made solves fail; the wheel bound enters no QP and is
+    exact, the worst case over X's velocity box and every heading.  The compact controller of
+    scenarios/swap_16, swap_32 and swap_48.toml passes it by 0.38 %, which a 5 % margin would
+    refuse."""
     p = params
     A, B, C = double_integrator(p.Ts)
     E = position_to_rest_state()
@@ -242,34 +302,43 @@ def synthesize(
 
     failures: list[str] = []
     margin = p.admissibility_margin
-    for j, name in ((1, "velocity"), (3, "velocity")):
+    # One velocity axis and one input row per coordinate; the weights may differ between them
+    # (ref_Q, K_Q), so every check below runs on both.
+    axes = (("x", 1), ("y", 3))  # (axis, velocity index in x = [px, vx, py, vy])
+    inputs = ("ax", "ay")  # rows of u = [ax, ay]
+    for axis, j in axes:
         if x_bound[j] <= 0:
             failures.append(
-                f"X̂ {name} bound is empty: v_max {p.v_max:.4g} m/s − h_Z {hZ[j]:.4g} m/s "
+                f"X̂ {axis} velocity bound is empty: v_max {p.v_max:.4g} m/s − h_Z {hZ[j]:.4g} m/s "
                 f"= {x_bound[j]:.4g} m/s"
             )
-            break
-    for j in range(1):
+    for j, name in enumerate(inputs):
         if u_hat[j] <= 0:
             failures.append(
-                f"Û is empty: a_max {p.a_max:.4g} m/s² − h_KZ {KZ[j]:.4g} m/s² = {u_hat[j]:.4g} m/s²"
+                f"Û {name} bound is empty: a_max {p.a_max:.4g} m/s² − h_KZ {KZ[j]:.4g} m/s² "
+                f"= {u_hat[j]:.4g} m/s²"
             )
     # Stay-put admissibility (docs/method.md §4): Ψ's velocity part in X̂ and the
-    # reference input K_r(Ψ ⊕ E B_ε) in Û, both strictly, with a margin.
-    hPsi_v = float(Pr.Z.support(eye[1]))
+    # reference input K_r(Ψ ⊕ E B_ε) in Û, per axis and per input row, both strictly, with a margin.
+    hPsi = Pr.Z.support(eye)  # (4,)
     ref_u = Pr.Z.minkowski_sum(Zonotope(np.zeros(4), E @ np.diag([eps, eps])))
-    hKrPsi = float(np.abs(K_r @ ref_u.G).sum(axis=1).max())
-    if x_bound[1] > 0 and hPsi_v > (1.0 - margin) * x_bound[1]:
-        failures.append(
-            f"epsilon {eps:.4g} m too large: reference lag velocity h_Ψ {hPsi_v:.4g} m/s exceeds "
-            f"{1 - margin:.2f}·X̂ velocity bound {x_bound[1]:.4g} m/s "
-            f"by {hPsi_v - (1 - margin) * x_bound[1]:.4g} m/s"
-        )
-    if u_hat[0] > 0 and hKrPsi > (1.0 - margin) * u_hat[0]:
-        failures.append(
-            f"epsilon {eps:.4g} m too large: reference input h_{{K_r(Ψ⊕EB_ε)}} {hKrPsi:.4g} m/s² exceeds "
-            f"{1 - margin:.2f}·Û bound {u_hat[0]:.4g} m/s² by {hKrPsi - (1 - margin) * u_hat[0]:.4g} m/s²"
-        )
+    hKrPsi = np.abs(K_r @ ref_u.G).sum(axis=1)  # h_{K_r(Ψ⊕EB_ε)}(e_j) per input row (2,)
+    for axis, j in axes:
+        allowed = (1.0 - margin) * x_bound[j]
+        if x_bound[j] > 0 and hPsi[j] > allowed:
+            failures.append(
+                f"epsilon {eps:.4g} m too large: {axis} reference lag velocity h_Ψ {hPsi[j]:.4g} m/s "
+                f"exceeds {1 - margin:.2f}·X̂ {axis} velocity bound {x_bound[j]:.4g} m/s "
+                f"by {hPsi[j] - allowed:.4g} m/s"
+            )
+    for j, name in enumerate(inputs):
+        allowed = (1.0 - margin) * u_hat[j]
+        if u_hat[j] > 0 and hKrPsi[j] > allowed:
+            failures.append(
+                f"epsilon {eps:.4g} m too large: reference input {name} h_{{K_r(Ψ⊕EB_ε)}} "
+                f"{hKrPsi[j]:.4g} m/s² exceeds {1 - margin:.2f}·Û {name} bound {u_hat[j]:.4g} m/s² "
+                f"by {hKrPsi[j] - allowed:.4g} m/s²"
+            )
     # Pose noise: the measured state's one-step error includes n⁺ − n, up to
     # 2·point_noise per position axis, which W must cover with room to spare.
     if 2.0 * p.point_noise > (1.0 - margin) * p.W[0]:
@@ -277,13 +346,19 @@ def synthesize(
             f"pose_noise too large: it moves the measured point by up to 2·{p.point_noise:.4g} m per "
             f"step, more than {1 - margin:.2f}·W position bound {p.W[0]:.4g} m"
         )
+    wheel = wheel_speed_bound(p)
     if p.lookahead <= 0:
         # docs/method.md §1: ℓ = 0 runs the paper's eq. 3, regularised at v_min; from rest its
         # one-step error is far outside any usable W, so the tube would promise what it cannot.
+        # The wheel bound below is infinite then (a sideways velocity of p needs an infinite ω):
+        # this one line says both.
         failures.append(
-            "lookahead 0 m: the inner loop is then the paper's eq. 3, singular at rest, and its "
-            "one-step error is not bounded by W; use a look-ahead point (e.g. lookahead = 0.04)"
+            f"lookahead {p.lookahead:g} m: the inner loop is then the paper's eq. 3, singular at rest, "
+            "whose one-step error is not bounded by W, and the wheel speed bound "
+            "√2·v_max·√(1 + (L/2ℓ)²) is infinite; use a look-ahead point (e.g. lookahead = 0.04)"
         )
+    elif wheel > p.wheel.max_wheel_speed:
+        failures.append(_wheel_failure(p, wheel))
     if p.delta <= 0:
         failures.append(f"delta {p.delta} m must be > 0")
     if eps <= 0:
@@ -323,6 +398,7 @@ def synthesize(
         rho=rho,
         footprint=footprint,
         noise_margin=noise_margin,
+        wheel_speed=wheel,
         failures=failures,
     )
 

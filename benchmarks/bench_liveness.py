@@ -11,7 +11,12 @@ prints a table per family and overall:
 * collisions (the count must be 0);
 * time to goal p50 / p90 [s] over all robots;
 * path efficiency: each robot's path length over the straight line from its start to its
-  goal (robots that do not move are left out), p50 / p90.
+  goal (robots that do not move are left out), p50 / p90, measured to the moment it arrived
+  (``path_to_arrival_m``: the hold at the goal left out);
+* time over floor: each robot's time to goal over the least time the model's bounds allow
+  in free space (``travel_floor_s``, :func:`ground.model.travel_floor`), p50 / p90;
+* well-formed: scenes whose layout forces no order of arrival (no robot's way home walled in
+  by the others' goals: ``ground.scenario.forced_order``, docs/method.md §7).
 
 A scene the loader refuses counts as refused, not run.  The JSON (``--json``, default
 ``out/bench/liveness.json``) holds every scene's figures.
@@ -35,19 +40,21 @@ from typing import Any
 
 import numpy as np
 
-SCHEMA = 1
+SCHEMA = 3
 
 
-def one(seed: int, ahead: bool = True) -> dict[str, Any]:
-    """Run hard scene ``seed`` in this process, with every plan made a step ahead as ``fleet
-    simulate`` makes them by default (``ahead`` False: each from its measurement); its figures."""
+def one(seed: int, ahead: bool = True, families: tuple[str, ...] | None = None) -> dict[str, Any]:
+    """Run hard scene ``seed`` of ``families`` (default :data:`fleet.scenes.HARD_FAMILIES`) in
+    this process, with every plan made a step ahead as ``fleet simulate`` makes them by default
+    (``ahead`` False: each from its measurement); its figures."""
     from agent.tube import validated_design
-    from fleet.scenes import hard_scene
+    from fleet.scenes import HARD_FAMILIES, hard_scene
     from fleet.simulate import run
     from ground.scenario import ConfigError, parse_scenario
 
-    data = hard_scene(seed)
-    family = data["name"].split("_")[2]
+    fams = families or HARD_FAMILIES
+    data = hard_scene(seed, fams)
+    family = fams[seed % len(fams)]
     t0 = time.perf_counter()
     try:
         scn = parse_scenario(data)
@@ -57,7 +64,9 @@ def one(seed: int, ahead: bool = True) -> dict[str, Any]:
     res = run(scn, design=design, ahead=ahead)
     s = res.summary()
     robots = s["robots"]
-    eff = [r["path_length_m"] / r["straight_line_m"] for r in robots.values() if r["straight_line_m"] > 0.05]
+    moved = [r for r in robots.values() if r["straight_line_m"] > 0.05 and r["reached_goal"]]
+    eff = [r["path_to_arrival_m"] / r["straight_line_m"] for r in moved]
+    slow = [r["time_to_goal_s"] / r["travel_floor_s"] for r in moved if r["travel_floor_s"] > 0]
     return {
         "seed": seed,
         "name": data["name"],
@@ -68,6 +77,8 @@ def one(seed: int, ahead: bool = True) -> dict[str, Any]:
         "steps": s["steps"],
         "time_to_goal_s": [r["time_to_goal_s"] for r in robots.values() if r["time_to_goal_s"] is not None],
         "path_efficiency": eff,
+        "time_over_floor": slow,
+        "forced": len(s["forced_order"] or {}),
         "wall_s": time.perf_counter() - t0,
     }
 
@@ -81,7 +92,8 @@ def table(rows: list[dict[str, Any]]) -> list[str]:
     fams = sorted({r["family"] for r in rows})
     out = [
         f"{'family':<10} {'scenes':>6} {'refused':>7} {'complete':>9} {'robots home':>12} {'collisions':>10} "
-        f"{'ttg p50':>8} {'ttg p90':>8} {'path p50':>8} {'path p90':>8}"
+        f"{'ttg p50':>8} {'ttg p90':>8} {'path p50':>8} {'path p90':>8} "
+        f"{'t/floor p50':>11} {'t/floor p90':>11} {'well-formed':>11}"
     ]
     for fam in [*fams, "all"]:
         sel = [r for r in rows if fam in ("all", r["family"])]
@@ -91,11 +103,14 @@ def table(rows: list[dict[str, Any]]) -> list[str]:
         total = sum(r["robots"] for r in ran)
         ttg = [t for r in ran for t in r["time_to_goal_s"]]
         eff = [e for r in ran for e in r["path_efficiency"]]
+        slow = [e for r in ran for e in r["time_over_floor"]]
         rate = f"{100.0 * done / len(ran):.1f} %" if ran else "–"
+        formed = sum(r["forced"] == 0 for r in ran)
         out.append(
             f"{fam:<10} {len(sel):>6} {len(sel) - len(ran):>7} {rate:>9} {f'{home}/{total}':>12} "
             f"{sum(r['collisions'] for r in ran):>10} {_pct(ttg, 50):>8} {_pct(ttg, 90):>8} "
-            f"{_pct(eff, 50):>8} {_pct(eff, 90):>8}"
+            f"{_pct(eff, 50):>8} {_pct(eff, 90):>8} {_pct(slow, 50):>11} {_pct(slow, 90):>11} "
+            f"{f'{formed}/{len(ran)}':>11}"
         )
     return out
 
@@ -106,7 +121,12 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     json_path = Path(args.json) if args.json else out / "liveness.json"
     order = "" if getattr(args, "delay_compensation", True) else ", each plan from its measurement"
-    print(f"fleet bench --liveness: {n} hard scenes from seed {seed0}, {jobs} processes{order}", flush=True)
+    from fleet.scenes import HARD_FAMILIES
+
+    fams = tuple(getattr(args, "families", None) or HARD_FAMILIES)
+    named = ", ".join(fams)
+    print(f"fleet bench --liveness: {n} scenes from seed {seed0} ({named}), {jobs} processes{order}",
+          flush=True)  # fmt: skip
     print(f"machine: nproc {os.cpu_count()}, {platform.processor() or platform.machine()}; "
           f"python {platform.python_version()}; load average {os.getloadavg()}", flush=True)  # fmt: skip
     t0 = time.perf_counter()
@@ -117,8 +137,9 @@ def run(args: argparse.Namespace) -> int:
         sys.path.insert(0, here)  # spawn hands the workers this process's sys.path
     ctx = multiprocessing.get_context("spawn")
     ahead = bool(getattr(args, "delay_compensation", True))
+    work = functools.partial(one, ahead=ahead, families=fams)
     with ctx.Pool(jobs) as pool:
-        for r in pool.imap_unordered(functools.partial(one, ahead=ahead), range(seed0, seed0 + n)):
+        for r in pool.imap_unordered(work, range(seed0, seed0 + n)):
             rows.append(r)
             what = r.get("refused") or f"{r['home']}/{r['robots']} home, {r['collisions']} collisions"
             print(f"  [{len(rows):>3}/{n}] {r['name']}: {what}", flush=True)
@@ -136,13 +157,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--liveness", type=int, default=105, metavar="N", help="scenes to run (default 105)")
     ap.add_argument("--seed", type=int, default=0, help="first scene seed (default 0)")
     ap.add_argument("--jobs", type=int, default=2, help="processes (default 2)")
+    ap.add_argument("--families", default="hard", help="hard, layout, all, or a comma-separated list")
     ap.add_argument("--out", default="out/bench", help="directory of the JSON (default out/bench)")
     ap.add_argument("--json", default=None, help="where the JSON goes (default OUT/liveness.json)")
     ap.add_argument(
         "--delay-compensation", action=argparse.BooleanOptionalAction, default=True,
         help="plans made a step ahead, as fleet simulate makes them by default",
     )  # fmt: skip
-    return run(ap.parse_args(argv))
+    args = ap.parse_args(argv)
+    from fleet.bench import families
+
+    try:
+        args.families = families(args.families)
+    except ValueError as e:
+        print(f"bench_liveness: error: --families: {e}", file=sys.stderr)
+        return 2
+    return run(args)
 
 
 if __name__ == "__main__":

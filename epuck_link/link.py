@@ -42,6 +42,14 @@ the agent takes the same candidate and its neighbours skip the plan that was nev
 executed.  Until the first tick (no clock on the network) commands are applied as
 they come.
 
+A starved link (docs/lab.md, "Robots that drive on"): the robot keeps the last wheel speeds it
+received, so an inner-loop step that starts more than :data:`LATE` after it was due first sends
+zero speed, before it takes any news or computes new speeds; the robot then stands while the
+link catches up, and the step goes on as usual.  Such steps are counted and logged once per
+episode.  While the loop is stalled, the port's thread sends zero instead of speeds asked more
+than a period and :data:`LATE` ago (:class:`~epuck_link.transport.RobotPort` ``stale_after``).
+A process that gets no CPU at all sends nothing: only a deadman in the firmware stops its robot.
+
 Watchdog: without a command fresher than ``--watchdog`` seconds, or once the
 agent's liveliness token ``fleet/F/alive/R`` is gone, the wheels get zero speed
 (and ``q`` is reset to zero) until a new command arrives from a live agent.
@@ -63,6 +71,7 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -88,6 +97,20 @@ from ground.geometry import measured_state
 from ground.process import DEADLINE, add_common_args, announce, fault_plan, log
 from ground.scenario import ConfigError, RobotSpec, Scenario, load_scenario
 from ground.wire import Command, Keys, LinkState, Odom, Pose, Tick
+
+LATE = 1.0 / MIN_RATE
+"""An inner-loop step that starts more than this after it was due sends zero speed first [s].
+
+The robot holds the last wheel speeds it received until the next ones come, and the design
+budgets that hold at one period of the slowest inner loop allowed, 1/MIN_RATE = 20 ms: about
+12 % of W, while holding them a whole step costs about half of W (docs/design.md, "Where the
+inner loop runs").  A step later than one more such period has let the robot hold its speeds
+longer than that budget at any ``--rate`` (twice it at 50 Hz): they no longer follow the step's
+acceleration, they are stale, and the robot must not drive on at them while the link catches
+up, which on an overloaded machine can take seconds (a robot whose radio link was fine has
+driven 0.145 m past a wall that way).  20 ms (Ts/5 for the presets) is also well above the
+wake-up jitter of a loop that keeps up, a few ms, so a link that keeps up does not brake.  A
+loop woken by news before its step is due is not late."""
 
 MEASURED_KEPT = 4
 """Camera poses whose measured state is kept for the deadline's rule (:attr:`Link.measured`)."""
@@ -183,8 +206,11 @@ class Link:
 
     def __init__(
         self, args: argparse.Namespace, scn: Scenario, spec: RobotSpec, link: LinkSpec, session: Any,
-        keys: Keys,
+        keys: Keys, clock: Callable[[], float] = time.monotonic,
     ):  # fmt: skip
+        self.clock = clock
+        """The inner loop's time [s]: when its steps are due, and how late they start.  On
+        time.monotonic's timescale, which the inbox dates arrivals on (tests shift it)."""
         self.me = me = spec.id
         self.role = role = f"epuck_link {me}"
         p = self.p = scn.controller
@@ -256,6 +282,8 @@ class Link:
             period=self.period,
             on_lost=on_lost,
             resume_by_hand=True,
+            stale_after=self.period + LATE,  # the loop asks every period while it is on time
+            clock=clock,
         )
         self.seen_cmd: Command | None = None
         self.seen_tick: Tick | None = None
@@ -273,14 +301,24 @@ class Link:
         """Link-down announcements sent."""
         self.off_steps = {CANDIDATE: 0, BRAKED: 0}
         self.due = self.last = 0.0
-        """When the next inner-loop step is due, and when the last one ran [s, time.monotonic]."""
+        """When the next inner-loop step is due, and when the last one ran [s, :attr:`clock`]."""
+        self.wheels = (0, 0)
+        """The wheel speeds [steps/s] the inner loop last asked the port for."""
+        self.late_steps = 0
+        """Inner-loop steps that started over :data:`LATE` late with the wheels turning: braked first."""
+        self.late_episodes = 0
+        """Runs of such steps (each logged once)."""
+        self.late_worst = 0.0
+        """The latest of them [s after it was due]."""
+        self.late_episode = False
+        """The last inner-loop step started late: the episode goes on until one is on time."""
 
     def start(self) -> None:
         """Open the port to the robot (and start the emulator's truth): the inner loop runs from now."""
         self.port.start()
         if self.truth is not None:
             self.truth.start()
-        self.due = self.last = time.monotonic()
+        self.due = self.last = self.clock()
 
     def run_once(self, stopping: threading.Event) -> None:
         """Wait for news or the next inner-loop tick, take what came, drive one inner-loop step."""
@@ -295,8 +333,11 @@ class Link:
                 or bool(inbox.history.get(poses))
             )
 
-        inbox.wait(news, max(0.0, min(self.due, judge.wake_at) - time.monotonic()))
-        now = time.monotonic()
+        inbox.wait(news, max(0.0, min(self.due, judge.wake_at) - self.clock()))
+        now = self.clock()
+        late = now - self.due > LATE
+        if late and self.wheels != (0, 0):  # first of all: the robot is driving on at stale speeds
+            self._brake_late(now)
         with inbox.cond:
             cmd = inbox.get(Command, me)
             tick = inbox.get(Tick, "tracker")
@@ -357,7 +398,28 @@ class Link:
         for what, acc, report in decisions:
             self._decided(now, what, acc, report)
         if now >= self.due:
+            if not late:
+                self.late_episode = False
             self._drive(now, live)
+
+    def _brake_late(self, now: float) -> None:
+        """This inner-loop step started more than :data:`LATE` after it was due (the process was
+        starved), and the robot drives on at the speeds it was last sent, now stale: zero speed
+        goes to the robot before anything else, ahead of the speeds this step will ask for
+        (:meth:`RobotPort.brake`).  The step then takes its news and decides as usual (the
+        deadline's rule is unchanged), so the robot stands only while the link catches up."""
+        self.port.brake()
+        late = now - self.due
+        self.late_steps += 1
+        self.late_worst = max(self.late_worst, late)
+        if not self.late_episode:
+            self.late_episode = True
+            self.late_episodes += 1
+            log(
+                self.role,
+                f"inner loop {late:.3f} s late (the link process was starved): zero speed first; the "
+                f"robot drove on at {self.wheels} steps/s meanwhile",
+            )
 
     def _hold_extended(self) -> None:
         """Before the agent has started again after an outage, a missed tick can lengthen the
@@ -403,7 +465,7 @@ class Link:
         """Apply and report one decision of the deadline's rule."""
         self.decided_at = now
         self.pub_applied.put(report.encode())
-        self.braked = what == BRAKED
+        self.braked = acc is None  # braked, or its agent asks for the brake (Command.brake)
         if acc is not None:
             self.a = np.asarray(acc, dtype=float)
         if what in self.off_steps:
@@ -434,6 +496,7 @@ class Link:
             self.drive.halt()
             left = right = 0
         self.port.command(left, right)
+        self.wheels = (left, right)
         self.due += self.period
         if self.due < now:  # behind (a loaded machine): no burst of catch-up steps
             self.due = now + self.period
@@ -449,7 +512,9 @@ class Link:
             f"stops, {self.odoms} odometry "
             f"messages, {self.drive.saturated_steps} saturated steps, "
             f"{self.off_steps[CANDIDATE]} steps on the candidate, {self.off_steps[BRAKED]} braked by the "
-            f"deadline's rule, {self.inbox.rejects.total} rejected payloads",
+            f"deadline's rule, {self.late_steps} late inner-loop steps braked first ({self.late_episodes} "
+            f"episodes, the latest {self.late_worst:.3f} s late), {self.port.stale} stalls braked by the "
+            f"port, {self.inbox.rejects.total} rejected payloads",
         )
         for s in self.subs:
             s.undeclare()

@@ -56,7 +56,8 @@ class RobotSide:
         self, k: int, cmd: Command | None, newest: Command | None, alive: bool, x: np.ndarray | None
     ) -> tuple[str, np.ndarray | None, str]:
         """What to apply over step k: (COMMAND | CANDIDATE | HELD | BRAKED, the acceleration
-        (2,) [m/s²] or None when BRAKED (the caller brakes the plant), why it is braked).
+        (2,) [m/s²] or None when the caller brakes the plant: BRAKED, or a COMMAND whose agent
+        asks for the brake (:attr:`~ground.wire.Command.brake`); why it is braked).
 
         ``cmd`` is the agent's command of step k if it came in time, ``newest`` its latest
         command of any step, ``alive`` whether its liveliness token is up, ``x`` (4,)
@@ -74,6 +75,10 @@ class RobotSide:
                 None,
                 "its agent is not alive" if not alive else f"no command for {self.watchdog} s",
             )
+        if cmd is not None and cmd.brake:  # its agent holds: the robot side's own brake
+            self.applied, self.following = cmd, False
+            self.last_a = np.zeros(2)
+            return COMMAND, None, "its agent holds without poses"
         if cmd is not None:
             self.applied, self.following = cmd, True
             self.last_a = np.array([cmd.ax, cmd.ay])

@@ -369,13 +369,55 @@ class LoopTransport(Transport):
 
 
 class CutTransport(Transport):
-    """Another transport whose radio link is cut while ``cut()`` holds (a fault plan's
-    ``links``): opening, writing and reading fail as on a dropped link.  The robot behind it
-    gets nothing, so it drives on at the speeds it last received."""
+    """Another transport whose radio link is cut while ``cut()`` holds (a fault plan's ``links``),
+    as a real radio link is cut: nothing tells the link process, which learns of the loss only
+    when a reply does not come within its timeout.
 
-    def __init__(self, inner: Transport, cut: Callable[[], bool]):
+    * **Writes return.**  pyserial's ``Serial.write`` (3.5, ``serial/serialposix.py`` L612–664)
+      returns once ``os.write`` has put the bytes in the tty, and an RFCOMM tty queues them on its
+      channel and returns (Linux ``net/bluetooth/rfcomm/tty.c``, ``rfcomm_tty_write``); the
+      Bluetooth controller then retransmits them until the link supervision timeout ends the
+      connection (20 s by default: Core specification, HCI ``Write_Link_Supervision_Timeout``,
+      default 0x7D00 slots of 0.625 ms).  A TCP ``send`` returns once the bytes are in the
+      socket's send buffer, and Linux retransmits them for many minutes (``tcp_retries2``, 15 by
+      default, at least 924.6 s: ``Documentation/networking/ip-sysctl.rst``).  At one short
+      command an exchange, neither buffer fills before the reply timeout, so no write blocks or
+      fails either.  Here the bytes are held (:attr:`writes_in_cut` counts the writes): the robot
+      receives nothing and drives on at the speeds it last received, and should the link come
+      back before the port gives up, they arrive late, as retransmitted bytes do.
+    * **Reads time out.**  Nothing comes from the robot: pyserial's ``read`` returns what arrived
+      once its timeout has passed (``serialposix.py`` L553–602), and a socket's ``recv`` raises
+      ``timeout``.  A read that starts in a cut waits its whole timeout on :attr:`clock` and gets
+      nothing, unless the cut ends first (the held bytes then go through and the read goes on
+      with the time left).  Even the e-puck2's stream, which the robot sends whether or not a
+      command came, does not get through.  So the codecs raise "no reply" one reply timeout
+      after the command, and :class:`RobotPort` declares the loss then, as on a real link:
+      never at the write.
+    * **Opening fails** while the link is cut (the robot is out of reach), and closing drops what
+      is held (the connection is gone).
+
+    ``clock`` [s] and ``sleep`` are the time the reads wait on (tests pass a simulated clock)."""
+
+    POLL = 0.01
+    """How often a read waiting in a cut looks whether it has ended [s]."""
+
+    def __init__(
+        self,
+        inner: Transport,
+        cut: Callable[[], bool],
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+    ):
         self.inner = inner
         self.cut = cut
+        self.clock = clock
+        self.sleep = sleep
+        self._held = bytearray()
+        """Bytes written while cut, not yet through."""
+        self.writes_in_cut = 0
+        """Writes made while the link was cut (they returned, as on a dead radio link)."""
+        self.silent_reads = 0
+        """Reads that waited out their timeout in a cut."""
 
     @property
     def name(self) -> str:
@@ -385,28 +427,60 @@ class CutTransport(Transport):
     def is_open(self) -> bool:
         return self.inner.is_open
 
-    def _check(self) -> None:
-        if self.cut():
-            raise LinkError(f"{self.name}: link cut (fault plan)")
-
     def open(self) -> None:
-        self._check()
+        if self.cut():
+            raise LinkError(f"{self.name}: link cut (fault plan): robot out of reach")
+        self._held.clear()
         self.inner.open()
 
     def close(self) -> None:
+        self._held.clear()
         self.inner.close()
 
     def write(self, data: bytes) -> None:
-        self._check()
+        if not self.inner.is_open:
+            raise LinkError(f"{self.name}: not open")
+        if self.cut():
+            self._held += data
+            self.writes_in_cut += 1
+            return
+        self._release()
         self.inner.write(data)
 
     def read_exact(self, n: int, timeout: float) -> bytes:
-        self._check()
-        return self.inner.read_exact(n, timeout)
+        start = self.clock()
+        if self._silent(timeout):
+            raise LinkError(
+                f"{self.name}: no reply: 0 of {n} bytes within {timeout:.2f} s; link cut (fault plan)"
+            )
+        return self.inner.read_exact(n, max(0.0, start + timeout - self.clock()))
 
     def read_some(self, n: int, timeout: float) -> bytes:
-        self._check()
-        return self.inner.read_some(n, timeout)
+        start = self.clock()
+        if self._silent(timeout):
+            return b""
+        return self.inner.read_some(n, max(0.0, start + timeout - self.clock()))
+
+    def _silent(self, timeout: float) -> bool:
+        """Wait while the link is cut, ``timeout`` [s] at most: True if it still is (nothing came);
+        else the held bytes go through and False."""
+        deadline = self.clock() + timeout
+        while self.cut():
+            left = deadline - self.clock()
+            if left <= 0:
+                if timeout > 0:
+                    self.silent_reads += 1
+                return True
+            self.sleep(min(left, self.POLL))
+        self._release()
+        return False
+
+    def _release(self) -> None:
+        """The link is up again: what was written in the cut reaches the robot now, late."""
+        if self._held:
+            data = bytes(self._held)
+            self._held.clear()
+            self.inner.write(data)
 
 
 def _one_line(e: BaseException) -> str:
@@ -417,11 +491,18 @@ def _one_line(e: BaseException) -> str:
 class Codec(ABC):
     """How wheel speeds and encoder reads travel over one kind of link."""
 
-    def __init__(self, reply_timeout: float = 0.25, limit: int = P.MAX_STEPS_V1):
+    def __init__(
+        self,
+        reply_timeout: float = 0.25,
+        limit: int = P.MAX_STEPS_V1,
+        clock: Callable[[], float] = time.monotonic,
+    ):
         self.reply_timeout = reply_timeout
         """Longest wait for a reply [s]."""
         self.limit = limit
         """Speed clamp [steps/s]."""
+        self.clock = clock
+        """The time a reply is waited for on [s] (the transport's; tests pass a simulated one)."""
 
     @abstractmethod
     def exchange(self, t: Transport, left: int, right: int) -> tuple[int, int]:
@@ -463,8 +544,13 @@ class WifiCodec(Codec):
     MAX_READS = 256
     """Reads in one exchange at most: draining ends even if the stream never pauses."""
 
-    def __init__(self, reply_timeout: float = 0.25, limit: int = P.MAX_STEPS_V2):
-        super().__init__(reply_timeout, limit)
+    def __init__(
+        self,
+        reply_timeout: float = 0.25,
+        limit: int = P.MAX_STEPS_V2,
+        clock: Callable[[], float] = time.monotonic,
+    ):
+        super().__init__(reply_timeout, limit, clock)
         self._rx = bytearray()
         self.packets = 0
         """Complete packets received."""
@@ -476,13 +562,13 @@ class WifiCodec(Codec):
 
     def exchange(self, t: Transport, left: int, right: int) -> tuple[int, int]:
         t.write(P.wifi_command(left, right, request=P.REQUEST_SENSORS, limit=self.limit))
-        deadline = time.monotonic() + self.reply_timeout
+        deadline = self.clock() + self.reply_timeout
         newest: tuple[int, int] | None = None
         try:
             for _ in range(self.MAX_READS):
                 chunk = t.read_some(1 << 16, 0.0)  # everything there now
                 if not chunk and newest is None:
-                    left_s = deadline - time.monotonic()
+                    left_s = deadline - self.clock()
                     if left_s <= 0:
                         raise LinkError(f"{t.name}: no sensor packet within {self.reply_timeout:.2f} s")
                     chunk = t.read_some(1 << 16, left_s)
@@ -550,7 +636,10 @@ class RobotPort:
     backoff from ``backoff[0]`` doubling up to ``backoff[1]`` [s], and the
     re-opening is logged too; the first command after it is zero speed, whatever was asked
     meanwhile (the robot has no deadman: it drove on at its last speeds while the link was
-    down).  :meth:`close` sends zero speed and closes."""
+    down).  :meth:`brake` has zero speed sent before any speeds asked after it.  With
+    ``stale_after`` [s], speeds asked longer ago than that are stale: the thread sends zero
+    instead of sending them again, until new ones are asked (:attr:`stale`).  :meth:`close`
+    sends zero speed and closes."""
 
     def __init__(
         self,
@@ -562,8 +651,21 @@ class RobotPort:
         backoff: tuple[float, float] = (0.1, 2.0),
         on_lost: Callable[[tuple[tuple[int, int], ...]], None] | None = None,
         resume_by_hand: bool = False,
+        stale_after: float | None = None,
+        clock: Callable[[], float] = time.monotonic,
     ):
         self.transport = transport
+        self.stale_after = stale_after
+        """Speeds asked longer ago than this [s] are not sent again: zero is (None: never).  The
+        robot keeps the last speeds it received; whoever asks for them (the link's inner loop)
+        asks again every ``period`` while it runs on time, so speeds this old were left behind by
+        a loop that stalled, and the robot must not drive on at them."""
+        self.clock = clock
+        """The time :meth:`command` calls are dated on [s]."""
+        self.stale = 0
+        """Episodes of stale speeds replaced by zero (each logged once)."""
+        self.brakes = 0
+        """Zero-speed exchanges sent for :meth:`brake`."""
         self.resume_by_hand = resume_by_hand
         """After a re-open, send zero speed until :meth:`resume` is called (else only once): the
         caller first learns the robot stopped, then lets commands through again."""
@@ -585,7 +687,11 @@ class RobotPort:
         self.reads = 0
         self._cond = threading.Condition()
         self._speeds = (0, 0)
+        self._asked: float | None = None
+        """When :meth:`command` or :meth:`brake` was last called [s, :attr:`clock`] (None: never)."""
         self._new = False
+        self._brake = False
+        """Zero speed is sent next, before any speeds asked since (:meth:`brake`)."""
         self._held = False
         """Zero speed is sent, whatever is asked, until :meth:`resume` (``resume_by_hand``)."""
         self._stop = False
@@ -599,7 +705,18 @@ class RobotPort:
         """Send these wheel speeds [steps/s] next (the latest call wins)."""
         with self._cond:
             self._speeds = (left, right)
+            self._asked = self.clock()
             self._new = True
+            self._cond.notify_all()
+
+    def brake(self) -> None:
+        """Send zero speed next, before whatever :meth:`command` asks after this call: a later
+        command does not replace the brake, it follows it.  Speeds asked before are dropped."""
+        with self._cond:
+            self._speeds = (0, 0)
+            self._asked = self.clock()
+            self._brake = True
+            self._new = False
             self._cond.notify_all()
 
     def resume(self) -> None:
@@ -619,6 +736,7 @@ class RobotPort:
         attempts = 0
         fresh = True
         zero = False
+        stale = False
         while True:
             with self._cond:
                 if self._stop:
@@ -649,12 +767,27 @@ class RobotPort:
                     self._held = zero and self.resume_by_hand
                 down_since, attempts, fresh = None, 0, True
                 self.codec.reset()
+            news = None
             with self._cond:
-                self._cond.wait_for(lambda: self._new or self._stop, self.period)
+                self._cond.wait_for(lambda: self._new or self._brake or self._stop, self.period)
                 if self._stop:
                     return
-                left, right = (0, 0) if zero or self._held else self._speeds
-                self._new = False
+                if self._brake:  # zero first; what was asked since goes next
+                    self._brake = False
+                    left, right = 0, 0
+                    self.brakes += 1
+                else:
+                    was_stale, stale = stale, self._stale()
+                    if stale and not was_stale:
+                        self.stale += 1
+                        news = (
+                            f"no wheel speeds asked for {self.clock() - (self._asked or 0.0):.3f} s (the "
+                            f"caller stalled): zero speed, not the stale {self._speeds}, until it asks again"
+                        )
+                    left, right = (0, 0) if zero or self._held or stale else self._speeds
+                    self._new = False
+            if news is not None:
+                self.report(news)
             zero = False
             try:
                 raw = self.codec.exchange(self.transport, left, right)
@@ -675,6 +808,13 @@ class RobotPort:
             except Exception as e:  # a publishing failure must not end the link thread
                 self.report(f"encoder reading not handled: {type(e).__name__}: {_one_line(e)}")
             fresh = False
+
+    def _stale(self) -> bool:
+        """The speeds to send were asked longer than ``stale_after`` ago, and are not zero (lock held)."""
+        asked = self._asked
+        if self.stale_after is None or asked is None or self._speeds == (0, 0):
+            return False
+        return self.clock() - asked > self.stale_after
 
     def _lost(self, possible: tuple[tuple[int, int], ...]) -> None:
         if self.on_lost is None:

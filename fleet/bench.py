@@ -105,6 +105,12 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     ap.add_argument("--jobs", type=int, default=2, help="--liveness: processes (default 2)")
     ap.add_argument(
+        "--families", default="hard", metavar="LIST",
+        help="--liveness: the scene families, in turn by seed: 'hard' (the seven of "
+        "fleet.scenes.HARD_FAMILIES, the default), 'layout' (fleet.scenes.LAYOUT_FAMILIES: pockets, "
+        "single-file lanes, rooms, concentric rings, clutter), 'all', or a comma-separated list",
+    )  # fmt: skip
+    ap.add_argument(
         "--cpu", type=int, default=None, metavar="N",
         help="instead: the marginal CPU per robot-step of fleet run (defaults, --ros2, "
         "--no-delay-compensation, place, relay + star) against fleet simulate on the swap of N "
@@ -123,12 +129,36 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     )  # fmt: skip
 
 
+def families(text: str) -> tuple[str, ...]:
+    """``--families``: 'hard', 'layout', 'all' or a comma-separated list of family names, as a
+    tuple; ValueError names an unknown one."""
+    from fleet.scenes import HARD_FAMILIES, LAYOUT_FAMILIES
+
+    named = {"hard": HARD_FAMILIES, "layout": LAYOUT_FAMILIES, "all": HARD_FAMILIES + LAYOUT_FAMILIES}
+    if text in named:
+        return named[text]
+    out = tuple(f.strip() for f in text.split(",") if f.strip())
+    known = HARD_FAMILIES + LAYOUT_FAMILIES
+    for f in out:
+        if f not in known:
+            raise ValueError(f"unknown family {f!r} (families: {', '.join(known)})")
+    if not out:
+        raise ValueError("no family named")
+    return out
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the benchmark; 0 once the tables are printed and the JSON written, 2 without a harness."""
     for name in ("liveness", "jobs"):
         value = getattr(args, name)
         if value is not None and value < 1:
             print(f"fleet: error: --{name}: must be at least 1, got {value}", file=sys.stderr)
+            return 2
+    if args.liveness is not None:
+        try:
+            args.families = families(args.families)
+        except ValueError as e:
+            print(f"fleet: error: --families: {e}", file=sys.stderr)
             return 2
     chosen = [f for f, on in (("--liveness", args.liveness is not None), ("--cpu", args.cpu is not None),
                               ("--targets", args.targets)) if on]  # fmt: skip

@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import math
 import signal
 import sys
 from pathlib import Path
@@ -32,7 +33,7 @@ from fleet.launch import STARTS, TOPOLOGIES
 from fleet.report import strict_json
 from ground.params import PRESETS, preset
 from ground.process import EXCHANGES, domain_arg, lease_arg, seed_arg
-from ground.scenario import ConfigError, load_scenario
+from ground.scenario import ConfigError, Scenario, load_scenario
 
 DEFAULT_ARENA = (-1.0, 1.0, -1.0, 1.0)
 EXIT_FAIL = 1
@@ -111,7 +112,19 @@ def cmd_design(args: argparse.Namespace) -> int:
             f" |a| ≤ {tight['acceleration_m_s2']:.4f} m/s², walls − {tight['position_margin_m']:.4f} m",
             f"  ε = {params.epsilon * 1000:.2f} mm/step, δ = {params.delta * 100:.2f} cm,"
             f" ρ = {design.rho * 100:.2f} cm, footprint r = {design.footprint:.4f} m",
+            f"  wheels: up to {design.wheel_speed:.4f} m/s asked of {params.wheel.max_wheel_speed:.4f} m/s"
+            if math.isfinite(design.wheel_speed)
+            else "  wheels: unbounded (no look-ahead point)",
         ]
+        x_axis = [*design.K[0, :2], design.KZ[0], design.x_bound[1], design.u_hat[0]]
+        y_axis = [*design.K[1, 2:], design.KZ[1], design.x_bound[3], design.u_hat[1]]
+        if any(not math.isclose(a, b, rel_tol=1e-9) for a, b in zip(x_axis, y_axis, strict=True)):
+            # Weights that differ per axis: the lines below are the x axis and the ax input.
+            lines.insert(
+                1,
+                f"  the axes differ; the lines below are x's.  y axis: K [{y_axis[0]:.4f}, {y_axis[1]:.4f}], "
+                f"KZ {y_axis[2]:.4f} m/s², |v| ≤ {y_axis[3]:.4f} m/s, |a| ≤ {y_axis[4]:.4f} m/s²",
+            )
         if design.admissible:
             lines.append("  admissible: yes")
         else:
@@ -121,12 +134,34 @@ def cmd_design(args: argparse.Namespace) -> int:
     return 0 if design.admissible else EXIT_FAIL
 
 
+def _say_forced_order(scn: Scenario, footprint: float) -> None:
+    """Say, before a run, whose way home the others' goals wall in (ground.scenario.forced_order)."""
+    from ground.scenario import forced_order, forced_order_lines
+
+    forced = forced_order(scn, footprint)
+    if forced:
+        print(f"layout: {len(forced)} of {len(scn.robots)} robots must be home before others park:")
+        print("\n".join(f"  {line}" for line in forced_order_lines(forced)))
+
+
 def cmd_simulate(args: argparse.Namespace) -> int:
     from agent.tube import validated_design
     from fleet.simulate import run, save_run
 
     scn = load_scenario(args.scenario)
     design = validated_design(scn)
+    _say_forced_order(scn, design.footprint)
+    kills: dict[str, int] = {}
+    if args.faults:
+        plan, problem = _fault_plan(args.faults, [r.id for r in scn.robots])
+        if plan is None:
+            return _bad(problem)
+        if plan.rules or plan.links:
+            return _bad(
+                "--faults: fleet simulate takes only kills from a fault plan (messages and radio links "
+                "are a process fleet's: fleet run --faults)"
+            )
+        kills = plan.kills
     out = Path(args.out) if args.out else Path("out") / scn.name
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -142,19 +177,21 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     else:
         from supervisor.judge import verdict
 
-        result = run(scn, seed=args.seed, design=design, ahead=args.delay_compensation)
+        result = run(scn, seed=args.seed, design=design, ahead=args.delay_compensation, kills=kills)
         summary = save_run(result, scn, scn.simulation.seed if args.seed is None else args.seed, out)
         why = verdict(summary)
     st = summary.get("step_time_ms", {"p50": 0.0, "p99": 0.0})
+    closest = summary["min_distance_m"]  # None with one robot: no pair to measure
     print(
         f"{scn.name}: {summary['steps']} steps, {summary['sim_time_s']:.1f} s simulated in "
         f"{summary['wall_time_s']:.1f} s; collisions {summary['collisions']}, min distance "
-        f"{summary['min_distance_m']:.3f} m, goals reached "
+        f"{'none (one robot)' if closest is None else f'{closest:.3f} m'}, goals reached "
         f"{sum(r['reached_goal'] for r in summary['robots'].values())}/{len(summary['robots'])}; "
         f"step time p50 {st['p50']:.2f} ms p99 {st['p99']:.2f} ms"
     )
     if "waypoints_reached" in summary:
         print(f"waypoints reached: {summary['waypoints_reached']}")
+    _print_faults(summary)
     print(f"summary: {out / 'summary.json'}")
     if why:
         print(f"fleet: run failed: {why}", file=sys.stderr)
@@ -172,17 +209,13 @@ def cmd_run(args: argparse.Namespace) -> int:
     scn = load_scenario(args.scenario)
     check_camera_error(scn)
     design = validated_design(scn)  # every agent checks it too: fail here, once, before starting
+    _say_forced_order(scn, design.footprint)
     links = _run_links(scn)
     if args.faults:
-        from ground.faults import FaultPlan, FaultPlanError
-
-        try:
-            plan = FaultPlan.parse(args.faults)
-        except FaultPlanError as e:
-            return _bad(f"--faults: {e}")
+        plan, bad = _fault_plan(args.faults, list(links))
+        if plan is None:
+            return _bad(bad)
         for rid in plan.links:  # a cut that cuts nothing would pass for a tested fault
-            if rid not in links:
-                return _bad(f"--faults: faults.links.{rid}: no robot {rid!r} in the scenario")
             if links[rid] == "sim":
                 return _bad(
                     f"--faults: faults.links.{rid}: {rid} has no radio link (link 'sim'); cut emulator links"
@@ -241,6 +274,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             f"goals reached {sum(r['reached_goal'] for r in summary['robots'].values())}"
             f"/{len(summary['robots'])}"
         )
+        _print_faults(summary)
         print(f"summary: {out / 'summary.json'}")
         note = realtime_note(summary, design.params.Ts) if clock == "realtime" else None
         if note:
@@ -248,6 +282,32 @@ def cmd_run(args: argparse.Namespace) -> int:
     if code:
         print(f"fleet: run failed: {verdict}", file=sys.stderr)
     return code
+
+
+def _fault_plan(text: str, robots: list[str]) -> tuple[Any, str]:
+    """(the ``--faults`` plan, "") or (None, the one line that says why it cannot be used): a bad
+    plan, or one that cuts the link of or kills a robot the scenario does not have (a fault that
+    hits nothing would pass for a tested one)."""
+    from ground.faults import FaultPlan, FaultPlanError
+
+    try:
+        plan = FaultPlan.parse(text)
+    except FaultPlanError as e:
+        return None, f"--faults: {e}"
+    for name, hit in (("links", plan.links), ("kills", plan.kills)):
+        for rid in hit:
+            if rid not in robots:
+                return None, f"--faults: faults.{name}.{rid}: no robot {rid!r} in the scenario"
+    return plan, ""
+
+
+def _print_faults(summary: dict[str, Any]) -> None:
+    """The closing line on what faults did, if they did anything (:func:`supervisor.judge.fault_note`)."""
+    from supervisor.judge import fault_note
+
+    note = fault_note(summary)
+    if note:
+        print(f"faults: {note}")
 
 
 MISS_NOTE = 0.01
@@ -400,6 +460,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="make each plan a step ahead, from the predicted state, and apply it to the measurement "
         "at once (the default, as fleet run's); --no-delay-compensation plans each step from its "
         "measurement (docs/method.md §5)",
+    )  # fmt: skip
+    s.add_argument(
+        "--faults", metavar="JSON",
+        help="fault plan (JSON text or file; see ground/faults.py): its kills end robots' agents at "
+        "chosen steps",
     )  # fmt: skip
     s.set_defaults(func=cmd_simulate)
     r = sub.add_parser("run", help="run the fleet as separate processes over Zenoh (lockstep clock)")

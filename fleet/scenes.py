@@ -186,6 +186,8 @@ def random_scene(
 
 # --------------------------------------------------------------------------- hard scenes
 
+EPUCK_FOOTPRINT = 0.13405
+"""The epuck preset's footprint radius r [m] (robot, look-ahead and tube), rounded up."""
 MIN_GOAL_SPACING = 0.2782
 """Goal spacing of the hard scenes [m]: the epuck preset's two footprints (2 × 0.13404 m) plus
 :data:`ground.scenario.GOAL_MARGIN`, rounded up: the closest goals the loader accepts."""
@@ -276,6 +278,35 @@ def gap_swap(n: int, gap: float = 0.36, duration: float = 240.0, seed: int = 0) 
     return _scene(f"gap_{2 * n}", robots, duration, seed, obstacles=walls)
 
 
+def _box(x0: float, x1: float, y0: float, y1: float) -> dict[str, Any]:
+    """A rectangular polygon obstacle [m]."""
+    corners = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
+    return {"polygon": [[_clean(x), _clean(y)] for x, y in corners]}
+
+
+def pocket(
+    width: float = 0.28, depth: float = 0.8, robots: int = 1, wall: float = 0.02, duration: float = 120.0,
+    seed: int = 0,
+) -> dict[str, Any]:  # fmt: skip
+    """A dead-end pocket ``width`` [m] wide and ``depth`` [m] deep, walled by thin arms ``wall``
+    [m] thick and open at the top, and ``robots`` robots whose goals fill it from the bottom,
+    the closest the loader allows.  They start in a row below and beside it, so each straight
+    line to a goal crosses an arm."""
+    fp = EPUCK_FOOTPRINT
+    h = 0.5 * width
+    top = max(0.4, depth - 0.5)  # a deep pocket reaches up: its bottom stays clear of the row below
+    bottom = top - depth
+    walls = [
+        _box(-h - wall, -h, bottom - wall, top),
+        _box(h, h + wall, bottom - wall, top),
+        _box(-h, h, bottom - wall, bottom),
+    ]
+    first = bottom + fp + 0.02
+    team = [_robot(k, (0.7 - 0.3 * k, -0.75), (0.0, first + k * MIN_GOAL_SPACING)) for k in range(robots)]
+    name = f"pocket_{round(width * 1000)}mm" + (f"_{robots}" if robots > 1 else "")
+    return _scene(name, team, duration, seed, obstacles=walls)
+
+
 def goals_by_obstacles(n: int, seed: int = 0, duration: float = 200.0) -> dict[str, Any]:
     """Three circular obstacles, each with goals packed around it 1 cm past the footprint
     (0.14 m from its edge); up to n ≤ 12 robots from starts on the left."""
@@ -300,15 +331,142 @@ def goals_by_obstacles(n: int, seed: int = 0, duration: float = 200.0) -> dict[s
     return _scene(f"obstacle_goals_{len(goals)}", robots, duration, seed, obstacles=obstacles)
 
 
-HARD_FAMILIES = ("dense", "ring", "grid", "swap", "corridor", "gap", "obstacles")
-"""The families :func:`hard_scene` draws from, in turn."""
+def single_file(
+    n: int, kind: str = "shift", width: float = 0.36, duration: float = 300.0, seed: int = 0
+) -> dict[str, Any]:
+    """Robots in a corridor ``width`` [m] wide, too narrow for two to pass (2·footprint < width <
+    4·footprint), in slots 0.3 m apart.  ``kind``:
+
+    * ``"shift"``: a row of n along a straight corridor, each goal the next robot's start and the
+      last robot's a free slot beyond: the front robot must go first;
+    * ``"trains"``: two trains of n // 2 and n − n // 2 at the two ends of a straight corridor,
+      each bound for the other end, with a bay in the middle where one train can wait;
+    * ``"cycle"``: n robots on a closed track around a block, each bound for the next start
+      along it: they must all move together, as a ring turns."""
+    fp = EPUCK_FOOTPRINT
+    if not 2 * fp < width < 4 * fp:
+        raise ValueError(f"single_file: width {width} m is not single file for a footprint of {fp} m")
+    h = 0.5 * width
+    if kind in ("shift", "trains"):
+        # The arena is wide enough for the tube design (two robots can pass in it); walls make
+        # the lane.
+        length = 0.3 * (n + 1) + 0.6 + (0.9 if kind == "trains" else 0.0)
+        half, side = 0.5 * length, 0.5
+        arena = (-half, half, -side, side)
+        walls: list[dict[str, Any]] = [_box(-half, half, -side, -h)]
+        if kind == "shift":
+            walls.append(_box(-half, half, h, side))
+            slots = [(-half + 0.3 + 0.3 * k, 0.0) for k in range(n + 1)]
+            robots = [_robot(k, slots[k], slots[k + 1]) for k in range(n)]
+        else:
+            # A bay above the middle of the lane: room for a robot beside it, a footprint clear.
+            walls += [_box(-half, -0.45, h, side), _box(0.45, half, h, side)]
+            left, right = n // 2, n - n // 2
+            lslots = [(-half + 0.3 + 0.3 * k, 0.0) for k in range(max(left, right))]
+            rslots = [(half - 0.3 - 0.3 * k, 0.0) for k in range(max(left, right))]
+            robots = [_robot(k, lslots[k], rslots[k]) for k in range(left)]
+            robots += [_robot(left + k, rslots[k], lslots[k]) for k in range(right)]
+        return _scene(f"file_{kind}_{n}", robots, duration, seed, arena=arena, obstacles=walls)
+    if kind != "cycle":
+        raise ValueError(f"single_file: kind {kind!r} is not shift, trains or cycle")
+    # A rectangular track: the block leaves a lane of ``width`` along every wall.
+    per_side = max(1, math.ceil(n / 2))
+    half_x, half_y = 0.3 * per_side + 0.3, 0.3 + h
+    arena = (-half_x - h, half_x + h, -half_y - h, half_y + h)
+    block = _box(-half_x + h, half_x - h, -half_y + h, half_y - h)
+    top = [(0.3 * (k - 0.5 * (per_side - 1)), half_y) for k in range(per_side)]  # left to right
+    bottom = [(-x, -half_y) for x, _ in top]  # right to left: the track's order
+    slots = (top + bottom)[:n]
+    robots = [_robot(k, slots[k], slots[(k + 1) % n]) for k in range(n)]
+    return _scene(f"file_cycle_{n}", robots, duration, seed, arena=arena, obstacles=[block])
 
 
-def hard_scene(seed: int) -> dict[str, Any]:
-    """One scene of family ``HARD_FAMILIES[seed % 7]``, its size and layout drawn from ``seed``."""
+def rooms(per_room: int, door: float = 0.30, duration: float = 400.0, seed: int = 0) -> dict[str, Any]:
+    """Two rooms of 1.2 m × 1.2 m joined by a doorway ``door`` [m] wide in a wall 0.1 m thick;
+    ``per_room`` robots in each room, each bound for the mirror image of its start in the other."""
+    wall = [_box(-0.05, 0.05, 0.5 * door, 0.6), _box(-0.05, 0.05, -0.6, -0.5 * door)]
+    pts = [(-1.05 + 0.3 * (k // 3), -0.3 + 0.3 * (k % 3)) for k in range(per_room)]
+    robots = [_robot(k, p, (-p[0], -p[1])) for k, p in enumerate(pts)]
+    robots += [_robot(per_room + k, (-p[0], p[1]), (p[0], -p[1])) for k, p in enumerate(pts)]
+    arena = (-1.25, 1.25, -0.6, 0.6)
+    return _scene(f"rooms_{2 * per_room}", robots, duration, seed, arena=arena, obstacles=wall)
+
+
+def concentric_rings(
+    rings: int, spacing: float = MIN_GOAL_SPACING, duration: float = 400.0, seed: int = 0
+) -> dict[str, Any]:
+    """``rings`` concentric rings ``spacing`` [m] apart, each as full as the spacing allows, every
+    robot bound for the next start along its ring, the rings turning in turn one way and the
+    other: the rigid rotation is the one way home."""
+    robots: list[dict[str, Any]] = []
+    r0 = spacing
+    for i in range(rings):
+        radius = r0 + i * spacing
+        n = max(3, int(math.pi / math.asin(min(1.0, spacing / (2 * radius)))))
+        angles = [2 * math.pi * k / n for k in range(n)]
+        pts = [(radius * math.cos(a), radius * math.sin(a)) for a in angles]
+        step = 1 if i % 2 == 0 else -1
+        base = len(robots)
+        robots += [_robot(base + k, pts[k], pts[(k + step) % n]) for k in range(n)]
+    half = r0 + (rings - 1) * spacing + 0.35
+    return _scene(f"rings_{rings}x_{len(robots)}", robots, duration, seed, arena=(-half, half, -half, half))
+
+
+def cluttered(n: int, obstacles: int = 6, duration: float = 400.0, seed: int = 0) -> dict[str, Any]:
+    """n robots with random starts and goals among ``obstacles`` random discs in a 2 m arena, the
+    goals at the closest legal spacing; drawn again (from the same generator) until the loader
+    accepts every goal as reachable."""
+    from ground.scenario import ConfigError, parse_scenario
+
     rng = np.random.default_rng(seed)
-    family = HARD_FAMILIES[seed % len(HARD_FAMILIES)]
-    if family == "dense":
+    fp = EPUCK_FOOTPRINT
+    for _ in range(200):
+        discs = [(rng.uniform(-0.7, 0.7, 2), float(rng.uniform(0.06, 0.14))) for _ in range(obstacles)]
+
+        def clear(p: np.ndarray, discs: list = discs) -> bool:
+            return all(float(np.linalg.norm(p - c)) >= r + fp + 0.02 for c, r in discs)
+
+        goals: list[np.ndarray] = []
+        starts: list[np.ndarray] = []
+        for out, sep in ((goals, MIN_GOAL_SPACING), (starts, 0.3)):
+            for _ in range(4000):
+                if len(out) == n:
+                    break
+                q = rng.uniform(-0.85, 0.85, 2)
+                if clear(q) and _far_enough(q, out, sep):
+                    out.append(q)
+        if len(goals) < n or len(starts) < n:
+            continue
+        robots = [_robot(k, starts[k].tolist(), goals[k].tolist()) for k in range(n)]
+        obs = [{"circle": {"center": [_clean(c[0]), _clean(c[1])], "radius": _clean(r)}} for c, r in discs]
+        d = _scene(f"cluttered_{n}", robots, duration, seed, obstacles=obs)
+        try:
+            parse_scenario(d)
+        except ConfigError:
+            continue
+        return d
+    raise RuntimeError(f"cluttered: no accepted layout of {n} robots among {obstacles} discs in 200 draws")
+
+
+HARD_FAMILIES = ("dense", "ring", "grid", "swap", "corridor", "gap", "obstacles")
+"""The families :func:`hard_scene` draws from, in turn, by default."""
+
+LAYOUT_FAMILIES = ("pocket", "file", "rooms", "rings", "cluttered")
+"""Families whose layouts force an order of arrival or a joint move, beyond the seven
+(:func:`hard_scene` ``families``): dead-end pockets filled from the bottom, single-file lanes
+(a shift, two trains and a bay, a closed track that must turn as one), two rooms swapping
+through a doorway at the legal minimum, concentric rings turning opposite ways, and dense
+scenes among random obstacles."""
+
+
+def hard_scene(seed: int, families: Sequence[str] = HARD_FAMILIES) -> dict[str, Any]:
+    """One scene of family ``families[seed % len(families)]`` (of :data:`HARD_FAMILIES` and
+    :data:`LAYOUT_FAMILIES`), its size and layout drawn from ``seed``."""
+    rng = np.random.default_rng(seed)
+    family = families[seed % len(families)]
+    if family in LAYOUT_FAMILIES:
+        d = _layout_scene(family, rng, seed)
+    elif family == "dense":
         n = int(rng.integers(8, 17))
         d = random_scene(seed, n=n, min_separation=MIN_GOAL_SPACING, duration=300.0, margin=0.15)
     elif family == "ring":
@@ -340,6 +498,26 @@ def hard_scene(seed: int) -> dict[str, Any]:
         d = goals_by_obstacles(int(rng.integers(4, 13)), seed=seed)
     d["name"] = f"hard_{seed}_{d['name']}"
     return d
+
+
+def _layout_scene(family: str, rng: np.random.Generator, seed: int) -> dict[str, Any]:
+    """A scene of one of :data:`LAYOUT_FAMILIES`, drawn with ``rng``."""
+    if family == "pocket":
+        robots = int(rng.integers(1, 4))
+        width = float(rng.uniform(0.28, 0.40))
+        return pocket(width, depth=robots * MIN_GOAL_SPACING + 0.2, robots=robots, duration=300.0, seed=seed)
+    if family == "file":
+        kind = str(rng.choice(["shift", "trains", "cycle"]))
+        n = int(rng.integers(3, 7))
+        return single_file(n, kind, width=float(rng.uniform(0.29, 0.40)), duration=400.0, seed=seed)
+    if family == "rooms":
+        return rooms(int(rng.integers(2, 6)), door=float(rng.uniform(0.285, 0.34)), duration=500.0, seed=seed)
+    if family == "rings":
+        return concentric_rings(int(rng.integers(2, 4)), duration=600.0, seed=seed)
+    if family == "cluttered":
+        n, discs = int(rng.integers(8, 17)), int(rng.integers(3, 8))
+        return cluttered(n, obstacles=discs, duration=500.0, seed=seed)
+    raise ValueError(f"hard_scene: unknown family {family!r}")
 
 
 # --------------------------------------------------------------------------- TOML output

@@ -133,6 +133,7 @@ class ProcessFleet:
         me.footprint = float(design.footprint)
         try:
             me._first_sample()
+            me._agents_live()
         except BaseException:
             me.close()
             raise
@@ -263,6 +264,15 @@ class ProcessFleet:
         if not self._wait_sample(0, whole=self.hold):  # a held clock: all of sample 0
             raise ConfigError("processes", f"no sample from the fleet within {SAMPLE_TIMEOUT:g} s")
         self.k = 0 if self.hold else self._newest()
+
+    def _agents_live(self) -> None:
+        """Wait until this session sees every agent it launched live.  Sample 0 comes from the
+        tracker, whose session this one joined first, and the links to the agents come up
+        meanwhile.  An agent declares its goal queryable before its liveliness token, on the same
+        link, so once its token is here a goal query reaches it.  Bounded: an agent that died at
+        start is reported as gone, and a goal for it as unanswered."""
+        inbox = self.inbox
+        inbox.wait(lambda: set(self.ids) <= inbox.live or self._stopped(), SAMPLE_TIMEOUT)
 
     def _wait_sample(self, k: int, whole: bool = True) -> bool:
         """Wait until sample k (or a later one) has come: the ground truth and the measured pose

@@ -14,6 +14,11 @@ Each step, synchronously:
 4. the safety judge (:class:`supervisor.judge.Judge`) takes the true poses and the plans, as
    the supervisor does in a process run.
 
+A fault plan's ``kills`` (``fleet simulate --faults``, :mod:`ground.faults`) kill a robot's agent
+at a step: from then on it makes no plan, its robot side brakes its robot (and says so, as the
+tick would), and every other agent keeps clear of it as of a dead robot
+(:class:`agent.hazards.Guard`), from its first step without that robot's plan.
+
 With ``ahead`` (``fleet simulate --delay-compensation``; docs/method.md §5) step 2 changes: every
 robot applies at once the plan its agent made during the step before, ``u = v̂ + K(x − x̂)``,
 and the agent then makes its next plan from the prediction ``A x + B u``, with the tube
@@ -28,8 +33,9 @@ The plants, the disturbances and the camera noise are the simulated tracker's
 from __future__ import annotations
 
 import json
+import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -37,10 +43,12 @@ from typing import Any
 import numpy as np
 
 from agent.controller import TUBE_TOL, StepOutput, TubeMPC
+from agent.coordination import Hazard
+from agent.hazards import Guard, starts_of
 from agent.messages import plan_message
 from agent.tube import TubeDesign, require_admissible, synthesize
-from ground.geometry import Array
-from ground.model import chain_input
+from ground.geometry import Array, controlled_point
+from ground.model import brake_input, chain_input
 from ground.scenario import Scenario, home, settle_samples
 from ground.wire import Plan
 from supervisor.judge import Judge
@@ -160,7 +168,7 @@ def _unapplied(
     if a is None or not ctrl.rewind(1):
         ctrl.reset(x[[0, 2]])  # nothing to follow: braked; the agent starts again where it is
         p = design.params
-        return np.clip(-x[[1, 3]] / p.Ts, -p.a_max, p.a_max), x.copy(), "braked"
+        return brake_input(x[[1, 3]], p.Ts, p.a_max), x.copy(), "braked"
     return a, ctrl.xi[0:4].copy(), "candidate"
 
 
@@ -184,6 +192,7 @@ class Simulation:
         late: Callable[[str, int], bool] | None = None,
         late_policy: str = "candidate",
         ahead: bool = False,
+        kills: Mapping[str, int] | None = None,
     ):
         if late_policy not in LATE_POLICIES:
             raise ValueError(f"late_policy: {late_policy!r} is not one of {', '.join(LATE_POLICIES)}")
@@ -223,6 +232,15 @@ class Simulation:
         """Goals (2,) [m] given since the last step, taken at the next."""
         self.outputs: dict[str, StepOutput] = {}
         """Each robot's controller output of the last step."""
+        self.kills = {r: s for r, s in (kills or {}).items() if r in self.ids}
+        """Per robot, the step its agent dies at (:mod:`ground.faults`): it makes no plan from then on."""
+        self.guards = {rid: Guard(rid, p, lambda _: None) for rid in self.ids}
+        """Each agent's view of the robots it keeps clear of as discs (here: the dead ones)."""
+        self.starts = starts_of(scenario.robots, p.lookahead, design.footprint)
+        self.executed: dict[str, Plan] = {}
+        """Each robot's newest plan that its robot side executed."""
+        self.braked: set[str] = set()
+        """The robots braked by their robot side over the last step (the next tick would say so)."""
         for rank, rb in enumerate(scenario.robots):
             plant = make_plant(sim.plant, np.array(rb.start, dtype=float), p)
             start_pt = plant.state()[[0, 2]]
@@ -280,16 +298,26 @@ class Simulation:
             return
         infos = self._infos()
         self._take_goals()
+        gone = self._gone(k)
+        poses = self._poses(k)
         outs = {}
         for rid in ids:
+            if self._dead(rid, k):
+                continue
             x = self.meas[rid]
-            nbs = [infos[j] for j in ids if j != rid]
-            out = ctrls[rid].step(x, nbs)
+            nbs = [infos[j] for j in ids if j != rid and j not in gone]
+            out = ctrls[rid].step(x, nbs, self._discs(rid, k, gone, poses))
             outs[rid] = (x, out)
             self.outputs[rid] = out
         plans: dict[str, Plan] = {}
         unexecuted: list[str] = []
+        braked = set()
         for rid in ids:
+            if rid not in outs:  # its agent is dead: its robot side brakes it
+                self._brake(rid)
+                unexecuted.append(rid)
+                braked.add(rid)
+                continue
             x, out = outs[rid]
             plans[rid] = plan_message(rid, k, ctrls[rid], out)
             a, x_hat = out.a, out.x_hat
@@ -300,14 +328,70 @@ class Simulation:
                 if what != "held":  # the robot side says so in the next tick
                     unexecuted.append(rid)
                     judge.off_plan(rid, what)
+                if what == "braked":
+                    braked.add(rid)
             else:
                 self.applied[rid] = (k, out)
+                self.executed[rid] = plans[rid]
             self.last_a[rid] = a
-            self._move(rid, x, a, x_hat)
+            self._move(rid, x, a, x_hat, braked=rid in braked)
             tube_ok = out.tube_ok if x_hat is out.x_hat else design.contains_error(x - x_hat, TUBE_TOL)
             self._record(rid, x, a, out, ctrls[rid].y_ref[0], ctrls[rid].y_ref[-1], tube_ok)
-        judge.plans(plans, unexecuted)
+        judge.plans(plans, unexecuted, braked)
+        self.braked = braked
         self._end_step()
+
+    def _dead(self, rid: str, k: int) -> bool:
+        """The agent of ``rid`` is dead at step k: it makes no plan of step k or later."""
+        return self.kills.get(rid, math.inf) <= k
+
+    def _gone(self, k: int) -> set[str]:
+        """The robots the others plan step k without: no plan of step k − 1 came from them, and
+        their liveliness is gone (their agent died before step k − 1's plan)."""
+        return {j for j, s in self.kills.items() if s < k}
+
+    def _poses(self, k: int) -> dict[str, tuple[int, Array]]:
+        """The camera's controlled point (2,) [m] of every robot at sample k, with k: what an agent
+        watching a stopped robot's poses would have (:attr:`agent.hazards.Guard.watched`)."""
+        if not self._gone(k + 1):
+            return {}
+        ell = self.design.params.lookahead
+        return {rid: (k, controlled_point(self.cams[rid], ell)) for rid in self.ids}
+
+    def _discs(self, rid: str, k: int, gone: set[str], poses: dict[str, tuple[int, Array]]) -> list[Hazard]:
+        """The discs agent ``rid`` keeps clear of at step k: the robots whose agents are ``gone``,
+        as its :class:`~agent.hazards.Guard` classes them from their last executed plans, the
+        robot sides' reports of the step before (:attr:`braked`) and the camera's ``poses``."""
+        if not gone:
+            return []
+        others = [j for j in self.ids if j in gone and j != rid]
+        live = {j for j in self.ids if j not in gone}
+        last: dict[str, Plan | None] = {j: self.executed.get(j) for j in others}
+        _, hazards = self.guards[rid].classify(
+            k, others, dict.fromkeys(others), last, live, self.starts, self.braked, poses=poses
+        )
+        return hazards
+
+    def _brake(self, rid: str) -> None:
+        """A robot whose agent is dead, over one step: its robot side brakes it
+        (:func:`ground.model.brake_input`), and the trace goes on."""
+        p, tr, plant = self.design.params, self.traces[rid], self.plants[rid]
+        x = self.meas[rid]
+        a = brake_input(plant.state()[[1, 3]], p.Ts, p.a_max)
+        self.judge.off_plan(rid, "braked")
+        self.last_a[rid] = a
+        self._move(rid, x, a, x, braked=True)
+        tr.w_ratio.append(0.0)
+        tr.pose.append(plant.pose.copy())
+        pt = plant.state()[[0, 2]]
+        tr.point.append(pt)
+        tr.committed_last.append(self.ctrls[rid].y_ref[-1].copy())
+        tr.goal_error.append(float(np.linalg.norm(pt - self.ctrls[rid].goal)))
+        tr.modes.append("dead")
+        tr.ref_deviation.append(math.nan)
+        tr.candidate_violation.append(0.0)
+        tr.tube_ok.append(True)
+        tr.fallback.append(False)
 
     def _step_ahead(self) -> None:
         """Step k with plans made a step ahead (:attr:`ahead`; docs/method.md §5).
@@ -323,22 +407,37 @@ class Simulation:
         k, ids, design, ctrls = self.k, self.ids, self.design, self.ctrls
         applied: dict[str, tuple[Array, Array]] = {}
         unexecuted: list[str] = []
+        braked: set[str] = set()
+        plans: dict[str, Plan] = {}
         for rid in ids:
             x = self.meas[rid]
-            if self.late is not None and self.late(rid, k):
+            if self._dead(rid, k):  # its robot side brakes it: the plan in force is not applied
+                if rid in self.in_force:
+                    plans[rid] = self.in_force.pop(rid)[1]
+                unexecuted.append(rid)
+                braked.add(rid)
+            elif self.late is not None and self.late(rid, k):
                 a, x_hat, what = _unapplied(
                     ctrls[rid], design, self.applied[rid], k, x, self.last_a[rid], "candidate"
                 )
                 unexecuted.append(rid)
                 self.judge.off_plan(rid, what)
+                if what == "braked":
+                    braked.add(rid)
+                applied[rid] = (a, x_hat)
             else:
                 x_hat, a = ctrls[rid].xi[0:4].copy(), ctrls[rid].ancillary(x)
                 self.applied[rid] = (k, self.in_force[rid][0])
-            applied[rid] = (a, x_hat)
+                self.executed[rid] = self.in_force[rid][1]
+                applied[rid] = (a, x_hat)
         infos = self._infos()  # the plans of step k in force, the dropped ones replaced
         self._take_goals()
-        plans: dict[str, Plan] = {}
+        gone = {j for j, s in self.kills.items() if s <= k}  # no plan of step k + 1 from them
+        poses = self._poses(k)
         for rid in ids:
+            if rid not in applied:
+                self._brake(rid)
+                continue
             ctrl, x = ctrls[rid], self.meas[rid]
             (a, x_hat), (out, plan) = applied[rid], self.in_force[rid]
             ref_next, end = ctrl.y_ref[0].copy(), ctrl.y_ref[-1].copy()
@@ -346,15 +445,19 @@ class Simulation:
             plans[rid] = plan
             self.outputs[rid] = out
             self.last_a[rid] = a
-            nxt = ctrl.step(design.A @ x + design.B @ a, [infos[j] for j in ids if j != rid], predicted=True)
+            nbs = [infos[j] for j in ids if j != rid and j not in gone]
+            self.braked = braked  # (what the outcome of step k says, before the plans of k + 1)
+            hazards = self._discs(rid, k + 1, gone, poses)
+            nxt = ctrl.step(design.A @ x + design.B @ a, nbs, hazards, predicted=True)
             # Its tube_ok says whether the tube held at the measurement it was made after, x_k:
             # all a plan made ahead can tell (the agent process publishes it before x_{k+1}).
             self.in_force[rid] = (nxt, replace(plan_message(rid, k + 1, ctrl, nxt), tube_ok=tube_ok))
-            self._move(rid, x, a, x_hat)
+            self._move(rid, x, a, x_hat, braked=rid in braked)
             self._record(rid, x, a, out, ref_next, end, tube_ok)
-        self.judge.plans(plans, unexecuted)
+        self.judge.plans(plans, unexecuted, braked)
+        self.braked = braked
         # Home is judged on the plans applied at this step, as without delay compensation.
-        self._end_step({rid: (pl.committed[-1], pl.goal) for rid, pl in plans.items()})
+        self._end_step({rid: (pl.committed[-1], pl.goal, pl.blocked) for rid, pl in plans.items()})
 
     def _infos(self) -> dict[str, Any]:
         """Every robot's view for its neighbours (its last committed point, …), by id."""
@@ -372,9 +475,10 @@ class Simulation:
                 self.ctrls[rid].set_goal(goal)
         self.pending = {}
 
-    def _move(self, rid: str, x: Array, a: Array, x_hat: Array) -> None:
+    def _move(self, rid: str, x: Array, a: Array, x_hat: Array, braked: bool = False) -> None:
         """Robot ``rid``'s plant over one step with acceleration ``a`` (2,) [m/s²], disturbed
-        (the adversary pushes x − x̂ outward), then measured."""
+        (the adversary pushes x − x̂ outward) unless its robot side ``braked`` it (its wheels
+        stop: :meth:`tracker.world.SimulatedWorld.advance`), then measured."""
         plant = self.plants[rid]
         plant.step(a, self.Ts)
         w = self.dist.sample(x - x_hat)
@@ -382,7 +486,8 @@ class Simulation:
             extra = self.extra_disturbance(rid, self.k)
             if extra is not None:
                 w = w + extra
-        plant.perturb(w)
+        if not braked:
+            plant.perturb(w)
         self.meas[rid], self.cams[rid] = measure(plant, self.noise, self.design.params.lookahead)
 
     def _record(
@@ -406,14 +511,23 @@ class Simulation:
         tr.fallback.append(out.fallback)
         self.judge.simulated(rid, out.step_time * 1e3, tr.w_ratio[-1], out.candidate_violation)
 
-    def _end_step(self, applied: dict[str, tuple[Array, Array]] | None = None) -> None:
+    def _end_step(self, applied: dict[str, tuple[Array, Array, str]] | None = None) -> None:
         """Close step k: every robot home (its committed end point parked at its goal and its
-        point near it) counts towards the early end.  ``applied``: each robot's end point (2,)
-        and goal (2,) [m] of the plan applied at step k, when the controllers hold later ones."""
+        point near it) counts towards the early end, as does one whose goal a stopped robot
+        covers (its plan says by whom); a robot whose agent is dead is left out, as the tracker
+        leaves it out (it cannot get home).  ``applied``: each robot's end point (2,), goal (2,)
+        [m] and blocker of the plan applied at step k, when the controllers hold later ones."""
         ids, ctrls, traces = self.ids, self.ctrls, self.traces
         self.times.append((self.k + 1) * self.Ts)
-        ends = applied or {r: (ctrls[r].y_ref[-1], ctrls[r].goal) for r in ids}
-        all_home = all(home(ends[r][0], traces[r].point[-1], ends[r][1]) for r in ids)
+        out = self.outputs
+        ends = applied or {
+            r: (ctrls[r].y_ref[-1], ctrls[r].goal, out[r].blocked if r in out else "") for r in ids
+        }
+        all_home = all(
+            self._dead(r, self.k) or ends[r][2] or home(ends[r][0], traces[r].point[-1], ends[r][1])
+            for r in ids
+            if r in ends or not self._dead(r, self.k)
+        )
         self.home_run = self.home_run + 1 if all_home else 0
         self.k += 1
 
@@ -452,6 +566,7 @@ def run(
     late: Callable[[str, int], bool] | None = None,
     late_policy: str = "candidate",
     ahead: bool = False,
+    kills: Mapping[str, int] | None = None,
 ) -> RunResult:
     """Run ``scenario`` closed loop.
 
@@ -468,8 +583,9 @@ def run(
     runtime before the candidate fallback, for comparison).
 
     ``ahead`` makes every plan a step ahead (delay compensation, docs/method.md §5;
-    :class:`Simulation`): the process runtime does not run it yet."""
-    sim = Simulation(scenario, seed, design, solver_fault, extra_disturbance, late, late_policy, ahead)
+    :class:`Simulation`), as the process runtime does by default.  ``kills``: robot id → the step
+    its agent dies at (:mod:`ground.faults`)."""
+    sim = Simulation(scenario, seed, design, solver_fault, extra_disturbance, late, late_policy, ahead, kills)
     n_steps = steps if steps is not None else round(scenario.duration / sim.Ts)
     for _ in range(n_steps):
         sim.step()

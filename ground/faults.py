@@ -16,6 +16,12 @@ r2's link between ``epuck_link`` and its robot over steps 150..169 (by the
 link's clock); the robot drives on at its last wheel speeds, as a real one does
 (its firmware has no deadman).
 
+A plan may also kill robots' agents: ``"kills": {"r2": 120}`` ends r2's agent at step 120,
+before it plans that step: in a process fleet the agent sends itself SIGKILL (a hard death, its
+liveliness token goes with its session), and in ``fleet simulate`` it makes no plan from then
+on.  Either way its robot side brakes its robot, and the other agents keep clear of it as of a
+dead robot (docs/method.md §6.4).
+
 ``key`` is an ``fnmatch`` pattern on the key below ``fleet/F/`` (``plan/r2``,
 ``pose/*``, ``clock``); ``to`` (optional) lists the receiving roles (``agent
 r1``, ``tracker``, ``supervisor``; default: every receiver).  ``drop`` is a
@@ -67,11 +73,14 @@ class FaultPlan:
         rules: list[FaultRule],
         seed: int = 0,
         links: dict[str, tuple[tuple[int, int], ...]] | None = None,
+        kills: dict[str, int] | None = None,
     ):
         self.rules = rules
         self.seed = seed
         self.links = links or {}
         """Per robot, the half-open step ranges over which its radio link is cut."""
+        self.kills = kills or {}
+        """Per robot, the step its agent is killed at [steps]."""
 
     @classmethod
     def parse(cls, text_or_path: str) -> FaultPlan:
@@ -86,8 +95,8 @@ class FaultPlan:
             raw = json.loads(text)
         except json.JSONDecodeError as e:
             raise FaultPlanError(f"faults: not JSON ({e.msg} at line {e.lineno})") from None
-        if not isinstance(raw, dict) or set(raw) - {"seed", "rules", "links"}:
-            raise FaultPlanError("faults: expected an object with 'seed', 'rules' and 'links'")
+        if not isinstance(raw, dict) or set(raw) - {"seed", "rules", "links", "kills"}:
+            raise FaultPlanError("faults: expected an object with 'seed', 'rules', 'links' and 'kills'")
         seed = raw.get("seed", 0)
         if isinstance(seed, bool) or not isinstance(seed, int):
             raise FaultPlanError("faults.seed: expected an integer")
@@ -98,7 +107,16 @@ class FaultPlan:
         if not isinstance(links_raw, dict):
             raise FaultPlanError("faults.links: expected an object of robot ids")
         links = {str(r): _bursts(b, f"faults.links.{r}") for r, b in links_raw.items()}
-        return cls([_rule(r, f"faults.rules[{i}]") for i, r in enumerate(rules_raw)], seed, links)
+        kills_raw = raw.get("kills", {})
+        if not isinstance(kills_raw, dict):
+            raise FaultPlanError("faults.kills: expected an object of robot ids to steps")
+        kills = {}
+        for r, step in kills_raw.items():
+            if type(step) is not int or step < 0:
+                raise FaultPlanError(f"faults.kills.{r}: expected a step >= 0")
+            kills[str(r)] = step
+        rules = [_rule(r, f"faults.rules[{i}]") for i, r in enumerate(rules_raw)]
+        return cls(rules, seed, links, kills)
 
     def link_cut(self, robot: str, step: int) -> bool:
         """The radio link of ``robot`` is cut at ``step``."""

@@ -58,6 +58,7 @@ from typing import Any
 
 import numpy as np
 
+from ground.freespace import free_space_model
 from ground.geometry import controlled_point
 from ground.params import PRESETS, ControllerParams
 from ground.params import preset as _preset
@@ -80,14 +81,11 @@ MAX_MRPI_TERMS = 1000
 MIN_MRPI_TOL = 1e-12
 """Smallest ``mrpi_tol``: below it the tail bound is lost in rounding and never met."""
 MAX_ARENA_SIDE = 20.0
-"""Longest arena side [m]: the navigator's 5 cm grid then has at most 400 × 400 cells."""
+"""Longest arena side [m]: the free-space grid (400 cells along it) then has cells of 5 cm."""
 MAX_SCENARIO_BYTES = 1 << 20
 """Largest scenario file read [bytes]."""
 MAX_SEED = 2**32 - 1
 """Largest seed: a 32-bit unsigned integer, the same in every process."""
-REACH_CELLS = 400
-"""Cells along the arena's longer side of the grid on which :func:`check_geometry` decides that
-a goal can be reached (a 2 m arena is searched on 5 mm cells)."""
 PRIORITY_RANGE = (-(2**31), 2**31 - 1)
 """Priorities the wire carries (``ground.wire.Plan.priority``, a 32-bit signed integer)."""
 DISTURBANCES = ("uniform", "adversarial", "none")
@@ -1163,38 +1161,90 @@ def _check_reachable(scn: Scenario, starts: list[np.ndarray], goals: list[np.nda
 
 def free_space(scn: Scenario, fp: float) -> Callable[[np.ndarray, np.ndarray], bool]:
     """Whether a disc of radius ``fp`` [m] can go from one point (2,) [m] to another past the
-    scenario's walls and static obstacles (the robots aside): a function of the two points.
+    scenario's walls and static obstacles (the robots aside): a function of the two points
+    (:class:`~ground.freespace.FreeSpace`)."""
+    return free_space_model(scn.arena, scn.obstacles, fp).joined
 
-    Free space is searched on a grid of :data:`REACH_CELLS` cells along the longer side: a cell
-    is free when its centre clears every wall and obstacle by ``fp``, and free cells that share
-    an edge or a corner are connected.  A passage counts when it is about a cell wider than
-    2·``fp`` (the footprint already holds the tube); one narrower than 2·``fp`` never does.  A
-    point is joined to the free cells within a cell diagonal of it; one with no free cell near
-    it (checked elsewhere, against the walls and obstacles) is not judged here."""
-    from scipy import ndimage
 
-    xmin, xmax, ymin, ymax = scn.arena
-    h = max(xmax - xmin, ymax - ymin) / REACH_CELLS
-    nx, ny = max(1, math.ceil((xmax - xmin) / h)), max(1, math.ceil((ymax - ymin) / h))
-    xs = xmin + (np.arange(nx) + 0.5) * (xmax - xmin) / nx
-    ys = ymin + (np.arange(ny) + 0.5) * (ymax - ymin) / ny
-    X, Y = np.meshgrid(xs, ys, indexing="ij")
-    free = (X - xmin >= fp) & (xmax - X >= fp) & (Y - ymin >= fp) & (ymax - Y >= fp)
-    centres = np.column_stack([X.ravel(), Y.ravel()])
-    for obs in scn.obstacles:
-        free &= (obs.distances(centres) >= fp).reshape(nx, ny)
-    labels, _ = ndimage.label(free, structure=np.ones((3, 3), dtype=bool))
-    reach = math.hypot(xs[1] - xs[0] if nx > 1 else h, ys[1] - ys[0] if ny > 1 else h)
+def forced_order(scn: Scenario, footprint: float) -> dict[str, dict[str, list[str]]]:
+    """Whose goals wall in each robot's way home, once they are parked there (each goal a disc
+    of radius r_i + r_j = 2·``footprint`` [m] that a controlled point may not enter), past the
+    walls and obstacles.  Per robot so walled in: ``"alone"``, the robots each of whose goals
+    walls it in by itself, and ``"together"``, when none does alone, the robots whose goals wall
+    it in together (those about the goal, or the start, that is shut in:
+    :meth:`~ground.freespace.FreeSpace.walled_in`).  A goal that covers the
+    robot's own start is left out: that robot leaves before the other can park there.
 
-    def pieces(p: np.ndarray) -> set[int]:
-        near = (X - p[0]) ** 2 + (Y - p[1]) ** 2 <= reach**2
-        return set(np.unique(labels[near & free]).tolist())
+    A layout with none is well-formed in the sense of Čáp, Novák, Kleiner and Selecký
+    ("Prioritized planning algorithms for trajectory coordination of multiple mobile robots",
+    IEEE T-ASE 2015), for goals: every robot can get home past every robot already home, and no
+    parked robot ever has to step aside.  Otherwise an order is forced: a robot named must get
+    past the goal of each robot of its ``alone`` before that one parks, and past the goals of
+    its ``together`` before all of them have parked, or they step aside for it.  Waypoints are
+    not checked here."""
+    ell = scn.controller.lookahead
+    starts = [controlled_point(r.start, ell) for r in scn.robots]
+    goals = [np.asarray(r.goal, dtype=float) for r in scn.robots]
+    model = free_space_model(scn.arena, scn.obstacles, footprint)
+    reach = 2.0 * float(footprint)
+    splits = [model.splits(g, reach) for g in goals]
+    forced: dict[str, dict[str, list[str]]] = {}
+    for i, r in enumerate(scn.robots):
+        a, b = starts[i], goals[i]
+        if not model.joined(a, b):
+            continue
+        others = [j for j in range(len(goals)) if j != i and np.hypot(*(goals[j] - a)) >= reach]
+        alone = []
+        for j in others:
+            lab = splits[j]
+            if lab is None:
+                continue
+            pa, pb = model.piece_in(lab, a), model.piece_in(lab, b)
+            if pa is not None and pb is not None and pa != pb:
+                alone.append(scn.robots[j].id)
+        together: list[str] = []
+        if not alone:
+            walls = model.walled_in(a, b, [(goals[j], reach) for j in others])
+            together = [scn.robots[others[k]].id for k in walls]
+        if alone or together:
+            forced[r.id] = {"alone": alone, "together": together}
+    return forced
 
-    def joined(a: np.ndarray, b: np.ndarray) -> bool:
-        at_a, at_b = pieces(a), pieces(b)
-        return not (at_a and at_b) or bool(at_a & at_b)
 
-    return joined
+def forced_order_lines(forced: Mapping[str, Mapping[str, Sequence[str]]]) -> list[str]:
+    """The lines that say :func:`forced_order`: one per robot named, then one per cycle of
+    robots each of which must be home before another of them parks (no order does it: one of
+    them must step aside for another)."""
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    lines = []
+    for rid, by in forced.items():
+        if by["alone"]:
+            who = ", ".join(by["alone"])
+            lines.append(f"{rid} must get past the goals of {who} before they park: each walls in its way")
+        else:
+            who = ", ".join(by["together"])
+            lines.append(
+                f"{rid} must get past the goals of {who} before all of them park: "
+                "together they wall in its way"
+            )
+    alone = {r: list(by["alone"]) for r, by in forced.items() if by["alone"]}
+    ids = sorted({*alone, *(b for by in alone.values() for b in by)})
+    if ids:
+        at = {r: k for k, r in enumerate(ids)}
+        edges = [(at[r], at[b]) for r, by in alone.items() for b in by]
+        rows, cols = zip(*edges, strict=True)
+        graph = csr_matrix(([1] * len(edges), (rows, cols)), shape=(len(ids), len(ids)))
+        n, label = connected_components(graph, directed=True, connection="strong")
+        for c in range(n):
+            members = [ids[k] for k in range(len(ids)) if label[k] == c]
+            if len(members) > 1:
+                lines.append(
+                    f"{', '.join(members)}: each must be home before another of them parks; no order "
+                    "does it, so one of them must step aside for another"
+                )
+    return lines
 
 
 def settle_samples(Ts: float) -> int:

@@ -50,7 +50,7 @@ from numpy.typing import NDArray
 
 from ground.geometry import Cell, parse_cell
 
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 """The version of every message's layout; a message of another version is rejected.
 
 2: :class:`Command` carries the shifted candidate and :class:`Tick` what the robot side applied;
@@ -58,7 +58,10 @@ SCHEMA_VERSION = 6
 4: :class:`Goal` carries the goals given together with it (``batch``), checked in their place,
 and :class:`Script` lets a script hold the lockstep clock and end the run;
 5: :class:`Plan` and :class:`Digest` carry the age of each robot's precedence phase (``phase_age``);
-6: :class:`Plan` carries its agent's count of places heard late (``late``)."""
+6: :class:`Plan` carries its agent's count of places heard late (``late``);
+7: :class:`Plan` carries the discs its agent kept clear of (``discs``) and the robot whose stopped
+disc covers its goal (``blocked``), and :class:`Command` may ask the robot side to brake
+(``brake``)."""
 MAX_AGE = 2**31
 """Largest ``phase_age`` a plan carries [steps] (an agent's count stops there)."""
 MAX_PAYLOAD = 64 * 1024
@@ -321,6 +324,21 @@ class Truth(Pose):
     TYPE: ClassVar[str] = "truth"
 
 
+DISC_KINDS = ("stale", "placed", "loose", "dead", "braked", "blind")
+"""Why an agent keeps clear of another robot as a disc (:attr:`Plan.discs`; docs/method.md §6.4):
+its plan is late or lost; it is known by its place token only; its radio link is down and it
+drives on; its agent is gone; its robot side braked it; its agent holds without poses."""
+OFF_PLAN = frozenset({"dead", "braked", "blind"})
+"""The :data:`DISC_KINDS` of a robot off its plans for good: its robot stops where it is, and the
+disc about it is static and bounded."""
+Disc = tuple[str, bool, float, float, float]
+"""One disc an agent kept clear of: (kind in :data:`DISC_KINDS`, at rest, centre x [m], centre y
+[m], radius [m]), world frame; at rest: about where the camera saw the robot standing still."""
+LINK_DOWN = "HOLD_LINK_DOWN"
+"""``Plan.status`` of an agent whose robot's radio link is down: the robot drives on uncontrolled
+and nothing the agent sends reaches it, so it solves nothing, commits "stay put" and waits for
+the link (docs/method.md §6.4)."""
+
 BLIND = "HOLD_NO_POSE"
 """``Plan.status`` of an agent without poses past its model bound: the robot brakes where it
 is, off its committed reference, so the neighbours keep clear of it as of a braked robot
@@ -366,6 +384,12 @@ class Plan(Message):
     """News of other robots' places this agent heard later than the reach's lag bound allows,
     so far [messages] (its inbox's count, docs/method.md §6.7); 0 where nothing is measured
     (every plan to every agent, ``fleet simulate``)."""
+    discs: dict[str, Disc] = field(compare=False, default_factory=dict)
+    """The other robots this step kept clear of as discs, robot id → :data:`Disc` (at most 64;
+    empty while every robot in reach is a neighbour)."""
+    blocked: str = ""
+    """The robot whose static disc (off its plans for good, :data:`OFF_PLAN`) covers this robot's
+    goal this step, or "": the goal cannot be reached while it stands there."""
 
     @classmethod
     def _check(cls, d: dict[str, Any]) -> dict[str, Any]:
@@ -389,6 +413,8 @@ class Plan(Message):
             "phase": _int(d["phase"], "phase", 0, 2),
             "phase_age": _int(d["phase_age"], "phase_age", 0, MAX_AGE),
             "late": _int(d["late"], "late", 0, 2**31),
+            "discs": _discs(d["discs"], d["robot"]),
+            "blocked": _blocker(d["blocked"], d["robot"]),
             "target": decode_array(d["target"], "target", (2,)),
             "goal": decode_array(d["goal"], "goal", (2,)),
             "status": _str(d["status"], "status"),
@@ -428,11 +454,17 @@ class Command(Message):
     K: NDArray[np.float64] = field(compare=False, default_factory=lambda: np.zeros((2, 4)))
     """The ancillary gain K (2, 4) [1/s², 1/s] of the law u = v̂ + K(x − x̂) that the agent
     plans with, for the robot side to apply on the candidate."""
+    brake: bool = False
+    """The agent holds (no pose past its model bound): the robot side brakes the robot over this
+    step, from its own state, as it brakes a dead agent's robot (:func:`ground.model.brake_input`,
+    or zero wheel speeds), instead of applying ``ax``, ``ay``.  The command counts as applied."""
 
     @classmethod
     def _check(cls, d: dict[str, Any]) -> dict[str, Any]:
         if not isinstance(d["fallback"], bool):
             raise WireError("fallback: expected a boolean")
+        if not isinstance(d["brake"], bool):
+            raise WireError("brake: expected a boolean")
         return {
             "step": _int(d["step"], "step"),
             "ax": _num(d["ax"], "ax"),
@@ -441,6 +473,7 @@ class Command(Message):
             "x_next": decode_array(d["x_next"], "x_next", (4,)),
             "v_next": decode_array(d["v_next"], "v_next", (None, 2)),
             "K": decode_array(d["K"], "K", (2, 4)),
+            "brake": d["brake"],
         }
 
 
@@ -604,6 +637,39 @@ class Outcome(_Executed, Message):
         }
 
 
+def _blocker(v: Any, me: Any) -> str:
+    """A plan's ``blocked``: "" or another robot's id."""
+    if v == "":
+        return ""
+    rid = _str(v, "blocked", ROBOT_ID)
+    if rid == me:
+        raise WireError("blocked: names the plan's own robot")
+    return rid
+
+
+def _discs(v: Any, me: Any) -> dict[str, Disc]:
+    """A map robot id (never ``me``) → :data:`Disc` (at most 64 entries: :func:`decode`'s map limit)."""
+    if type(v) is not dict:
+        raise WireError("discs: expected a map of robot ids to discs")
+    out: dict[str, Disc] = {}
+    for r, disc in v.items():
+        rid = _str(r, "discs", ROBOT_ID)
+        if rid == me:
+            raise WireError("discs: names the plan's own robot")
+        if type(disc) is not list or len(disc) != 5:
+            raise WireError("discs: expected [kind, rest, x, y, radius]")
+        kind, rest, x, y, radius = disc
+        if kind not in DISC_KINDS:
+            raise WireError("discs: unknown kind")
+        if not isinstance(rest, bool) or (rest and kind not in ("dead", "braked")):
+            raise WireError("discs: rest: expected a boolean, true only for a dead or braked robot")
+        x, y, radius = _num(x, "discs"), _num(y, "discs"), _num(radius, "discs")
+        if max(abs(x), abs(y)) > MAX_MAGNITUDE or not 0.0 < radius <= MAX_MAGNITUDE:
+            raise WireError("discs: a centre or radius out of range")
+        out[rid] = (kind, rest, x, y, radius)
+    return out
+
+
 def _steps_by_robot(v: Any, name: str, lo: int, hi: int) -> dict[str, int]:
     """A map robot id → step in lo..hi (at most 64 entries: :func:`decode`'s map limit)."""
     if type(v) is not dict:
@@ -665,8 +731,8 @@ class Digest(Message):
 
     def plans(self) -> list[Plan]:
         """The relayed plans.  They carry no nominal plan (shape (0, 2)), status
-        ``"relayed"``, solve time 0, ``tube_ok`` True and ``late`` 0: a neighbour does not use
-        those."""
+        ``"relayed"``, solve time 0, ``tube_ok`` True, ``late`` 0, no discs and no blocker: a
+        neighbour does not use those."""
         empty = np.zeros((0, 2))
         Ts, fp = self.Ts, self.footprint.tolist()
         out: list[Plan] = []
@@ -675,7 +741,7 @@ class Digest(Message):
                 Plan, robot=rid, step=k, t0=(k + 1) * Ts, Ts=Ts, committed=self.committed[i], nominal=empty,
                 footprint=fp[i], priority=self.priority[i], rank=self.rank[i], phase=self.phase[i],
                 phase_age=self.phase_age[i], target=self.target[i], goal=self.goal[i], status="relayed",
-                solve_time=0.0, tube_ok=True, late=0,
+                solve_time=0.0, tube_ok=True, late=0, discs={}, blocked="",
             )  # fmt: skip
             out.append(plan)
         return out

@@ -10,7 +10,10 @@ both judge a run with a :class:`Judge`, fed the same two streams step by step:
 * :meth:`Judge.plans` — one step's plans (:class:`~ground.wire.Plan`) and which of them were
   never executed (the robot side did not apply their command): the separation of the
   references committed at that step, every robot's solver figures, and whether an executed plan
-  kept what its predecessor had committed.
+  kept what its predecessor had committed; and the discs the agents kept clear of: how long each
+  robot was kept clear of as dead, braked, blind or uncontrolled, the largest disc used for it,
+  and whether its true body stayed inside every disc that claimed to hold it for good (the
+  discs of robots off their plans, docs/method.md §6.4), and whose goal a stopped robot covers.
 
 :meth:`Judge.summary` turns them into the run's ``summary.json``, the same schema for both;
 a field only the in-process simulator can measure (a robot's step time, its realised
@@ -28,13 +31,23 @@ import numpy as np
 
 from ground.bus import remember_steps
 from ground.geometry import Array, controlled_point, wrap_angle
-from ground.scenario import Scenario, settled_since
-from ground.wire import BLIND, Plan
+from ground.model import travel_floor
+from ground.scenario import GOAL_TOLERANCE, Scenario, forced_order, settled_since
+from ground.wire import BLIND, LINK_DOWN, Plan
 
 SOLVED = "PROXQP_SOLVED"
 """The one solver status whose plan is a solution; every other status is a fallback."""
 SLACK = 1e-9
 """Rounding slack of every distance check [m]."""
+HELD = (BLIND, LINK_DOWN)
+"""Plan statuses of an agent that holds without solving: its robot does not follow the reference."""
+KEPT_CLEAR_AS = {"dead": "dead", "braked": "braked", "blind": "blind", "loose": "uncontrolled"}
+"""The disc kinds counted per robot in ``summary.json`` (``kept_clear_as``), by their name there."""
+CLAIMED = frozenset({"dead", "braked"})
+"""Disc kinds whose disc claims to hold the robot's true body from then on: its agent is gone or
+its robot side braked it, and either stops it within the disc (docs/method.md §6.4).  A blind
+agent brakes its robot by commands from a prediction, which a real robot side may not realise
+exactly, so its disc is not judged."""
 
 Pose3 = Sequence[float] | Array
 """A pose (x [m], y [m], θ [rad]), world frame, (3,)."""
@@ -66,7 +79,9 @@ class Judge:
         self.skipped_steps = 0
         """Samples whose ground truth was lost on the way, not judged."""
         self.poses: dict[str, list[tuple[float, ...]]] = {r: [] for r in self.ids}
-        """True poses per sample."""
+        """True poses per sample judged."""
+        self.sample_index: list[int] = []
+        """Per sample, its index in :attr:`poses`, −1 for a sample not judged (:meth:`skipped`)."""
         self.errors: dict[str, list[float]] = {r: [] for r in self.ids}
         """Distance of the controlled point to the current goal per sample [m]."""
         self.refs: dict[str, list[Array]] = {
@@ -83,10 +98,29 @@ class Judge:
         """Per robot, recent steps whose plan was reported not executed."""
         self.robot: dict[str, dict[str, Any]] = {
             r: {"solves": 0, "failures": 0, "tube_exits": 0, "status": {}, "solve_ms": [], "candidate": 0,
-                "braked": 0, "breaks": 0, "blind": 0, "link_losses": 0, "late": 0}
+                "braked": 0, "breaks": 0, "blind": 0, "link_losses": 0, "late": 0, "arena": 0,
+                "uncontrolled": 0, "held_link_down": 0, "escapes": 0, "largest": 0.0,
+                "as": dict.fromkeys(KEPT_CLEAR_AS.values(), 0)}
             for r in self.ids
         }  # fmt: skip
+        self.off: set[str] = set()
+        """Robots whose committed reference is not being followed: braked by their robot side
+        since their last executed plan, or holding (blind, link down).  Their references are left
+        out of the separation check: their robot is kept clear of by its disc instead."""
+        self.blocked: dict[str, str] = dict.fromkeys(self.ids, "")
+        """Per robot, the robot whose stopped disc covered its goal in its latest plan, or ""."""
+        self.claims: dict[int, list[tuple[str, Array, float]]] = {}
+        """Per step, the discs that claim to hold a robot's true body (robot, centre (2,) [m],
+        radius [m]), judged against the sample of that step (:meth:`_judge_claims`)."""
+        self.escape_excess = 0.0
+        """The largest distance [m] by which a true body left a disc that claimed to hold it."""
+        self.outage: dict[str, tuple[int, int]] = {}
+        """Per robot whose radio link is down now: (the tick it was lost at, the newest tick seen)."""
+        self.losses_seen: dict[str, int] = {}
+        """Per robot, the tick its newest outage seen began at (:meth:`link_state`)."""
         self.extras: dict[str, dict[str, Any]] = {r: {} for r in self.ids}
+        self._layout: tuple[float, dict[str, dict[str, list[str]]]] | None = None
+        """(footprint [m], :meth:`layout` for it), once worked out."""
         """Per robot, the figures only the in-process simulator measures (:meth:`simulated`)."""
         self.repairs: dict[str, int] = {}
         """Per robot, solutions whose ȳ was pulled back onto the coordination rows (the
@@ -110,6 +144,7 @@ class Judge:
                 ymin + radius - SLACK <= c[1] <= ymax - radius + SLACK
             ):
                 self.arena_violations += 1
+                self.robot[a]["arena"] += 1
             for ob in self.scn.obstacles:
                 if ob.distance(c) < radius - SLACK:
                     self.obstacle_violations += 1
@@ -122,17 +157,27 @@ class Judge:
             self.poses[a].append(pose)
             pt = controlled_point(pose, self.lookahead)
             self.errors[a].append(float(np.linalg.norm(pt - self.goals[a])))
+        self.sample_index.append(len(self.poses[self.ids[0]]) - 1)
+        self._judge_claims(len(self.sample_index) - 1)
 
     def skipped(self) -> None:
         """A sample whose ground truth was lost on the way: not judged."""
         self.skipped_steps += 1
+        self.sample_index.append(-1)
 
-    def plans(self, plans: Mapping[str, Plan], unexecuted: Iterable[str] = ()) -> None:
-        """One step's plans.  A robot missing from ``plans`` (dead, or it skipped the step) is
-        checked with its last executed plan and not counted as a solve.  A robot in
+    def plans(
+        self, plans: Mapping[str, Plan], unexecuted: Iterable[str] = (), braked: Iterable[str] = ()
+    ) -> None:
+        """One step's plans.  A robot missing from ``plans`` but in ``unexecuted`` (its agent
+        dead, or it skipped the step, and its robot side kept to its last executed plan) is
+        checked with that plan and not counted as a solve; one missing from both is not checked
+        this step: its plan did not reach the supervisor, and its reference is unknown.  A robot in
         ``unexecuted`` made its plan, which counts as a solve, but its robot side did not apply
         the command (:attr:`~ground.wire.Tick.fallback`, :attr:`~ground.wire.Tick.braked`): the
-        robot kept to its last executed plan, and that is what is checked."""
+        robot kept to its last executed plan, and that is what is checked.  A robot in
+        ``braked`` (its robot side braked it over the step, :attr:`~ground.wire.Tick.braked`) no
+        longer follows any plan until it has an executed plan again: its references are left
+        out of the separation check (:attr:`off`)."""
         skipped = set(unexecuted)
         k = self.steps
         for r in skipped:
@@ -154,14 +199,25 @@ class Judge:
                 self.robot[r]["breaks"] += 1
         last = {**self.last_plans, **executed}
         self.last_plans = last
+        for r, pl in executed.items():
+            if pl.status in HELD:
+                self.off.add(r)
+            else:
+                self.off.discard(r)
+        self.off.update(braked)
+        self._discs(k, plans.values())
         for pl in plans.values():
             self.footprint = pl.footprint if self.footprint is None else max(self.footprint, pl.footprint)
+        # A robot that is neither in ``plans`` nor reported unexecuted by the tick is one whose
+        # plan of this step did not reach the supervisor (lost, or its agent left out as gone
+        # while the supervisor's own Zenoh lease lapsed): where its reference is, is unknown.
+        known = set(plans) | skipped
         for i, a in enumerate(self.ids):
             if a not in last:
                 continue
             pa = last[a]
             for b in self.ids[i + 1 :]:
-                if b not in last:
+                if b not in last or a in self.off or b in self.off or not {a, b} <= known:
                     continue
                 pb = last[b]
                 d = float(np.linalg.norm(pa.committed[-1] - pb.committed[-1]))
@@ -176,21 +232,114 @@ class Judge:
             st["status"][made.status] = st["status"].get(made.status, 0) + 1
             if made.status == BLIND:  # no measurement, no QP: the robot braked
                 st["blind"] += 1
+            elif made.status == LINK_DOWN:  # its link down: nothing solved, the robot drives on
+                st["held_link_down"] += 1
             else:
                 st["solves"] += 1
                 st["failures"] += made.status != SOLVED
                 st["tube_exits"] += not made.tube_ok
                 st["solve_ms"].append(made.solve_time * 1e3)
-            self.goals[a] = made.goal.copy()
+            if not np.array_equal(made.goal, self.goals[a]):
+                self._regoal(a, k, made.goal)
+            self.blocked[a] = made.blocked
             # The executed reference for the next sample ("stay put" past its end).
             at = min(max(k - pa.step, 0), len(pa.committed) - 1)
             self.refs[a].append(pa.committed[at].copy())
         self.steps += 1
 
+    def layout(self) -> dict[str, dict[str, list[str]]] | None:
+        """Whose way home the scenario's other goals wall in (:func:`~ground.scenario.forced_order`),
+        once a plan has given the footprint (None before); worked out once."""
+        if self.footprint is None:
+            return None
+        if self._layout is None or self._layout[0] != self.footprint:
+            self._layout = (self.footprint, forced_order(self.scn, self.footprint))
+        return self._layout[1]
+
+    def _regoal(self, a: str, k: int, goal: Array) -> None:
+        """Robot ``a``'s plan of step k heads for a new ``goal`` (2,) [m]: the samples of steps
+        k + 1 on are measured against it, as ``fleet simulate`` does, also those judged already
+        (a supervisor that fell behind takes a batch of samples before the plans of their steps)."""
+        self.goals[a] = np.array(goal, dtype=float)
+        for s in range(k + 1, len(self.sample_index)):
+            i = self.sample_index[s]
+            if i >= 0:
+                pt = controlled_point(self.poses[a][i], self.lookahead)
+                self.errors[a][i] = float(np.linalg.norm(pt - self.goals[a]))
+
+    def _discs(self, k: int, plans: Iterable[Plan]) -> None:
+        """What the agents' plans of step k kept clear of: count, per robot, the steps it was kept
+        clear of as each kind (once a step however many agents did), keep the largest disc, and
+        note the claims to judge against the sample of step k."""
+        kinds: dict[str, set[str]] = {}
+        claims: list[tuple[str, Array, float]] = []
+        for pl in plans:
+            for j, (kind, _, x, y, radius) in pl.discs.items():
+                st = self.robot.get(j)
+                if st is None:
+                    continue
+                kinds.setdefault(j, set()).add(kind)
+                if kind in KEPT_CLEAR_AS:  # (a stale or placed disc is about a robot on its plans)
+                    st["largest"] = max(st["largest"], radius)
+                if kind in CLAIMED:
+                    claims.append((j, np.array([x, y]), radius))
+        for j, seen in kinds.items():
+            for kind in seen:
+                if kind in KEPT_CLEAR_AS:
+                    self.robot[j]["as"][KEPT_CLEAR_AS[kind]] += 1
+        if claims:
+            self.claims.setdefault(k, []).extend(claims)
+            self._judge_claims(k)
+
+    def _judge_claims(self, k: int) -> None:
+        """Judge the discs of step k that claim to hold a robot's true body (:data:`CLAIMED`),
+        once both the plans and the sample of step k are in: the body, within robot_radius + ℓ of
+        the true controlled point, must lie inside the disc.  A disc that does not hold it is an
+        *escape*: a bound of docs/method.md §6.4 that the run broke."""
+        claims = self.claims.get(k)
+        if claims is None or len(self.sample_index) <= k:
+            return
+        del self.claims[k]
+        i = self.sample_index[k]
+        if i < 0:
+            return  # its ground truth was lost on the way
+        body = self.radius + self.lookahead
+        for j, centre, radius in claims:
+            pt = controlled_point(self.poses[j][i], self.lookahead)
+            excess = float(np.linalg.norm(pt - centre)) + body - radius
+            if excess > SLACK:
+                self.robot[j]["escapes"] += 1
+                self.escape_excess = max(self.escape_excess, excess)
+
     def link_lost(self, robot: str) -> None:
         """The radio link to ``robot`` was lost: it drove on uncontrolled (no deadman)."""
         if robot in self.robot:
             self.robot[robot]["link_losses"] += 1
+
+    def link_state(self, robot: str, up: bool, step: int, lost: int) -> None:
+        """The newest radio link state of ``robot`` (:class:`~ground.wire.LinkState`): ``up``, at
+        the link's newest tick ``step``, last lost at tick ``lost`` (−1: never).  An outage counts
+        as uncontrolled from the tick it was lost at to the newest tick the link saw it down, and
+        to the tick it is seen up again."""
+        st = self.robot.get(robot)
+        if st is None or lost < 0:
+            return
+        now = self.outage.get(robot)
+        if self.losses_seen.get(robot) != lost:  # a new outage
+            self.losses_seen[robot] = lost
+            if now is not None:  # (the one before ended unseen)
+                st["uncontrolled"] += max(now[1] - now[0], 0)
+                del self.outage[robot]
+            if up:  # it began and ended between two looks
+                st["uncontrolled"] += max(step - lost, 0)
+            else:
+                self.outage[robot] = (lost, max(step, lost))
+        elif now is not None:
+            if up:
+                st["uncontrolled"] += max(step - lost, 0)
+                del self.outage[robot]
+            else:
+                self.outage[robot] = (lost, max(step, now[1]))
 
     def off_plan(self, robot: str, kind: str) -> None:
         """The robot side did not apply ``robot``'s command of a step: it followed the shifted
@@ -236,10 +385,14 @@ class Judge:
             "reference_separation_violations": self.ref_violations,
             "obstacle_violations": self.obstacle_violations,
             "arena_violations": self.arena_violations,
+            "disc_escapes": sum(v["disc_escapes"] for v in robots.values()),
+            "max_disc_escape_m": self.escape_excess,
             "all_goals_reached": all(v["reached_goal"] for v in robots.values()),
             "footprint_radius_m": self.footprint,
             "unjudged_steps": self.skipped_steps,
             "places_heard_late": sum(v["places_heard_late"] for v in robots.values()),
+            # Whose way home the others' goals wall in (the scenario's goals): null before a plan.
+            "forced_order": self.layout(),
             "robots": robots,
         }
         steps_ms = [v for r in self.ids for v in self.extras[r].get("step_ms", [])]
@@ -251,14 +404,21 @@ class Judge:
         err = np.array(self.errors[r]) if self.errors[r] else np.array([math.inf])
         since = settled_since(self.errors[r], self.Ts)
         pts = np.array([controlled_point(q, self.lookahead) for q in self.poses[r]]).reshape(-1, 2)
+        steps_m = np.linalg.norm(np.diff(pts, axis=0), axis=1)  # (samples − 1,) [m]
+        p = self.scn.controller
         st = self.robot[r]
         out: dict[str, Any] = {
             "goal": self.goals[r].tolist(),
             "reached_goal": since is not None,
             "time_to_goal_s": None if since is None else since * self.Ts,
             "final_error_m": float(err[-1]),
-            "path_length_m": float(np.linalg.norm(np.diff(pts, axis=0), axis=1).sum()),
+            "path_length_m": float(steps_m.sum()),
             "straight_line_m": float(np.linalg.norm(pts[0] - self.goals[r])) if len(pts) else 0.0,
+            # To the sample its final stay at the goal began: the hold at the goal left out.
+            "path_to_arrival_m": None if since is None else float(steps_m[:since].sum()),
+            "travel_floor_s": travel_floor(pts[0] - self.goals[r], p.v_max, p.a_max, GOAL_TOLERANCE)
+            if len(pts)
+            else 0.0,
             "qp_solves": st["solves"],
             "qp_failures": st["failures"],
             "fallbacks": st["failures"],
@@ -267,6 +427,12 @@ class Judge:
             "steps_braked": st["braked"],
             "steps_blind": st["blind"],
             "link_losses": st["link_losses"],
+            "uncontrolled_s": (st["uncontrolled"] + self._open_outage(r)) * self.Ts,
+            "steps_held_link_down": st["held_link_down"],
+            "arena_violations": st["arena"],
+            "goal_blocked_by": self.blocked[r] or None,
+            "kept_clear_as": {**st["as"], "largest_disc_m": st["largest"] or None},
+            "disc_escapes": st["escapes"],
             "places_heard_late": st["late"],
             "reference_breaks": st["breaks"],
             "status_counts": dict(st["status"]),
@@ -282,6 +448,11 @@ class Judge:
         if r in self.repairs:
             out["repairs"] = self.repairs[r]
         return out
+
+    def _open_outage(self, robot: str) -> int:
+        """Steps of ``robot``'s outage still open: from its loss to the last step judged."""
+        now = self.outage.get(robot)
+        return 0 if now is None else max(max(now[1], self.steps) - now[0], 0)
 
     def deviation(self, robot: str) -> float:
         """The largest distance [m] of the robot's true controlled point from the executed
@@ -304,16 +475,64 @@ class Judge:
 
 def verdict(summary: Mapping[str, Any]) -> str | None:
     """Why a run (its ``summary.json``) failed, in one line, or None if it passed: every step
-    judged, no collision, every robot at its goal."""
+    judged, no collision, no robot off the arena, no robot outside a disc that claimed to hold it
+    (a bound of docs/method.md §6.4 broken), every robot at its goal (one whose goal a stopped
+    robot covers is named with it)."""
     why = []
+    robots = summary.get("robots", {})
     if not summary.get("completed", False):
         why.append(f"only {summary.get('steps', 0)} steps of the run were judged")
     if summary.get("collisions"):
         why.append(f"{summary['collisions']} collision samples")
-    missing = [r for r, v in summary.get("robots", {}).items() if not v["reached_goal"]]
+    if summary.get("arena_violations"):
+        off = [r for r, v in robots.items() if v.get("arena_violations")]
+        why.append(f"{summary['arena_violations']} arena violation samples ({', '.join(off)})")
+    if summary.get("disc_escapes"):
+        out = ", ".join(r for r, v in robots.items() if v.get("disc_escapes"))
+        why.append(f"{summary['disc_escapes']} samples of a robot outside the disc that claimed it ({out})")
+    missing = [
+        r + (f" (goal blocked by {v['goal_blocked_by']})" if v.get("goal_blocked_by") else "")
+        for r, v in robots.items()
+        if not v["reached_goal"]
+    ]
     if missing:
         why.append("goal not reached by " + ", ".join(missing))
     return "; ".join(why) or None
+
+
+def fault_note(summary: Mapping[str, Any]) -> str | None:
+    """One line on what faults did to a run (its ``summary.json``), or None if none showed: radio
+    links lost and the time their robots drove uncontrolled, robots kept clear of as off their
+    plans (dead, braked, blind) with the largest disc used, goals blocked by a stopped robot, and
+    discs that did not hold their robot."""
+    parts = []
+    robots = summary.get("robots", {})
+    lost = [(r, v) for r, v in robots.items() if v.get("link_losses")]
+    if lost:
+        parts.append(
+            "links lost: "
+            + ", ".join(
+                f"{r} {v['link_losses']}× ({v['uncontrolled_s']:.1f} s uncontrolled)" for r, v in lost
+            )
+        )
+    off = []
+    for r, v in robots.items():
+        kept = v.get("kept_clear_as", {})
+        steps = {k: n for k, n in kept.items() if k != "largest_disc_m" and n}
+        if steps:
+            kinds = ", ".join(f"{k} {n}" for k, n in steps.items())
+            off.append(f"{r} ({kinds} steps; largest disc {kept['largest_disc_m']:.3f} m)")
+    if off:
+        parts.append("kept clear of: " + "; ".join(off))
+    blocked = [f"{r} by {v['goal_blocked_by']}" for r, v in robots.items() if v.get("goal_blocked_by")]
+    if blocked:
+        parts.append("goals blocked: " + ", ".join(blocked))
+    if summary.get("disc_escapes"):
+        parts.append(
+            f"{summary['disc_escapes']} samples of a robot outside the disc that claimed it "
+            f"(by up to {summary['max_disc_escape_m']:.3f} m)"
+        )
+    return "; ".join(parts) or None
 
 
 def percentiles(values: Iterable[float]) -> dict[str, float]:

@@ -27,7 +27,7 @@ import numpy as np
 
 from ground.bus import Inbox, open_session
 from ground.process import add_common_args, announce, log
-from ground.scenario import ConfigError, Scenario, load_scenario
+from ground.scenario import ConfigError, Scenario, forced_order_lines, load_scenario
 from ground.wire import Keys, LinkState, Plan, Pose, Tick, Truth
 from supervisor.judge import Judge
 from supervisor.recorder import Recorder
@@ -47,12 +47,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", required=True, help="output directory")
     ap.add_argument("--viewer", action="store_true", help="also stream to a live Rerun viewer")
     ap.add_argument(
-        "--nice", type=int, default=10,
-        help="scheduling niceness increment (default 10): the logger yields the CPU to the control loop",
+        "--nice", type=int, default=None,
+        help="scheduling niceness increment (default: 10 on the realtime clock, where the logger "
+        "yields the CPU to the control loop's deadlines; 0 in lockstep, which has no deadline)",
     )  # fmt: skip
     args = ap.parse_args(argv)
-    if args.nice:
-        os.nice(args.nice)
+    nice = niceness(args.clock, args.nice)
+    if nice:
+        os.nice(nice)
     try:
         scn = load_scenario(args.scenario)
     except ConfigError as e:
@@ -105,6 +107,17 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def niceness(clock: str, asked: int | None) -> int:
+    """The supervisor's niceness increment: ``asked`` (``--nice``), else 10 on the realtime clock
+    and 0 in lockstep.  On the realtime clock the logger must not take the CPU from a step's
+    deadline.  Lockstep has no deadline, and a niced logger on a busy machine gets almost none of
+    it (weight 110 against 1024 per busy process): it fell hundreds of steps behind, and the run
+    ended before it had judged them all."""
+    if asked is not None:
+        return asked
+    return 10 if clock == "realtime" else 0
+
+
 class Monitor:
     """Takes the fleet's messages from the inbox one complete step at a time, in step order,
     and hands them to the judge and the recorder; logs agents leaving and returning."""
@@ -124,6 +137,10 @@ class Monitor:
         self.off_plan: set[str] = set()
         """Robots whose robot side did not apply the last command (each episode logged once)."""
         self.stop_deadline = 0.0
+        self.layout_said = False
+        """Whether the layout's forced order has been logged (:meth:`_say_layout`)."""
+        self.layout: threading.Thread | None = None
+        """The thread that logs it; joined before the summary (the recording closes after)."""
         self.link_down: set[str] = set()
         """Robots whose radio link is down (epuck_link's LinkState)."""
         self.lost_at: dict[str, int] = {}
@@ -141,7 +158,7 @@ class Monitor:
         lock and judged and logged outside it, so Zenoh's callbacks never wait on Rerun."""
         inbox, ids = self.inbox, self.ids
         truths: list[tuple[dict[str, Truth], dict[str, Pose | None]] | None] = []
-        plan_steps: list[tuple[dict[str, Plan], set[str]]] = []
+        plan_steps: list[tuple[dict[str, Plan], set[str], set[str]]] = []
         with inbox.cond:
             while (state := _step_in(inbox, ids, self.k_truth + len(truths))) != "wait":
                 kk = self.k_truth + len(truths)
@@ -154,7 +171,11 @@ class Monitor:
                 # Tick k + 1 says whose plan of step k was not executed (its command missed).
                 t_next = inbox.get(Tick, "tracker", kk + 1)
                 plan_steps.append(
-                    (step_plans, set() if t_next is None else {*t_next.fallback, *t_next.braked})
+                    (
+                        step_plans,
+                        set() if t_next is None else {*t_next.fallback, *t_next.braked},
+                        set() if t_next is None else set(t_next.braked),
+                    )
                 )
             newest = inbox.get(Tick, "tracker")
             ticks = [] if newest is None else [
@@ -173,16 +194,45 @@ class Monitor:
                 )
                 self.recorder.truth(self.k_truth, self.Ts, truth, measured)
             self.k_truth += 1
-        for plans, skipped in plan_steps:
-            self.judge.plans(plans, skipped)
+        for plans, skipped, braked in plan_steps:
+            blocked = dict(self.judge.blocked)
+            self.judge.plans(plans, skipped, braked)
             self.recorder.plans(self.k_plan, self.Ts, plans)
+            self._blocked(self.k_plan, blocked)
             self.k_plan += 1
+        if not self.layout_said and self.judge.footprint is not None:
+            # Off the judging loop: the free-space search takes a good part of a second.
+            self.layout_said = True
+            self.layout = threading.Thread(target=self._say_layout, daemon=True)
+            self.layout.start()
         for t in ticks:
             self._applied(t)
         self.recorder.flush_if_due()
         if truths or plan_steps:
             self.stop_deadline = 0.0  # still making progress: the grace period restarts
         self._liveliness()
+
+    def _say_layout(self) -> None:
+        """An event per robot whose way home the scenario's other goals wall in, once the first
+        plans have given the footprint (docs/method.md §7, "Where the layout forces an order");
+        the summary keeps the same (``forced_order``, worked out once by the judge)."""
+        for line in forced_order_lines(self.judge.layout() or {}):
+            self.recorder.event(f"layout: {line}", "WARN")
+
+    def _blocked(self, k: int, before: dict[str, str]) -> None:
+        """An event and a log line for each robot whose goal a stopped robot came to cover at
+        step k (``goal_blocked``), or no longer covers."""
+        for rid, by in self.judge.blocked.items():
+            if by == before.get(rid, ""):
+                continue
+            if by:
+                self.recorder.event(
+                    f"goal_blocked: {rid}: its goal is covered by {by}, which stands there", "WARN"
+                )
+                log(ROLE, f"step {k}: {rid}: goal blocked by {by}")
+            else:
+                self.recorder.event(f"{rid}: its goal is clear again")
+                log(ROLE, f"step {k}: {rid}: goal clear again")
 
     def _applied(self, t: Tick) -> None:
         """What the robot sides applied over step t.step − 1 (Tick.fallback, Tick.braked)."""
@@ -206,6 +256,7 @@ class Monitor:
             self.inbox.prune(min(self.k_truth, self.k_plan) - 1)
             links = {r: ls for r in self.ids if (ls := self.inbox.get(LinkState, r)) is not None}
         for rid, ls in links.items():
+            self.judge.link_state(rid, ls.up, ls.step, ls.lost)
             # An outage is known by the tick it began at: one that began and ended between two
             # looks shows as an "up" state with a loss not seen before.
             if ls.lost >= 0 and ls.lost != self.lost_at.get(rid):
@@ -256,6 +307,8 @@ class Monitor:
 
     def summary(self, completed: bool) -> dict[str, Any]:
         """The judge's summary, with the tracker's deadline misses and the rejected payloads."""
+        if self.layout is not None:
+            self.layout.join(timeout=30.0)
         inbox = self.inbox
         with inbox.cond:
             start = inbox.first.get(Truth.TYPE, self.t0)

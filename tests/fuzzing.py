@@ -99,7 +99,8 @@ INTS: dict[str, dict[str, tuple[int, int]]] = {
 }
 """Integer fields and their accepted closed ranges."""
 BOOLS: dict[str, tuple[str, ...]] = {
-    "plan": ("tube_ok",), "tick": ("stop",), "cmd": ("fallback",), "applied": ("braked",), "link": ("up",),
+    "plan": ("tube_ok",), "tick": ("stop",), "cmd": ("fallback", "brake"), "applied": ("braked",),
+    "link": ("up",),
     "script": ("stop",),
 }  # fmt: skip
 ARRAYS: dict[str, dict[str, tuple[int | None, ...]]] = {
@@ -121,8 +122,10 @@ LISTS: dict[str, dict[str, tuple[int, int] | None]] = {
 }
 """List fields, one entry per relayed robot: robot ids (None), or integers in a closed range
 (``steps``: 0 … the digest's step, written −1)."""
-STRINGS: dict[str, dict[str, int]] = {"plan": {"status": 64}}
-"""Free-text fields and their longest accepted length."""
+STRINGS: dict[str, dict[str, int]] = {"plan": {"status": 64, "blocked": 32}}
+"""Free-text fields and their longest accepted length (``blocked``: a robot id or "")."""
+DISC_MAPS: dict[str, tuple[str, ...]] = {"plan": ("discs",)}
+"""Maps robot id (never the message's own robot) → [kind, at rest, x, y, radius] (a plan's discs)."""
 MAPS: dict[str, dict[str, int]] = {
     "tick": {"fallback": 0, "braked": -1},
     "outcome": {"fallback": 0, "braked": -1},
@@ -171,6 +174,7 @@ def table_names(name: str) -> set[str]:
         | set(STRINGS.get(name, {}))
         | set(MAPS.get(name, {}))
         | set(POINT_MAPS.get(name, ()))
+        | set(DISC_MAPS.get(name, ()))
         | set(LISTS.get(name, {}))
     )
 
@@ -255,6 +259,13 @@ def realistic(name: str, robot: str, rng: np.random.Generator) -> Message:
         priority=int(rng.integers(0, 3)), rank=int(rng.integers(0, 3)), phase=int(rng.integers(0, 3)),
         phase_age=int(rng.integers(0, 500)), target=path[-1].copy(), goal=rng.uniform(-0.7, 0.7, 2),
         status="PROXQP_SOLVED", solve_time=u(1e-4, 2e-3), tube_ok=True, late=int(rng.integers(0, 50)),
+        discs={
+            r: (kind, kind in ("dead", "braked") and bool(rng.random() < 0.5), u(-0.9, 0.9), u(-0.9, 0.9),
+                u(0.13, 0.6))
+            for r in ("r7", "r8")[: int(rng.integers(0, 3))]
+            for kind in [str(rng.choice(["stale", "dead", "braked", "loose"]))]
+        },
+        blocked=str(rng.choice(["", "r7"])),
     )  # fmt: skip
 
 
@@ -272,6 +283,7 @@ class Generator:
         self.strings = STRINGS.get(name, {})
         self.maps = MAPS.get(name, {})
         self.points = POINT_MAPS.get(name, ())
+        self.discs = DISC_MAPS.get(name, ())
         self.lists = LISTS.get(name, {})
         kinds: dict[str, float] = {
             "garbage": 2.0,
@@ -298,6 +310,8 @@ class Generator:
             kinds["map_bad"] = 1.5
         if self.points:
             kinds["point_map_bad"] = 1.5
+        if self.discs:
+            kinds["disc_map_bad"] = 1.5
         if self.lists:
             kinds["list_bad"] = 3.0
         if not self.floats:
@@ -516,7 +530,9 @@ class Generator:
             v = self.choice([None, "r2", 0, 1.5, True, b"\x00", [["r2", pt]], [pt]])
         elif f in self.lists:
             v = self.choice([None, "r1", 0, 1.5, True, b"\x00", {"0": d[f][0]}, _arr(np.zeros(len(d[f])))])
-        else:  # robot, status: text fields
+        elif f in self.discs:
+            v = self.choice([None, "r1", 0, 1.5, True, b"\x00", [["r1", "dead"]], ["dead", True, 0, 0, 1]])
+        else:  # robot, status, blocked: text fields
             v = self.choice([None, 1, 1.5, True, d[f].encode(), [d[f]], {"id": d[f]}])
         d[f] = v
         return d, True
@@ -579,6 +595,32 @@ class Generator:
         elif how == 1:  # more robots than a batch may name
             n = MAX_BATCH + 1 + int(self.rng.integers(0, 8))
             d[f] = {f"q{i}": good for i in range(n)}
+        else:
+            d[f] = {**d[f], **dict([self.choice(bad_entries)])}
+        return d, True
+
+    def _disc_map_bad(self, d: dict[str, Any], robot: str) -> tuple[dict[Any, Any], bool]:
+        """A robot → disc map (a plan's discs) with a bad entry, too many entries, or not a map."""
+        f = self.choice(list(self.discs))
+        other = self.choice([r for r in OTHER_IDS if r != robot])
+        good = ["dead", True, 0.1, -0.2, 0.3]
+        bad_entries: list[tuple[Any, Any]] = [
+            (robot, good), ("", good), ("r/2", good), ("x" * 33, good), (b"r2", good), (1, good),
+            (other, None), (other, good[:4]), (other, [*good, 1.0]), (other, tuple(good[:3])),
+            (other, ["gone", True, 0.1, 0.2, 0.3]), (other, [None, True, 0.1, 0.2, 0.3]),
+            (other, ["dead", 1, 0.1, 0.2, 0.3]), (other, ["dead", None, 0.1, 0.2, 0.3]),
+            (other, ["dead", False, math.nan, 0.2, 0.3]), (other, ["dead", False, 0.1, math.inf, 0.3]),
+            (other, ["dead", False, 0.1, 0.2, 0.0]), (other, ["dead", False, 0.1, 0.2, -0.3]),
+            (other, ["dead", False, 2e9, 0.2, 0.3]), (other, ["dead", False, 0.1, 0.2, 2e9]),
+            (other, ["dead", False, "0.1", 0.2, 0.3]), (other, ["dead", False, 0.1, True, 0.3]),
+            (other, {"kind": "dead"}),
+        ]  # fmt: skip
+        how = int(self.rng.integers(4))
+        d = dict(d)
+        if how == 0:
+            d[f] = self.choice([None, [], [[other, good]], other, 0, 1.5, b"\x80", good])
+        elif how == 1:  # more robots than a map may name
+            d[f] = {f"q{i}": good for i in range(65 + int(self.rng.integers(0, 8)))}
         else:
             d[f] = {**d[f], **dict([self.choice(bad_entries)])}
         return d, True

@@ -54,9 +54,24 @@ import numpy as np
 from epuck_link.robot_side import BRAKED, CANDIDATE, RobotSide
 from ground.bus import Inbox, open_session, publisher, remember_steps
 from ground.geometry import measured_state
+from ground.model import brake_input
 from ground.process import DEADLINE, add_common_args, announce, fault_plan, log, seed_arg
 from ground.scenario import ConfigError, Scenario, home, load_scenario, settle_samples
-from ground.wire import SCRIPT, Applied, Command, Digest, Keys, Odom, Outcome, Plan, Pose, Script, Tick, Truth
+from ground.wire import (
+    LINK_DOWN,
+    SCRIPT,
+    Applied,
+    Command,
+    Digest,
+    Keys,
+    Odom,
+    Outcome,
+    Plan,
+    Pose,
+    Script,
+    Tick,
+    Truth,
+)
 from tracker.reports import OUTCOME_WAIT, REPORT_WAIT, Reports
 from tracker.world import Disturbance, EmulatedWorld, PoseNoise, SimulatedWorld
 
@@ -362,8 +377,13 @@ class SimTracker:
         inbox.prune(k if self.world.drives else k - Reports.LOOKBACK)
         if self.scripted:  # the script decides when the run ends
             return None
-        self.home_run = self.home_run + 1 if _all_home(inbox, ids, self.world, k) else 0
-        return k + 1 if self.home_run >= settle_samples(p.Ts) else None
+        excused = _all_home(inbox, ids, self.world, k)
+        self.home_run = self.home_run + 1 if excused is not None else 0
+        if self.home_run < settle_samples(p.Ts):
+            return None
+        left = f" ({'; '.join(excused)})" if excused else ""
+        log(ROLE, f"step {k}: every robot home for {self.home_run} steps{left}; ending the run")
+        return k + 1
 
     def _answering(self, k: int) -> list[str]:
         """Who answers step k: the live agents that have been heard since they came up (at step
@@ -500,14 +520,13 @@ class SimTracker:
                 log(ROLE, f"step {k}: {rid}: {change}")
             if what == CANDIDATE:
                 self.on_chain[rid] = side.applied_step
-            elif what == BRAKED:
-                if world.drives:
-                    self.braked_map[rid] = side.applied_step
-                q = world.state(rid)[[1, 3]]
-                a = np.clip(-q / p.Ts, -p.a_max, p.a_max)
-            assert a is not None
+            elif what == BRAKED and world.drives:
+                self.braked_map[rid] = side.applied_step
+            stopping = a is None  # braked, or its agent asks for the brake (Command.brake)
+            if a is None:
+                a = brake_input(world.state(rid)[[1, 3]], p.Ts, p.a_max)
             side.last_a = a
-            world.advance(rid, a, p.Ts)
+            world.advance(rid, a, p.Ts, braked=stopping)
 
     def _measure(
         self, k: int, t: float
@@ -599,19 +618,32 @@ def _planned(inbox: Inbox, ids: list[str], k: int) -> bool:
     return all(inbox.get(Plan, r, k) is not None or inbox.lost(Plan, r, k) for r in ids if r in inbox.live)
 
 
-def _all_home(inbox: Inbox, ids: list[str], world: SimulatedWorld | EmulatedWorld, k: int) -> bool:
+def _all_home(
+    inbox: Inbox, ids: list[str], world: SimulatedWorld | EmulatedWorld, k: int
+) -> list[str] | None:
     """Every plan of step k (the latest, if it is missing) parked at its agent's
     current goal (a goal changed at run time counts) and every controlled point
-    within half the goal tolerance of it."""
+    within half the goal tolerance of it, or its goal blocked by a stopped robot (the plan says
+    by whom: it cannot get there while that robot stands; ``summary.json`` names both).  A robot
+    whose agent is gone, or whose radio link is down (its agent holds: nothing it plans reaches
+    the robot), cannot get home now, and is left out.  The robots counted without being home,
+    each with why, or None if one is not home."""
+    excused = []
     for rid in ids:
         if rid not in inbox.live:
-            continue  # a dead agent's robot is braked where it is: it cannot get home
+            excused.append(f"{rid}: its agent is not alive")  # its robot is braked where it is
+            continue
         with inbox.cond:  # the plans' callbacks add to the history meanwhile
             plan = inbox.newest(Plan, rid, k)  # the plan of step k if it is in
         if plan is None:
-            return False
+            return None
+        if plan.status == LINK_DOWN:
+            excused.append(f"{rid}: its link is down")
+            continue
         with inbox.cond:
             pt = world.state(rid)[[0, 2]]
-        if not home(plan.committed[-1], pt, plan.goal):
-            return False
-    return True
+        if plan.blocked:
+            excused.append(f"{rid}: its goal covered by {plan.blocked}")
+        elif not home(plan.committed[-1], pt, plan.goal):
+            return None
+    return excused

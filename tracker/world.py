@@ -116,12 +116,18 @@ class SimulatedWorld:
         """Controlled-point state [px, vx, py, vy] (4,) [m, m/s]."""
         return self.plants[rid].state()
 
-    def advance(self, rid: str, a: np.ndarray, Ts: float) -> None:
-        """Hold acceleration ``a`` (2,) [m/s²] for ``Ts`` [s], then add the disturbance."""
+    def advance(self, rid: str, a: np.ndarray, Ts: float, braked: bool = False) -> None:
+        """Hold acceleration ``a`` (2,) [m/s²] for ``Ts`` [s], then add the disturbance, unless
+        the robot side ``braked`` the robot (:func:`ground.model.brake_input`): its wheels are
+        then stopped, not tracking, and a standing e-puck's steppers hold it where it is, so
+        the disturbance, which stands for the inner loop's tracking error, is drawn (the draws
+        stay in step with ``fleet simulate``'s) but not applied (docs/method.md §6.4)."""
         plant = self.plants[rid]
         x_before = plant.state()
         plant.step(a, Ts)
-        plant.perturb(self.dist.sample(x_before * 0.0))
+        w = self.dist.sample(x_before * 0.0)
+        if not braked:
+            plant.perturb(w)
 
 
 class EmulatedWorld:
@@ -147,5 +153,5 @@ class EmulatedWorld:
         px, py = controlled_point(self.pose(rid), self.lookahead)
         return np.array([px, 0.0, py, 0.0])
 
-    def advance(self, rid: str, a: np.ndarray, Ts: float) -> None:
+    def advance(self, rid: str, a: np.ndarray, Ts: float, braked: bool = False) -> None:
         """Nothing to do: the emulated wheels move in wall time."""

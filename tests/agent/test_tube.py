@@ -4,15 +4,21 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import math
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from agent.sets import SetComputationError, Zonotope, mrpi_outer, unit_directions
-from agent.tube import InadmissibleDesign, require_admissible, synthesize
-from ground.params import preset
+from agent.tube import InadmissibleDesign, require_admissible, synthesize, validated_design
+from epuck_link.unicycle import LookaheadInnerLoop, wheel_speeds
+from ground.params import PRESETS, preset
+from ground.scenario import load_scenario
 
 ARENA = (-1.0, 1.0, -1.0, 1.0)
+SCENARIOS = sorted((Path(__file__).resolve().parents[2] / "scenarios").glob("*.toml"))
 
 
 @pytest.fixture(scope="module")
@@ -154,6 +160,14 @@ def test_paper_preset_is_honestly_inadmissible():
     assert 0.30 < d.Z.Z.interval_hull()[0] < 0.40
     assert not d.admissible
     assert any("velocity" in f and "m/s" in f for f in d.failures)
+    # Its Z empties X̂ on both axes, each named; ℓ = 0 is one line that also says why the wheel
+    # bound cannot hold, with no number (it is infinite) and no second wheel line.
+    for axis in ("x", "y"):
+        assert any(f.startswith(f"X̂ {axis} velocity bound is empty") and "= -" in f for f in d.failures)
+    ell = [f for f in d.failures if "lookahead" in f or "wheel" in f]
+    assert len(ell) == 1 and "lookahead 0 m" in ell[0] and "is infinite" in ell[0], ell
+    assert d.wheel_speed == math.inf
+    assert not any("nan" in f or "inf " in f for f in d.failures), d.failures
     with pytest.raises(InadmissibleDesign) as ei:
         require_admissible(d)
     assert "short by" in str(ei.value)
@@ -165,6 +179,144 @@ def test_borderline_epsilon_is_rejected_with_the_amount():
     assert not d.admissible
     msg = " ".join(d.failures)
     assert "epsilon" in msg and "exceeds" in msg and "by" in msg
+
+
+def _failing(d, *words):
+    """The failures of ``d`` that contain every word."""
+    return [f for f in d.failures if all(w in f for w in words)]
+
+
+def test_stay_put_is_checked_on_the_y_axis_too():
+    """ref_Q heavier on py than on px (a scenario may set it): the y lag speed h_Ψ(e_3) = 5.92 cm/s
+    exceeds 0.95 × 6.19 cm/s while the x axis passes; the design is refused naming y, with the
+    amount."""
+    p = preset("epuck").replace(ref_Q=(100.0, 10.0, 500.0, 2.0))
+    d = synthesize(p, ARENA)
+    assert not d.admissible
+    hPsi = d.Psi.Z.support(np.eye(4))
+    m = p.admissibility_margin
+    assert hPsi[1] < (1 - m) * d.x_bound[1] < (1 - m) * d.x_bound[3] < hPsi[3]  # only y fails
+    (f,) = d.failures
+    assert "y reference lag velocity" in f and "X̂ y velocity bound" in f, f
+    excess = float(re.search(r"by ([0-9.e-]+) m/s$", f).group(1))
+    assert excess == pytest.approx(hPsi[3] - (1 - m) * d.x_bound[3], rel=1e-3)
+
+
+def test_reference_input_is_checked_on_the_ay_row_against_its_own_bound():
+    """A heavier K_Q on py shrinks Û's ay bound (KZ grows on that row only) and a heavier ref_Q
+    on py raises the ay reference input: each alone passes; together only the ay row fails, and
+    it would pass against the ax row's bound."""
+    p = preset("epuck")
+    tight_K = p.replace(K_Q=(400.0, 10.0, 1e5, 10.0))
+    fast_ref = p.replace(ref_Q=(100.0, 10.0, 1000.0, 40.0))
+    assert synthesize(tight_K, ARENA).admissible and synthesize(fast_ref, ARENA).admissible
+    d = synthesize(p.replace(K_Q=tight_K.K_Q, ref_Q=fast_ref.ref_Q), ARENA)
+    eps = p.epsilon
+    ref = d.Psi.Z.minkowski_sum(Zonotope(np.zeros(4), d.E @ np.diag([eps, eps])))
+    h = np.abs(d.K_r @ ref.G).sum(axis=1)
+    m = p.admissibility_margin
+    assert h[0] < (1 - m) * d.u_hat[0] and (1 - m) * d.u_hat[1] < h[1] < (1 - m) * d.u_hat[0]
+    (f,) = d.failures
+    assert "reference input ay" in f and "Û ay bound" in f, f
+    assert f"{d.u_hat[1]:.4g} m/s²" in f
+
+
+def test_an_empty_U_hat_on_the_ay_row_is_named():
+    """K_Q so heavy on py that h_KZ(e_ay) > a_max: Û is empty on ay only, and named."""
+    d = synthesize(preset("epuck").replace(K_Q=(400.0, 10.0, 1e6, 10.0)), ARENA)
+    assert d.u_hat[0] > 0 > d.u_hat[1]
+    assert len(_failing(d, "Û ay bound is empty", "= -")) == 1, d.failures
+    assert not _failing(d, "Û ax") and not _failing(d, "input ax") and not _failing(d, "x velocity"), (
+        d.failures
+    )
+
+
+def test_a_look_ahead_of_2_cm_is_refused_by_the_wheel_bound():
+    """ℓ = 2 cm asks √2·0.075·√(1 + (0.053/0.04)²) = 0.176 m/s of wheels that give 0.129 m/s."""
+    d = synthesize(preset("epuck").replace(lookahead=0.02), ARENA)
+    (f,) = d.failures
+    assert d.wheel_speed == pytest.approx(0.17607, abs=1e-5)
+    assert "wheel speed bound" in f and "0.1761 m/s" in f and "wheels' limit 0.1288 m/s" in f, f
+    assert "by 0.04727 m/s" in f and "smallest lookahead for this v_max is 0.03847 m" in f, f
+
+
+def _hint(f, what):
+    return float(re.search(rf"{what} ([0-9.]+) m", f).group(1))
+
+
+def _smallest_lookahead(p):
+    """ℓ with √2·v_max·√(1 + (L/2ℓ)²) equal to the wheels' limit, for ``p``'s v_max [m]."""
+    ratio = p.wheel.max_wheel_speed / (math.sqrt(2) * p.v_max)
+    return p.wheel.axle / (2 * math.sqrt(ratio**2 - 1))
+
+
+def test_the_wheel_bound_holds_at_its_boundary():
+    """The smallest legal ℓ for v_max = 0.075 m/s is 3.846 cm: the hint the failure gives (rounded
+    up) passes and 0.01 mm less fails, and so does the closed form, to 1e-9; likewise the largest
+    v_max for ℓ = 2 cm.  No margin (the shipped compact design passes by 0.38 %): a wheel speed
+    equal to the limit passes."""
+    p = preset("epuck")
+    d0 = synthesize(p, ARENA)
+    exact = _smallest_lookahead(p)
+    assert exact == pytest.approx(0.03846, abs=1e-5)
+    for ell, ok in ((exact * (1 + 1e-9), True), (exact * (1 - 1e-9), False)):
+        assert synthesize(p.replace(lookahead=ell), ARENA).admissible is ok, ell
+    f = synthesize(p.replace(lookahead=0.02), ARENA).failures[0]
+    ell = _hint(f, "smallest lookahead for this v_max is")
+    v = _hint(f, "the largest v_max for this lookahead")
+    assert synthesize(p.replace(lookahead=ell), ARENA).admissible
+    assert not synthesize(p.replace(lookahead=ell - 1e-5), ARENA).admissible
+    # (A v_max this low fails the stay-put check for this ε, a separate bound.)
+    assert not _failing(synthesize(p.replace(lookahead=0.02, v_max=v), ARENA), "wheel")
+    assert _failing(synthesize(p.replace(lookahead=0.02, v_max=v + 1e-5), ARENA), "wheel speed bound")
+    # At the limit exactly the wheels do not saturate (wheel_speeds scales only above it): passes.
+    at_limit = dataclasses.replace(p.wheel, max_steps=d0.wheel_speed / p.wheel.metres_per_step)
+    assert at_limit.max_wheel_speed == d0.wheel_speed  # exact in floating point for these figures
+    assert synthesize(p.replace(wheel=at_limit), ARENA).admissible
+    # A v_max no look-ahead can serve: the failure says so instead of a negative root.
+    fast = synthesize(p.replace(lookahead=0.02, v_max=0.1), ARENA)
+    assert _failing(fast, "wheel speed bound", "no lookahead is enough"), fast.failures
+
+
+@pytest.mark.parametrize("boundary", [False, True], ids=["epuck", "smallest_lookahead"])
+def test_the_wheel_bound_is_the_inner_loops_largest_wheel_speed(boundary):
+    """Over X's velocity box and every heading, the look-ahead loop's wheels reach the bound and
+    never pass it (epuck_link's own mapping q → (v, ω) → wheels); at the smallest ℓ they reach
+    the limit without saturating."""
+    p = preset("epuck")
+    ell = _smallest_lookahead(p) * (1 + 1e-9) if boundary else p.lookahead
+    p = p.replace(lookahead=ell)
+    d = synthesize(p, ARENA)
+    loop = LookaheadInnerLoop(ell)
+    geom = p.wheel
+    peak = 0.0
+    for q in itertools.product((-p.v_max, 0.0, p.v_max), repeat=2):
+        for theta in np.linspace(-math.pi, math.pi, 3601):
+            pose = np.array([0.0, 0.0, theta])
+            loop.reset(pose, np.array(q))
+            v, omega = loop.command(np.zeros(2), pose, 0.01)
+            left, right, saturated = wheel_speeds(v, omega, geom)
+            assert not saturated
+            peak = max(peak, abs(left), abs(right))
+    peak *= geom.metres_per_step
+    assert peak <= d.wheel_speed * (1 + 1e-12)
+    assert peak >= d.wheel_speed * (1 - 1e-5)
+
+
+def test_the_epuck_preset_passes_the_wheel_bound_by_1_2_percent():
+    """The `epuck` preset asks 0.12723 m/s of 0.12881 m/s (the `paper` preset, ℓ = 0, is refused:
+    test_paper_preset_is_honestly_inadmissible)."""
+    assert PRESETS == ("epuck", "paper")
+    d = synthesize(preset("epuck"), ARENA)
+    assert d.admissible, d.failures
+    assert 1 - d.wheel_speed / d.params.wheel.max_wheel_speed == pytest.approx(0.01222, abs=1e-5)
+
+
+@pytest.mark.parametrize("path", SCENARIOS, ids=[p.stem for p in SCENARIOS])
+def test_every_shipped_scenario_is_admissible(path):
+    design = validated_design(load_scenario(path))
+    assert design.admissible
+    assert design.wheel_speed <= design.params.wheel.max_wheel_speed
 
 
 def test_mrpi_raises_when_it_cannot_converge():

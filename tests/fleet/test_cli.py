@@ -166,6 +166,42 @@ def test_design_scenario_preset_override(tmp_path):
     assert d["admissible"] is False
 
 
+# A scenario's controller override that `fleet design` must refuse, and what the one line naming
+# the failing bound says (docs/method.md §1.2 and §4).
+INADMISSIBLE = {
+    # y axis only: the lag speed 5.92 cm/s exceeds 0.95 × 6.19 cm/s.
+    "ref_Q_y": ("ref_Q = [100.0, 10.0, 500.0, 2.0]", ("y reference lag velocity", "X̂ y velocity bound")),
+    # ℓ = 2 cm asks 0.176 m/s of wheels that give 0.129 m/s.
+    "lookahead_2cm": (
+        "lookahead = 0.02",
+        ("wheel speed bound", "= 0.1761 m/s", "wheels' limit 0.1288 m/s", "smallest lookahead"),
+    ),
+}
+
+
+@pytest.mark.parametrize("case", sorted(INADMISSIBLE))
+def test_design_refuses_a_bound_failing_on_one_axis_or_the_wheels(tmp_path, case):
+    override, words = INADMISSIBLE[case]
+    f = tmp_path / f"{case}.toml"
+    f.write_text(scenario_toml(controller=f"[controller]\n{override}\n"))
+    proc = fleet("design", f)
+    no_traceback(proc)
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert "admissible: NO" in proc.stdout
+    failures = [ln for ln in proc.stdout.splitlines() if ln.startswith("    - ")]
+    assert len(failures) == 1, proc.stdout  # the one failing bound, in one line, with its amount
+    assert all(w in failures[0] for w in words) and re.search(r"exceeds .* by \d", failures[0]), failures
+
+    proc = fleet("design", f, "--json")
+    no_traceback(proc)
+    assert proc.returncode == 1
+    d = strict_json(proc.stdout)
+    assert d["admissible"] is False and len(d["failures"]) == 1
+    assert all(w in d["failures"][0] for w in words)
+    assert d["wheel_limit_m_s"] == pytest.approx(preset("epuck").wheel.max_wheel_speed)
+    assert (d["wheel_speed_m_s"] > d["wheel_limit_m_s"]) is (case == "lookahead_2cm")
+
+
 # --------------------------------------------------------------------------- fleet simulate
 
 RUN_KEYS = (
@@ -678,3 +714,14 @@ def test_a_robot_id_that_cannot_name_a_ros_topic_is_refused_with_ros2(tmp_path):
             "and hold only letters, digits and single underscores"
         )
     ), proc.stderr
+
+
+def test_simulate_one_robot_alone_runs_and_reports_like_any_other(tmp_path):
+    """A fleet of one: no pair to measure, so the closing line says so instead of failing on it."""
+    scene = (SCENARIOS / "paper_two_robots.toml").read_text()
+    one = tmp_path / "alone.toml"
+    one.write_text(scene[: scene.rindex("[[robots]]")])
+    proc, s = simulate(one, tmp_path / "out")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert s["min_distance_m"] is None and s["collisions"] == 0 and s["robots"]["r1"]["reached_goal"]
+    assert "min distance none (one robot), goals reached 1/1" in proc.stdout, proc.stdout

@@ -40,6 +40,11 @@ from ground.wire import (
 )
 
 
+def _disc(robot, *disc):
+    """A plan whose discs map ``robot`` to ``disc`` (as it travels: a list)."""
+    return _mutate(SAMPLES["plan"], discs={robot: list(disc)})
+
+
 def _plan(robot="r1", n=20):
     rng = np.random.default_rng(0)
     return Plan(
@@ -47,6 +52,8 @@ def _plan(robot="r1", n=20):
         nominal=rng.uniform(-1, 1, (n + 1, 2)), footprint=0.134,
         priority=1, rank=2, phase=0, target=np.array([0.1, 0.2]), goal=np.array([0.5, -0.5]),
         status="PROXQP_SOLVED", solve_time=2.5e-4, tube_ok=True, late=3,
+        discs={"r8": ("dead", True, 0.4, -0.1, 0.1344), "r9": ("stale", False, -0.2, 0.3, 0.2)},
+        blocked="r8",
     )  # fmt: skip
 
 
@@ -105,6 +112,8 @@ def test_round_trip(name):
     for f in ("committed", "target", "goal", "x_next", "v_next"):
         if hasattr(msg, f):
             assert np.array_equal(getattr(back, f), getattr(msg, f))
+    if isinstance(msg, Plan):
+        assert back.discs == msg.discs and back.blocked == msg.blocked == "r8"
     if isinstance(msg, Goal):
         assert back.batch.keys() == msg.batch.keys() and len(msg.batch) == 2
         assert all(np.array_equal(back.batch[r], g) for r, g in msg.batch.items())
@@ -164,6 +173,28 @@ BAD = [
     ("string as number", lambda: _mutate(SAMPLES["pose"], theta="1.0"), Pose, "theta"),
     ("negative seq", lambda: _mutate(SAMPLES["pose"], seq=-1), Pose, "seq"),
     ("plan: negative late count", lambda: _mutate(SAMPLES["plan"], late=-1), Plan, "late"),
+    ("plan: discs not a map", lambda: _mutate(SAMPLES["plan"], discs=[["r2", "dead"]]), Plan, "discs"),
+    ("plan: a disc of its own robot", lambda: _disc("r1", "dead", True, 0, 0, 1),
+     Plan, "discs"),
+    ("plan: a disc of an unknown kind", lambda: _disc("r2", "gone", True, 0, 0, 1),
+     Plan, "discs"),
+    ("plan: a disc's rest not a bool", lambda: _disc("r2", "dead", 1, 0, 0, 1),
+     Plan, "discs"),
+    ("plan: a disc of no radius", lambda: _disc("r2", "dead", True, 0, 0, 0.0),
+     Plan, "discs"),
+    ("plan: a disc's NaN centre", lambda: _disc("r2", "dead", True, float("nan"), 0, 1),
+     Plan, "discs"),
+    ("plan: a disc far off", lambda: _disc("r2", "dead", True, 2e9, 0, 1),
+     Plan, "discs"),
+    ("plan: a disc of four numbers", lambda: _disc("r2", "dead", True, 0, 0),
+     Plan, "discs"),
+    ("plan: a disc of a bad id", lambda: _disc("r/2", "dead", True, 0, 0, 1),
+     Plan, "discs"),
+    ("plan: blocked by a bad id", lambda: _mutate(SAMPLES["plan"], blocked="r 2"), Plan, "blocked"),
+    ("plan: blocked by itself", lambda: _mutate(SAMPLES["plan"], blocked="r1"), Plan, "blocked"),
+    ("plan: a stale disc at rest", lambda: _disc("r2", "stale", True, 0, 0, 1), Plan, "discs"),
+    ("cmd: brake not a boolean", lambda: _mutate(SAMPLES["cmd"], brake=1), Command, "brake"),
+    ("plan: blocked by a number", lambda: _mutate(SAMPLES["plan"], blocked=2), Plan, "blocked"),
     ("plan: late count of a float", lambda: _mutate(SAMPLES["plan"], late=2.0), Plan, "late"),
     ("bad robot id", lambda: _mutate(SAMPLES["pose"], robot="r1/../x"), Pose, "robot"),
     ("NaN in array", lambda: _mutate(SAMPLES["goal"], goal=encode_array(np.array([np.nan, 0.0]))), Goal,

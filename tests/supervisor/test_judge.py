@@ -9,6 +9,7 @@ supervisor's loop counted empty plan steps towards 10**12 under the inbox lock
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from ground.bus import Inbox
 from ground.wire import Keys, Plan, Tick
@@ -272,3 +273,145 @@ def test_a_run_whose_plans_never_came_did_not_complete() -> None:
     assert (s["completed"], s["steps"]) == (False, 0), s
     s = run(with_plans=True)
     assert (s["completed"], s["steps"]) == (True, end), s
+
+
+def _judge_and_plan():
+    """A judge of the two-robot scene, and a plan maker with end point and discs."""
+    from pathlib import Path
+
+    from ground.scenario import load_scenario
+    from supervisor.judge import Judge
+
+    scn = load_scenario(Path(__file__).resolve().parents[2] / "scenarios" / "paper_two_robots.toml")
+
+    def plan(robot: str, step: int, end=(0.0, 0.0), status="PROXQP_SOLVED", discs=None, blocked=""):
+        pl = _plan(robot, step)
+        return Plan(**{
+            **pl.__dict__, "committed": np.tile(end, (20, 1)), "status": status, "discs": discs or {},
+            "blocked": blocked,
+        })  # fmt: skip
+
+    return Judge(scn), plan, scn.controller
+
+
+def test_a_disc_that_claims_a_robot_is_judged_against_its_true_body() -> None:
+    """A dead or braked robot's disc claims to hold its true body from then on (docs/method.md
+    §6.4): the judge checks the body (robot_radius + ℓ about the true controlled point) against
+    the disc at the sample of the plan's step, whichever of the two comes first, and counts an
+    escape with its excess; a stale disc (about a reference, not a body) claims nothing."""
+    from ground.geometry import axle_centre
+
+    judge, plan, p = _judge_and_plan()
+    body = p.robot_radius + p.lookahead
+    inside = axle_centre((0.5, 0.0), 0.0, p.lookahead)  # the true controlled point at (0.5, 0)
+    r1 = (-0.5, 0.0, 0.0)
+    # Step 0: r1 keeps clear of r2 as dead, a disc of radius body + 1 cm about (0.5, 0).
+    judge.plans({"r1": plan("r1", 0, discs={"r2": ("dead", False, 0.5, 0.0, body + 0.01)})})
+    judge.truth({"r1": r1, "r2": (*inside, 0.0)})  # the truth after the plans: held
+    # Step 1: the truth first, 3 cm off the centre: the body leaves the disc by 2 cm.
+    judge.truth({"r1": r1, "r2": (inside[0] + 0.03, inside[1], 0.0)})
+    judge.plans({"r1": plan("r1", 1, discs={"r2": ("braked", True, 0.5, 0.0, body + 0.01)})})
+    # Step 2: a stale disc claims nothing.
+    judge.truth({"r1": r1, "r2": (inside[0] + 0.3, inside[1], 0.0)})
+    judge.plans({"r1": plan("r1", 2, discs={"r2": ("stale", False, 0.5, 0.0, body + 0.01)})})
+    s = judge.summary(False, 1.0)
+    assert s["robots"]["r2"]["disc_escapes"] == 1 and s["disc_escapes"] == 1
+    assert s["max_disc_escape_m"] == pytest.approx(0.02)
+    kept = s["robots"]["r2"]["kept_clear_as"]
+    assert kept["dead"] == kept["braked"] == 1 and kept["largest_disc_m"] == pytest.approx(body + 0.01)
+    assert s["robots"]["r1"]["kept_clear_as"]["largest_disc_m"] is None
+
+
+def test_a_robot_that_does_not_follow_its_reference_is_left_out_of_the_separation_check() -> None:
+    """A robot its robot side braked (Tick.braked), or whose agent holds (blind, link down), does
+    not follow its committed reference: the others are kept clear of its body by its disc, so its
+    stale reference is not compared with theirs until it has an executed plan of its own again."""
+    judge, plan, _ = _judge_and_plan()
+    judge.plans({"r1": plan("r1", 0, (0.0, 0.0)), "r2": plan("r2", 0, (0.5, 0.0))})
+    judge.plans({"r1": plan("r1", 1, (0.45, 0.0))}, {"r2"}, {"r2"})  # r2 braked: r1 comes close
+    assert judge.ref_violations == 0 and "r2" in judge.off
+    judge.plans({"r1": plan("r1", 2, (0.45, 0.0)), "r2": plan("r2", 2, (0.5, 0.0))})  # back: judged
+    assert judge.ref_violations == 1 and not judge.off
+    judge.plans({"r1": plan("r1", 3, (0.45, 0.0)), "r2": plan("r2", 3, (0.5, 0.0), status="HOLD_LINK_DOWN")})
+    assert judge.ref_violations == 1 and judge.robot["r2"]["held_link_down"] == 1
+
+
+def test_a_robot_whose_plan_never_reached_the_supervisor_is_not_judged_on_a_stale_reference() -> None:
+    """A plan of step k that the supervisor never got (lost on the way, or its agent left out as
+    gone while the supervisor's own lease lapsed) says nothing of where that robot's reference
+    is: its old reference is not compared with the others' new ones.  Had the tick reported the
+    plan unexecuted, the robot would have kept to its last one, and that is compared."""
+    judge, plan, _ = _judge_and_plan()
+    judge.plans({"r1": plan("r1", 0, (0.0, 0.0)), "r2": plan("r2", 0, (0.5, 0.0))})
+    judge.plans({"r1": plan("r1", 1, (0.45, 0.0))})  # r2's plan of step 1 lost: not judged
+    assert judge.ref_violations == 0 and judge.min_ref == pytest.approx(0.5)
+    judge.plans({"r1": plan("r1", 2, (0.45, 0.0))}, {"r2"})  # r2 kept to its plan: judged
+    assert judge.ref_violations == 1
+
+
+def test_a_new_goal_counts_from_the_step_after_its_plan_in_whatever_order_the_judge_gets_them() -> None:
+    """r2's plan of step 0 heads for a new goal, where r2 then stands.  In process the sample
+    of step 1 is judged after that plan; a supervisor that fell behind takes the samples first.
+    Either way every sample from step 1 on is measured against the new goal, and r2 arrives."""
+    from ground.geometry import axle_centre
+
+    results = []
+    for plans_first in (True, False):
+        judge, plan, p = _judge_and_plan()
+        new = np.array([0.3, 0.4])
+        at = (*axle_centre(tuple(new), 0.0, p.lookahead), 0.0)
+        poses = {"r1": (-0.7, 0.0, 0.0), "r2": at}
+        judge.truth(poses)  # sample 0
+        step0 = {"r1": plan("r1", 0), "r2": Plan(**{**plan("r2", 0).__dict__, "goal": new})}
+        if plans_first:
+            judge.plans(step0)
+        for _ in range(40):
+            judge.truth(poses)
+        if not plans_first:
+            judge.plans(step0)
+        s = judge.summary(True, 1.0)
+        results.append((s["robots"]["r2"]["reached_goal"], s["robots"]["r2"]["final_error_m"]))
+    assert results[0] == results[1] and results[0][0] and results[0][1] < 1e-9
+
+
+def test_link_outages_count_as_uncontrolled_time_however_they_are_seen() -> None:
+    """The supervisor sees each robot's newest LinkState at each look: an outage counts from the
+    tick it was lost at to the tick the link saw it up again, also when it began and ended
+    between two looks, and an outage still open counts to the last step judged."""
+    judge, plan, p = _judge_and_plan()
+    judge.link_state("r1", False, 12, 10)
+    judge.link_state("r1", False, 15, 10)
+    judge.link_state("r1", True, 20, 10)  # 10 steps down
+    judge.link_state("r1", True, 21, 10)  # the same outage, seen again: nothing more
+    judge.link_state("r1", True, 40, 33)  # lost at 33 and back by 40 between two looks: 7 more
+    judge.link_state("r2", False, 50, 45)  # still down at the end
+    for k in range(60):
+        judge.plans({"r1": plan("r1", k), "r2": plan("r2", k, (0.5, 0.0))})
+    s = judge.summary(False, 1.0)
+    assert s["robots"]["r1"]["uncontrolled_s"] == pytest.approx(17 * p.Ts)
+    assert s["robots"]["r2"]["uncontrolled_s"] == pytest.approx((60 - 45) * p.Ts)
+
+
+def test_the_verdict_and_the_faults_line_name_what_faults_did() -> None:
+    """A goal a stopped robot covers is named with it; arena violations fail a run and name the
+    robot; the faults line names lost links with their uncontrolled time, the robots kept clear of
+    with the largest disc, and the blocked goals."""
+    from supervisor.judge import fault_note, verdict
+
+    judge, plan, _ = _judge_and_plan()
+    judge.truth({"r1": (-0.5, 0.0, 0.0), "r2": (5.0, 0.0, 0.0)})  # r2 far off the arena
+    judge.plans({
+        "r1": plan("r1", 0, discs={"r2": ("loose", False, 5.0, 0.0, 0.3)}, blocked="r2"),
+        "r2": plan("r2", 0, (0.5, 0.0), status="HOLD_LINK_DOWN"),
+    })  # fmt: skip
+    judge.link_state("r2", False, 3, 0)
+    s = judge.summary(True, 1.0)
+    assert s["robots"]["r1"]["goal_blocked_by"] == "r2" and s["robots"]["r2"]["arena_violations"] == 1
+    why = verdict(s)
+    assert why is not None and "1 arena violation samples (r2)" in why and "r1 (goal blocked by r2)" in why
+    note = fault_note(s)
+    assert note is not None and "links lost" not in note  # no loss counted yet
+    judge.link_lost("r2")
+    note = fault_note(judge.summary(True, 1.0))
+    assert note is not None and "links lost: r2 1×" in note
+    assert "r2 (uncontrolled 1 steps; largest disc 0.300 m)" in note and "goals blocked: r1 by r2" in note

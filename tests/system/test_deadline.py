@@ -181,7 +181,7 @@ def test_the_robot_side_follows_the_candidate_then_brakes():
     replaced by the candidate of the last applied command until it is used up; a late command
     keeps the watchdog quiet, silence does not; a dead agent's robot, a braked one and one whose
     agent has no plan yet are braked; without ``drives`` (epuck_link applies the commands) the
-    last acceleration is held."""
+    last acceleration is held; a command that asks for the brake is applied as the brake."""
     from epuck_link.robot_side import BRAKED, CANDIDATE, COMMAND, HELD, RobotSide
     from ground.wire import Command
 
@@ -221,6 +221,12 @@ def test_the_robot_side_follows_the_candidate_then_brakes():
     link.decide(4, cmd, cmd, True, None)
     what, a, _ = link.decide(5, None, cmd, True, None)
     assert what == HELD and np.array_equal(a, [0.3, 0.0])
+    # An agent that holds without poses asks for the brake: applied as its command (so the report
+    # says applied), by the robot side's own brake (no acceleration), and nothing to follow after.
+    hold = Command(robot="r1", step=15, ax=0.2, ay=0.1, fallback=False, brake=True)
+    what, a, _ = late.decide(15, hold, hold, True, x)
+    assert what == COMMAND and a is None and late.applied_step == 15
+    assert late.decide(16, None, hold, True, x) == (BRAKED, None, "nothing left to follow")
 
 
 def test_remembered_steps_stay_bounded_and_keep_the_recent_ones():

@@ -13,19 +13,17 @@ import dataclasses
 import json
 import math
 import os
-import queue
 import re
 import signal
 import subprocess
 import sys
 import threading
-import time
 from itertools import combinations
 from pathlib import Path
 
 import numpy as np
 import pytest
-from procfs import argv, descendants
+from fleets import agent_pid, child_pid, collected, launch, stop, until
 
 from agent.controller import TubeMPC
 from agent.coordination import PLACE_LAG, Hazard, NeighbourInfo, hazard_halfplanes
@@ -34,6 +32,7 @@ from agent.tube import synthesize
 from fleet.scenes import antipodal_swap, scene_to_toml
 from ground.faults import DELIVER, DROP, FaultPlan, FaultPlanError
 from ground.geometry import controlled_point
+from ground.model import stopping
 from ground.net import free_port, loopback
 from ground.scenario import load_scenario
 from ground.wire import BLIND, LinkState, Plan
@@ -231,7 +230,7 @@ def test_guard_grows_stale_discs_by_epsilon_and_caps_dead_ones():
     assert not nbs and hz[0].radius == pytest.approx(design.footprint + 5 * reach)  # m = 4 missed
     assert np.array_equal(hz[0].centre, [0.3, 0.2])
     nbs, hz = g.classify(12, ["r2"], {"r2": None}, {"r2": old}, set(), starts)
-    brake = p.v_max**2 / (2 * p.a_max)
+    brake = stopping(p.v_max, p.a_max, p.Ts)[1]  # where the brake stops it, both axes
     assert hz[0].radius == pytest.approx(design.footprint + p.horizon * reach + brake)
     nbs, hz = g.classify(9, ["r3"], {"r3": None}, {"r3": None}, {"r3"}, starts)
     assert np.array_equal(hz[0].centre, starts["r3"].last_point)  # never heard: its start
@@ -292,7 +291,7 @@ def _safe_faulty_run(tmp_path: Path, plan: dict, exchange: str) -> tuple[dict, s
     )  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]
     s = json.loads((out / "summary.json").read_text())
-    assert s["collisions"] == 0 and s["all_goals_reached"]
+    assert s["collisions"] == 0 and s["all_goals_reached"] and s["disc_escapes"] == 0
     assert s["min_reference_separation_m"] >= s["required_reference_separation_m"] - 1e-9
     # No committed reference was ever changed, only extended (supervisor.monitor.continues).
     assert all(r["reference_breaks"] == 0 for r in s["robots"].values()), s["robots"]
@@ -397,7 +396,7 @@ def test_a_blind_robot_starts_again_from_its_measurement_when_poses_return(tmp_p
     res = _fleet("run", str(scene), "--out", str(out), "--faults", str(faults), *flags)
     assert res.returncode == 0, res.stderr[-3000:]
     s, err = json.loads((out / "summary.json").read_text()), res.stderr
-    assert s["completed"] and s["collisions"] == 0 and s["all_goals_reached"], s
+    assert s["completed"] and s["collisions"] == 0 and s["all_goals_reached"] and s["disc_escapes"] == 0, s
     assert s["min_reference_separation_m"] >= s["required_reference_separation_m"] - 1e-9
     r1, r2 = s["robots"]["r1"], s["robots"]["r2"]
     assert r1["steps_blind"] == 7 and r1["status_counts"][BLIND] == 7, r1
@@ -463,68 +462,6 @@ def test_commands_lost_before_the_robot_side_are_followed_on_the_candidate(tmp_p
     assert "[agent r2] step 41: commands after step 39 not applied; on its candidate" in err
 
 
-def _launch(
-    scenario: Path, out: Path, hub: str, clock: str, extra: list[str] | None = None
-) -> tuple[subprocess.Popen[str], queue.Queue[str]]:
-    cmd = [
-        sys.executable,
-        "-m",
-        "fleet.cli",
-        "run",
-        str(scenario),
-        "--out",
-        str(out),
-        "--listen",
-        hub,
-        *(extra or []),
-    ]
-    launcher = subprocess.Popen(
-        [*cmd, "--clock", clock],
-        cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-    )  # fmt: skip
-    lines: queue.Queue[str] = queue.Queue()
-    threading.Thread(target=lambda: [lines.put(x) for x in launcher.stderr], daemon=True).start()  # type: ignore[union-attr]
-    return launcher, lines
-
-
-def _until(
-    lines: queue.Queue[str], text: str | re.Pattern[str], log: list[str], timeout: float = 150
-) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        try:
-            line = lines.get(timeout=1.0)
-        except queue.Empty:
-            continue
-        log.append(line)
-        if text.search(line) if isinstance(text, re.Pattern) else text in line:
-            return
-    raise AssertionError(f"no {text!r} within {timeout} s:\n" + "".join(log[-30:]))
-
-
-def _stop(launcher: subprocess.Popen[str]) -> None:
-    """Kill the launcher (by its pid) if it still runs."""
-    if launcher.poll() is None:
-        launcher.kill()
-        launcher.wait(timeout=10)
-
-
-def _collected(lines: queue.Queue[str], log: list[str], out: Path) -> tuple[str, dict]:
-    """The launcher's whole stderr (what ``log`` holds and the rest of ``lines``) and the summary."""
-    while not lines.empty():
-        log.append(lines.get())
-    return "".join(log), json.loads((out / "summary.json").read_text())
-
-
-def _child_pid(launcher_pid: int, *words: str) -> int:
-    """The process of the launcher's fleet whose command line has each of ``words``."""
-    return next(c for c in descendants(launcher_pid) if set(words) <= set(argv(c)))
-
-
-def _agent_pid(launcher_pid: int, rid: str) -> int:
-    return _child_pid(launcher_pid, "agent", rid)
-
-
 @pytest.mark.parametrize(
     ("topology", "flags"),
     [
@@ -543,19 +480,18 @@ def test_killed_agent_is_braked_avoided_and_rejoins_when_restarted(tmp_path, top
     the ticking clock the same way (its first steps plan from the measurement, then ahead), and
     a tick that comes while it is still declaring its subscriptions is taken quietly."""
     hub = loopback(free_port())
-    # Time enough after the rejoin, however late the new process comes up (lockstep runs fast).
-    text = (SCENARIOS / "paper_three_robots.toml").read_text()
-    scenario = tmp_path / "three_150s.toml"
-    scenario.write_text(
-        "\n".join("duration = 150.0" if ln.startswith("duration") else ln for ln in text.splitlines())
-    )
-    launcher, lines = _launch(scenario, tmp_path, hub, "lockstep", ["--topology", topology, *flags])
+    # The run ends once r1 and r3 are home (a dead robot is not waited for): crossings of 4 m,
+    # about 600 steps, leave the new process time to come up, however fast lockstep runs.
+    scenario = tmp_path / "three_crossing_4m.toml"
+    scene = antipodal_swap(3, radius=2.0, duration=300.0, arena=(-2.5, 2.5, -2.5, 2.5))
+    scenario.write_text(scene_to_toml(scene))
+    launcher, lines = launch(scenario, tmp_path, hub, "lockstep", ["--topology", topology, *flags])
     log: list[str] = []
     restarted = None
     try:
-        _until(lines, "[tracker] step 50", log)
-        os.kill(_agent_pid(launcher.pid, "r2"), signal.SIGKILL)
-        _until(lines, "[tracker] step 100", log)
+        until(lines, "[tracker] step 50", log)
+        os.kill(agent_pid(launcher.pid, "r2"), signal.SIGKILL)
+        until(lines, "r2: not alive; kept clear of as a static obstacle", log)
         restarted = subprocess.Popen(
             # --timeout outlasts a Zenoh stall (below), so the new agent does not give up first.
             [sys.executable, "-m", "agent", "--scenario", str(scenario), "--robot", "r2", "--connect", hub,
@@ -574,7 +510,7 @@ def test_killed_agent_is_braked_avoided_and_rejoins_when_restarted(tmp_path, top
     err = "".join(log)
     s = json.loads((tmp_path / "summary.json").read_text())
     assert launcher.returncode == 1 and "agent r2 (exit -9)" in err
-    assert s["collisions"] == 0, (s["steps"], agent_err[-2000:], err[-3000:])
+    assert s["collisions"] == 0 and s["disc_escapes"] == 0, (s["steps"], agent_err[-2000:], err[-3000:])
     assert s["min_reference_separation_m"] >= s["required_reference_separation_m"] - 1e-9
     assert "r2: its agent is not alive; braking" in err
     assert "[agent r1] step" in err and "r2: not alive; kept clear of as a static obstacle" in err
@@ -606,11 +542,11 @@ def test_hung_agent_is_braked_and_resumes(tmp_path, lease, topology):
     no link between agents."""
     hub = loopback(free_port())
     extra = ["--topology", topology, *([] if lease is None else ["--lease", str(lease)])]
-    launcher, lines = _launch(SCENARIOS / "paper_three_robots.toml", tmp_path, hub, "realtime", extra)
+    launcher, lines = launch(SCENARIOS / "paper_three_robots.toml", tmp_path, hub, "realtime", extra)
     log: list[str] = []
     try:
-        _until(lines, "[tracker] step 50", log)
-        victim = _agent_pid(launcher.pid, "r2")
+        until(lines, "[tracker] step 50", log)
+        victim = agent_pid(launcher.pid, "r2")
         os.kill(victim, signal.SIGSTOP)
         since = len(log)  # the lines logged while r2 is stopped: log[since:stopped]
         try:
@@ -621,17 +557,17 @@ def test_hung_agent_is_braked_and_resumes(tmp_path, lease, topology):
                 if lease is None and topology == "mesh"
                 else "(no command for 0.5 s|its agent is not alive)"
             )
-            _until(lines, re.compile(rf"r2: {why}; braking"), log, timeout=20)
-            _until(lines, "[tracker] step 100", log, timeout=20)
+            until(lines, re.compile(rf"r2: {why}; braking"), log, timeout=20)
+            until(lines, "[tracker] step 100", log, timeout=20)
             stopped = len(log)
         finally:
             os.kill(victim, signal.SIGCONT)
         launcher.wait(timeout=300)
     finally:
-        _stop(launcher)
-    err, s = _collected(lines, log, tmp_path)
+        stop(launcher)
+    err, s = collected(lines, log, tmp_path)
     assert launcher.returncode == 0, err[-3000:]
-    assert s["collisions"] == 0 and s["all_goals_reached"]
+    assert s["collisions"] == 0 and s["all_goals_reached"] and s["disc_escapes"] == 0
     assert s["min_reference_separation_m"] >= s["required_reference_separation_m"] - 1e-9
     assert "r2: its plan is late or lost; kept clear of as a growing static disc" in err
     assert "[agent r2] joined at step" in err
@@ -661,11 +597,11 @@ def test_a_tracker_behind_the_wall_clock_starts_the_clock_over(tmp_path):
     steps would be missed by every robot, and a large fleet whose tracker fell behind would
     never recover.)  The robots stay safe and get home."""
     hub = loopback(free_port())
-    launcher, lines = _launch(SCENARIOS / "paper_three_robots.toml", tmp_path, hub, "realtime")
+    launcher, lines = launch(SCENARIOS / "paper_three_robots.toml", tmp_path, hub, "realtime")
     log: list[str] = []
     try:
-        _until(lines, "[tracker] step 50", log)
-        tracker = _child_pid(launcher.pid, "tracker")
+        until(lines, "[tracker] step 50", log)
+        tracker = child_pid(launcher.pid, "tracker")
         os.kill(tracker, signal.SIGSTOP)
         try:
             threading.Event().wait(0.6)  # the fault's length, not a synchronisation
@@ -673,8 +609,8 @@ def test_a_tracker_behind_the_wall_clock_starts_the_clock_over(tmp_path):
             os.kill(tracker, signal.SIGCONT)
         launcher.wait(timeout=300)
     finally:
-        _stop(launcher)
-    err, s = _collected(lines, log, tmp_path)
+        stop(launcher)
+    err, s = collected(lines, log, tmp_path)
     assert launcher.returncode == 0, err[-3000:]
     assert s["collisions"] == 0 and s["all_goals_reached"], s
     over = re.search(r"\[tracker\] step (\d+): the tick went out (\d+) ms late; the clock starts over", err)

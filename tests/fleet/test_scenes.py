@@ -1,0 +1,112 @@
+"""The liveness bench's scene families (``fleet/scenes.py``): every drawn scene is one the loader
+and the tube design accept, each family has the shape its name promises, and the layout check
+names the order the layouts that force one force."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fleet.scenes import (
+    EPUCK_FOOTPRINT,
+    LAYOUT_FAMILIES,
+    MIN_GOAL_SPACING,
+    concentric_rings,
+    hard_scene,
+    pocket,
+    single_file,
+)
+from ground.geometry import controlled_point
+from ground.params import preset
+from ground.scenario import forced_order, parse_scenario
+
+ROOT = Path(__file__).resolve().parents[2]
+ELL = preset("epuck").lookahead
+
+
+def _points(scene: dict) -> list[np.ndarray]:
+    return [controlled_point(np.array(r["start"], dtype=float), ELL) for r in scene["robots"]]
+
+
+def _goals(scene: dict) -> list[np.ndarray]:
+    return [np.array(r["goal"], dtype=float) for r in scene["robots"]]
+
+
+def test_every_drawn_layout_scene_is_accepted_and_every_family_is_drawn():
+    from agent.tube import validated_design
+
+    seen = set()
+    for seed in range(25):
+        data = hard_scene(seed, LAYOUT_FAMILIES)
+        seen.add(LAYOUT_FAMILIES[seed % len(LAYOUT_FAMILIES)])
+        validated_design(parse_scenario(data))  # raises, naming the field, if refused
+        goals = _goals(data)
+        for i, g in enumerate(goals):  # the closest spacing the loader allows, or wider
+            for h in goals[i + 1 :]:
+                assert np.linalg.norm(g - h) >= MIN_GOAL_SPACING - 1e-9, data["name"]
+    assert seen == set(LAYOUT_FAMILIES)
+
+
+def test_a_single_file_shift_sends_each_robot_to_the_next_start_in_a_lane_too_narrow_to_pass():
+    scene = single_file(5, "shift", width=0.32)
+    pts, goals = _points(scene), _goals(scene)
+    for k in range(4):
+        assert np.allclose(goals[k], pts[k + 1], atol=1e-6)
+    # The lane's walls leave less than two bodies side by side.
+    tops = [o["polygon"] for o in scene["obstacles"]]
+    ys = sorted({y for poly in tops for _, y in poly})
+    lane = min(y for y in ys if y > 0) - max(y for y in ys if y < 0)
+    assert 2 * EPUCK_FOOTPRINT < lane < 4 * EPUCK_FOOTPRINT
+    with pytest.raises(ValueError, match="single file"):
+        single_file(3, "shift", width=0.6)
+
+
+def test_a_closed_track_sends_each_robot_to_the_next_start_round_the_block():
+    scene = single_file(6, "cycle", width=0.34)
+    pts, goals = _points(scene), _goals(scene)
+    assert all(np.allclose(goals[k], pts[(k + 1) % 6], atol=1e-6) for k in range(6))
+
+
+def test_concentric_rings_turn_opposite_ways():
+    scene = concentric_rings(2)
+    pts, goals = _points(scene), _goals(scene)
+    turn = [float(p[0] * (g - p)[1] - p[1] * (g - p)[0]) for p, g in zip(pts, goals, strict=True)]
+    radii = [float(np.linalg.norm(p)) for p in pts]
+    inner = [t for t, r in zip(turn, radii, strict=True) if r < min(radii) + 0.01]
+    outer = [t for t, r in zip(turn, radii, strict=True) if r > max(radii) - 0.01]
+    assert inner and outer and all(t > 0 for t in inner) and all(t < 0 for t in outer)
+
+
+def test_the_layout_check_names_the_order_a_filled_pocket_forces():
+    scn = parse_scenario(pocket(0.30, depth=3 * MIN_GOAL_SPACING + 0.2, robots=3))
+    order = forced_order(scn, EPUCK_FOOTPRINT)
+    # The deepest goal's robot must get past the two goals above it: it is named.
+    assert "r1" in order and set(order["r1"]["alone"]) >= {"r2"}, order
+
+
+def test_liveness_bench_runs_the_layout_families_and_refuses_an_unknown_one(tmp_path):
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "RERUN_ANALYTICS": "0"}
+    out = subprocess.run(
+        [sys.executable, "-m", "fleet.cli", "bench", "--liveness", "1", "--families", "file", "--jobs", "1",
+         "--seed", "3", "--out", str(tmp_path)],
+        capture_output=True, text=True, timeout=600, cwd=ROOT, env=env,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "t/floor p50" in out.stdout and "\nfile " in out.stdout, out.stdout
+    row = json.loads((tmp_path / "liveness.json").read_text())["scenes"][0]
+    assert row["family"] == "file" and row["name"].startswith("hard_3_file_")
+    bad = subprocess.run(
+        [sys.executable, "-m", "fleet.cli", "bench", "--liveness", "1", "--families", "hallway"],
+        capture_output=True, text=True, timeout=120, cwd=ROOT, env=env,
+    )  # fmt: skip
+    assert bad.returncode == 2
+    assert bad.stderr.strip().splitlines() == [
+        "fleet: error: --families: unknown family 'hallway' (families: dense, ring, grid, swap, "
+        "corridor, gap, obstacles, pocket, file, rooms, rings, cluttered)"
+    ]
