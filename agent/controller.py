@@ -37,6 +37,7 @@ from agent.coordination import (
     hazard_halfplanes,
     obstacle_halfplanes,
     polynomial_penalty,
+    repair_point,
     split_halfplanes,
 )
 from agent.navigator import Navigator
@@ -101,7 +102,9 @@ class Counters:
     fallbacks: int = 0
     tube_exits: int = 0
     repairs: int = 0
-    """Solutions whose ȳ was pulled back onto the coordination rows (solver tolerance)."""
+    """Solutions whose ȳ was moved onto the coordination rows (solver tolerance)."""
+    scaled_repairs: int = 0
+    """Of those, the ones whose step had to be scaled towards c_i (the projection failed)."""
     status_counts: dict[str, int] = field(default_factory=dict)
     holds: int = 0
     """Steps without a usable measurement: braked, nothing new committed (:meth:`TubeMPC.hold`)."""
@@ -509,32 +512,18 @@ class TubeMPC:
             del self._history[0]
 
     def _repair(self, ybar: Array, data: StepData) -> Array:
-        """Pull ȳ towards c_i until every ȳ row holds exactly.
-
-        The solver meets constraints to its tolerance (1e-5); left alone,
-        robots pressed together would erode the separation by that much each
-        step.  Every ȳ constraint is convex and holds exactly at c_i (stay
-        put), so ``c_i + λ(ȳ − c_i)`` with the largest feasible λ ∈ [0, 1]
-        is exactly feasible and moves ȳ by at most the solver tolerance.
-
-        The one exception is the row of a disc that comes on (``Hazard.drift``), which asks ȳ to
-        move away from where c_i is: pulling ȳ back towards c_i would undo that every step,
-        so such a row is left to the solver's tolerance and the pull serves the others."""
-        c = self.last_point
+        """ȳ made to meet every coordination row exactly, inside its ε box about c_i
+        (:func:`agent.coordination.repair_point`): projected, or the step scaled if that fails."""
         if data.coord_bounds.size == 0:
             return ybar
-        at_y = data.coord_normals @ ybar
-        # (c_i meets the others exactly, up to rounding: a row it is on counts as met.)
-        bad = (at_y < data.coord_bounds) & (data.coord_normals @ c >= data.coord_bounds - 1e-9)
-        if not np.any(bad):
-            return ybar
-        at_c = data.coord_normals[bad] @ c
-        gap = at_c - at_y[bad]
-        # Largest λ with nᵀ(c + λ(ȳ − c)) ≥ b on each violated row (c satisfies it).
-        safe_gap = np.where(gap > 0, gap, 1.0)
-        lam = np.where(gap > 0, np.maximum(0.0, (at_c - data.coord_bounds[bad]) / safe_gap), 0.0)
-        self.counters.repairs += 1
-        return c + float(min(1.0, lam.min())) * (ybar - c)
+        c, eps, yb = self.last_point, self.params.epsilon, data.y_box
+        lo = np.array([max(yb[0], c[0] - eps), max(yb[2], c[1] - eps)])
+        hi = np.array([min(yb[1], c[0] + eps), min(yb[3], c[1] + eps)])
+        y, scaled = repair_point(ybar, c, data.coord_normals, data.coord_bounds, lo, hi)
+        if y is not ybar:
+            self.counters.repairs += 1
+            self.counters.scaled_repairs += scaled
+        return y
 
     def _append(self, ybar: Array) -> None:
         """Append ȳ = ỹ_{t+N}, advance the reference generator, drop index t."""

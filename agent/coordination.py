@@ -231,6 +231,67 @@ def hazard_halfplanes(
     return normals, bounds
 
 
+def repair_point(
+    ybar: Array, c: Array, normals: Array, bounds: Array, lo: Array, hi: Array
+) -> tuple[Array, bool]:
+    """ȳ (2,) [m] made to meet every row nᵀȳ ≥ b (``normals`` (M, 2), ``bounds`` (M,)) exactly
+    and stay in its box ``lo`` ≤ ȳ ≤ ``hi`` (2,) [m], the ε box about c_i clipped to the arena;
+    and whether the step had to be scaled.
+
+    The solver meets constraints to its tolerance (1e-5); left alone, robots pressed together
+    would erode the separation by that much each step.  The nearest such point is the
+    projection of ȳ onto the polygon the rows and the box cut out: it moves ȳ by about the
+    violation and keeps the part of the step along a binding row (a robot sliding along a wall
+    or a neighbour's row goes on sliding).  In the plane that projection is ȳ itself, its
+    projection onto one edge's line, or a vertex where two lines meet: every candidate is
+    computed, with each bound raised by 1e-12 m so that rounding cannot leave it a hair
+    outside, and the nearest that meets every row exactly is taken.
+
+    Safety does not rest on that search: if no candidate meets every row c_i meets, the step
+    is scaled instead, ȳ = c_i + λ(ȳ − c_i) with the largest λ ∈ [0, 1] that meets them.  Every
+    row is convex and c_i meets it, so that point exists, at the price of the step (the robot
+    stops a step).  A row c_i itself fails (a disc that comes on, ``Hazard.drift``) asks ȳ away
+    from c_i: a candidate that meets it is preferred, and the scaling, which would pull ȳ back
+    towards c_i, leaves it to the solver's tolerance."""
+    if bounds.size == 0 or np.all(normals @ ybar >= bounds):
+        return ybar, False
+    eye = np.eye(2)
+    A = np.vstack([normals, eye, -eye])
+    B = np.concatenate([bounds, lo, -np.asarray(hi)])
+    # (c_i meets the rows exactly, up to rounding: a row it is on counts as met.)
+    held = np.concatenate([normals @ c >= bounds - 1e-9, np.ones(4, dtype=bool)])
+    Bt = B + 1e-12
+    cands = [ybar + np.maximum(0.0, Bt - A @ ybar)[:, None] * A]  # onto each line
+    m = len(B)
+    i, j = np.triu_indices(m, 1)
+    det = A[i, 0] * A[j, 1] - A[i, 1] * A[j, 0]
+    ok = np.abs(det) > 1e-9
+    i, j, det = i[ok], j[ok], det[ok]
+    vx = (Bt[i] * A[j, 1] - Bt[j] * A[i, 1]) / det
+    vy = (A[i, 0] * Bt[j] - A[j, 0] * Bt[i]) / det
+    cands.append(np.column_stack([vx, vy]))  # the vertices
+    P = np.vstack(cands)
+    at = P @ A.T >= B
+    for must in (np.ones(m, dtype=bool), held):
+        fits = np.all(at[:, must], axis=1)
+        if np.any(fits):
+            dist = np.linalg.norm(P[fits] - ybar, axis=1)
+            return P[fits][int(np.argmin(dist))], False
+    at_y = normals @ ybar
+    bad = (at_y < bounds) & held[: len(bounds)]
+    at_c = normals[bad] @ c
+    gap = at_c - at_y[bad]
+    # Largest λ with nᵀ(c + λ(ȳ − c)) ≥ b on each violated row (c satisfies it).
+    safe_gap = np.where(gap > 0, gap, 1.0)
+    lam = float(
+        min(1.0, np.where(gap > 0, np.maximum(0.0, (at_c - bounds[bad]) / safe_gap), 0.0).min(initial=1.0))
+    )
+    y = c + lam * (ybar - c)
+    if not np.all(normals[bad] @ y >= bounds[bad]):
+        y = np.asarray(c, dtype=float).copy()  # rounding: c_i itself
+    return y, True
+
+
 def penalty_coefficients(dlim: float, weight: float) -> Array:
     """a_0 … a_5 of f(ρ) = weight·(1 − ρ/d_lim)^5 (paper eq. 34's degree-5 polynomial).
 

@@ -27,6 +27,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from agent.coordination import PARKED, PARKED_RADIUS, RETURNING, NeighbourInfo, precedence
 from agent.sets import Array
+from ground.freespace import free_space_model
 
 
 def point_segment_distance(p: Array, a: Array, b: Array) -> float:
@@ -38,12 +39,21 @@ def point_segment_distance(p: Array, a: Array, b: Array) -> float:
 
 
 class GridPlanner:
-    """Shortest paths on an 8-connected grid over the arena (cell size ``h`` [m]).
+    """Shortest paths on an 8-connected grid over the arena (cell size ``h`` [m]), in the
+    loader's model of free space (:func:`ground.freespace.free_space_model`: the same radius,
+    the same fine grid, the same walls and obstacles).
 
-    Cell costs: 1 in free space, ``BLOCKED`` inside walls ⊕ r, static
-    obstacles ⊕ r and parked robots ⊕ (r_i + r_j), and ``1 + soft`` near
-    moving robots.  Large finite costs instead of infinities keep a path
-    defined even when the robot itself sits in a costly cell."""
+    A cell stands for one point of it, its *waypoint* (:attr:`points`): its centre if a disc of
+    the footprint may stand there, else the point of the cell where the disc clears the walls
+    and obstacles most, as the fine grid samples it.  A cell is free if that point is; two
+    neighbouring cells are joined if the segment between their waypoints runs through free
+    fine cells only.  So a passage the loader accepts is a passage the grid has, however it
+    falls across the cells, and a path never cuts across a thin wall between two cells.
+
+    Cell costs: 1 in free space, ``BLOCKED`` where the disc cannot stand and between cells that
+    are not joined, parked robots ⊕ (r_i + r_j) ``BLOCKED`` too, and ``1 + soft`` near moving
+    robots.  Large finite costs instead of infinities keep a path defined even when the robot
+    itself sits in a costly cell."""
 
     BLOCKED = 1e4
 
@@ -66,34 +76,95 @@ class GridPlanner:
         self.xs, self.ys = xs, ys
         X, Y = np.meshgrid(xs, ys, indexing="ij")
         self.centres = np.column_stack([X.ravel(), Y.ravel()])
-        r = footprint
-        static = np.ones(self.nx * self.ny)
-        out = (
-            (X.ravel() < xmin + r) | (X.ravel() > xmax - r) | (Y.ravel() < ymin + r) | (Y.ravel() > ymax - r)
-        )
-        static[out] = self.BLOCKED
-        for ob in obstacles:
-            d = np.array([ob.distance(c) for c in self.centres])
-            static[d < r + 0.01] = self.BLOCKED
-        self.static = static
+        self.space = free_space_model(arena, obstacles, footprint)
+        self.points, free = self._waypoints(footprint, obstacles)
+        """Each cell's waypoint (n, 2) [m]: where a path through the cell goes."""
+        self.static = np.where(free, 1.0, self.BLOCKED)
         # Fixed 8-connected edge list (both directions).
         idx = np.arange(self.nx * self.ny).reshape(self.nx, self.ny)
-        src, dst, length = [], [], []
+        src, dst = [], []
         for dx, dy in ((1, 0), (0, 1), (1, 1), (1, -1)):
             # Pair each cell (i, j) with (i + dx, j + dy) where both exist.
             j0, j1 = max(0, -dy), self.ny - max(0, dy)
             a = idx[: self.nx - dx, j0:j1]
             b = idx[dx:, j0 + dy : j1 + dy]
             a, b = a.ravel(), b.ravel()
-            ln = math.hypot(dx * self.hx, dy * self.hy)
             src += [a, b]
             dst += [b, a]
-            length += [np.full(a.size, ln), np.full(a.size, ln)]
-        src_a, dst_a, len_a = np.concatenate(src), np.concatenate(dst), np.concatenate(length)
+        src_a, dst_a = np.concatenate(src), np.concatenate(dst)
         # Sorted by (src, dst) once, so each plan builds its CSR matrix without sorting.
         order = np.lexsort((dst_a, src_a))
-        self.src, self.dst, self.length = src_a[order], dst_a[order], len_a[order]
+        self.src, self.dst = src_a[order], dst_a[order]
+        self.length = np.linalg.norm(self.points[self.dst] - self.points[self.src], axis=1)
+        self.cut = self.BLOCKED * self.length * ~self._joined(self.src, self.dst, free, footprint)
+        """Per edge, the cost [m] added where the segment leaves free space (0 where it does not)."""
         self.indptr = np.concatenate([[0], np.cumsum(np.bincount(self.src, minlength=self.nx * self.ny))])
+
+    def _waypoints(self, radius: float, obstacles: Sequence[Any]) -> tuple[Array, np.ndarray]:
+        """Each cell's waypoint (n, 2) [m] and whether the disc may stand there (n,)."""
+        fs = self.space
+        n = self.nx * self.ny
+        c = self.centres
+        xmin, ymin = self.x0, self.y0
+        xmax, ymax = xmin + self.nx * self.hx, ymin + self.ny * self.hy
+        at_centre = np.minimum(
+            np.minimum(c[:, 0] - xmin, xmax - c[:, 0]), np.minimum(c[:, 1] - ymin, ymax - c[:, 1])
+        )
+        for ob in obstacles:
+            at_centre = np.minimum(at_centre, ob.distances(c))
+        FX, FY = np.meshgrid(fs.xs, fs.ys, indexing="ij")
+        fine = np.column_stack([FX.ravel(), FY.ravel()])
+        clear = fs.clearance.ravel()
+        cell = np.clip(((fine[:, 0] - xmin) / self.hx).astype(int), 0, self.nx - 1) * self.ny + np.clip(
+            ((fine[:, 1] - ymin) / self.hy).astype(int), 0, self.ny - 1
+        )
+        order = np.lexsort((-clear, cell))  # by cell, the clearest fine cell first
+        cells, first = np.unique(cell[order], return_index=True)
+        best = np.full(n, -np.inf)
+        best[cells] = clear[order[first]]
+        points = c.copy()
+        inside = at_centre < radius
+        use = np.zeros(n, dtype=bool)
+        use[cells] = True
+        use &= inside & (best >= radius)
+        pick = np.full(n, -1)
+        pick[cells] = order[first]
+        points[use] = fine[pick[use]]
+        return points, (at_centre >= radius) | (best >= radius)
+
+    def _joined(self, a: np.ndarray, b: np.ndarray, free: np.ndarray, radius: float) -> np.ndarray:
+        """Per edge (cells ``a`` → ``b``), whether both cells are free and the segment between
+        their waypoints runs through the loader's free fine cells only."""
+        fs = self.space
+        ok = free[a] & free[b]
+        # Far from every wall and obstacle the segment is clear; check the others.
+        pa, pb = self.points[a], self.points[b]
+        near = ok & (np.minimum(self._clear_at(pa), self._clear_at(pb)) < radius + 2 * self.h)
+        idx = np.flatnonzero(near)
+        if idx.size:
+            # Samples at most a fine cell apart over the longest edge (two cell diagonals).
+            steps = math.ceil(2 * math.sqrt(2) * max(self.hx, self.hy) / min(fs.hx, fs.hy)) + 1
+            t = np.linspace(0.0, 1.0, steps)
+            P = pa[idx, None, :] + t[None, :, None] * (pb[idx] - pa[idx])[:, None, :]
+            ok[idx] = np.all(self.free_at(P.reshape(-1, 2)).reshape(idx.size, steps), axis=1)
+        return ok
+
+    def _fine(self, P: Array) -> tuple[np.ndarray, np.ndarray]:
+        fs = self.space
+        ix = np.clip(((P[:, 0] - fs.x0) / fs.hx).astype(int), 0, fs.nx - 1)
+        iy = np.clip(((P[:, 1] - fs.y0) / fs.hy).astype(int), 0, fs.ny - 1)
+        return ix, iy
+
+    def _clear_at(self, P: Array) -> Array:
+        """Clearance [m] of the fine cell each point (k, 2) [m] lies in."""
+        ix, iy = self._fine(P)
+        return np.asarray(self.space.clearance[ix, iy])
+
+    def free_at(self, P: Array) -> np.ndarray:
+        """Whether a disc of the footprint may stand at each point (k, 2) [m], as the loader's
+        fine grid says of the cell it lies in (k,)."""
+        ix, iy = self._fine(np.asarray(P, dtype=float).reshape(-1, 2))
+        return np.asarray(self.space.free[ix, iy])
 
     def add_discs(self, cost: Array, centres: list[Array], radii: list[float], extras: list[float]) -> None:
         """Add ``extras[k]`` to every cell whose centre lies within ``radii[k]`` of ``centres[k]``.
@@ -119,7 +190,7 @@ class GridPlanner:
     def field(self, goal: Array, cost: Array) -> Array:
         """Predecessor array of shortest paths *to* ``goal`` under cell ``cost``."""
         n = self.nx * self.ny
-        w = self.length * 0.5 * (cost[self.src] + cost[self.dst])
+        w = self.length * 0.5 * (cost[self.src] + cost[self.dst]) + self.cut
         G = csr_matrix((w, self.dst, self.indptr), shape=(n, n))
         _, pred = dijkstra(G, directed=True, indices=self.cell(goal), return_predecessors=True)
         return np.asarray(pred)
@@ -136,7 +207,7 @@ class GridPlanner:
             nxt = int(pred[c])
             if nxt < 0:
                 return goal
-            p = self.centres[nxt]
+            p = self.points[nxt]
             travelled += math.hypot(p[0] - prev[0], p[1] - prev[1])
             prev = p
             c = nxt
@@ -264,7 +335,7 @@ class Navigator:
     def clear_goal(self, goal: Array, goals: Sequence[tuple[Array, float]] = ()) -> Array:
         """``goal`` (2,) [m] itself if no static disc (:meth:`set_discs`) covers it; else the point
         nearest it, on rings 2 cm apart up to :data:`PARKING_REACH`, where the robot may park:
-        clear of every disc by 1 cm, clear of the walls and obstacles (the grid's free cells),
+        clear of every disc by 1 cm, clear of the walls and obstacles (the loader's free space),
         inside the walls by the footprint, and as far from every other robot's goal as goals must
         be apart (``goals``: (goal (2,) [m], the distance [m]), so that each can still park at its
         own).  The goal itself if there is none (shaping only: the constraints keep ȳ out of
@@ -278,9 +349,7 @@ class Navigator:
         xmin, xmax, ymin, ymax = self.arena
         r = self.footprint
         ok = (P[:, 0] >= xmin + r) & (P[:, 0] <= xmax - r) & (P[:, 1] >= ymin + r) & (P[:, 1] <= ymax - r)
-        ix = np.clip(((P[:, 0] - g.x0) / g.hx).astype(int), 0, g.nx - 1)
-        iy = np.clip(((P[:, 1] - g.y0) / g.hy).astype(int), 0, g.ny - 1)
-        ok &= g.static[ix * g.ny + iy] < GridPlanner.BLOCKED
+        ok &= g.free_at(P)
         for c, rad in self._discs:
             ok &= np.hypot(P[:, 0] - c[0], P[:, 1] - c[1]) >= rad + 0.01
         for q, apart in goals:
@@ -401,9 +470,7 @@ class Navigator:
         assert self._grid is not None
         g = self._grid
         P = c + self._ring * radius  # (48, 2)
-        ix = np.clip(((P[:, 0] - g.x0) / g.hx).astype(int), 0, g.nx - 1)
-        iy = np.clip(((P[:, 1] - g.y0) / g.hy).astype(int), 0, g.ny - 1)
-        free = g.static[ix * g.ny + iy] < GridPlanner.BLOCKED
+        free = g.free_at(P)
         for q, r in self._discs:
             free &= np.hypot(P[:, 0] - q[0], P[:, 1] - q[1]) >= r
         if not np.any(free):

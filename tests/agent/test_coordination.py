@@ -14,6 +14,7 @@ from agent.coordination import (
     UNDER_WAY,
     NeighbourInfo,
     obstacle_halfplanes,
+    repair_point,
     shares,
     split_halfplanes,
 )
@@ -243,3 +244,60 @@ def test_the_phase_age_counts_the_steps_in_a_phase_and_starts_again_when_displac
     for k in range(3):
         ctrl.step(x, [])
         assert (ctrl.phase, ctrl.phase_age) == (RETURNING, k)
+
+
+# ------------------------------------------------------------------ the repair of ȳ
+def _scaled(y, c, normals, bounds):
+    """The step scaled towards c until every violated row holds: the fallback of the repair."""
+    lam = 1.0
+    for n, b in zip(normals, bounds, strict=True):
+        if n @ y < b and n @ c > n @ y:
+            lam = min(lam, max(0.0, (n @ c - b) / (n @ c - n @ y)))
+    return c + lam * (y - c)
+
+
+def test_the_repair_meets_every_row_exactly_and_moves_the_step_no_more_than_scaling():
+    """Rows c_i meets, a solver's ȳ up to 1e-5 outside some of them: the repaired ȳ meets every
+    row exactly and stays in its box; it is never farther from the solver's ȳ than the scaled
+    step, and in all but a few cases it is within twice the violation of it."""
+    rng = np.random.default_rng(5)
+    near = 0
+    for _ in range(2000):
+        c = rng.uniform(-0.5, 0.5, 2)
+        m = int(rng.integers(1, 5))
+        normals = rng.normal(size=(m, 2))
+        normals /= np.linalg.norm(normals, axis=1)[:, None]
+        y0 = c + rng.uniform(-EPS, EPS, 2)
+        # Each row binding at y0 or near it, met by c, and y0 up to 1e-5 outside it.
+        bounds = np.minimum(normals @ y0 + rng.uniform(-2e-5, 1e-5, m), normals @ c)
+        lo, hi = c - EPS, c + EPS
+        y, scaled = repair_point(y0, c, normals, bounds, lo, hi)
+        assert not scaled  # the polygon holds c_i: its projection is always found
+        assert np.all(normals @ y >= bounds), normals @ y - bounds
+        assert np.all(lo <= y) and np.all(y <= hi)
+        moved = np.linalg.norm(y - y0)
+        assert moved <= np.linalg.norm(_scaled(y0, c, normals, bounds) - y0) + 1e-12
+        near += moved <= 2 * max(0.0, float(np.max(bounds - normals @ y0))) + 1e-9
+    assert near >= 1900, near
+
+
+def test_a_robot_sliding_along_a_binding_row_keeps_its_step():
+    """c_i on a row (a wall or a neighbour's split), the step along it and rounding a hair
+    outside: the repair keeps the step.  Scaling it, as the repair once did, stops the robot."""
+    c = np.array([0.2, 0.1])
+    normals, bounds = np.array([[0.0, 1.0]]), np.array([0.1])
+    y0 = c + np.array([EPS, -1e-9])
+    y, scaled = repair_point(y0, c, normals, bounds, c - EPS, c + EPS)
+    assert not scaled and normals[0] @ y >= bounds[0]
+    assert y[0] - c[0] >= 0.999 * EPS
+    assert np.allclose(_scaled(y0, c, normals, bounds), c)  # what scaling did: no step at all
+
+
+def test_the_row_of_a_disc_that_comes_on_is_met_by_backing_away():
+    """A row c_i fails (a loose robot's disc, its edge come on by a step): the repair takes ȳ
+    onto it, away from c_i, where scaling towards c_i would have undone the backing away."""
+    c = np.array([0.0, 0.0])
+    normals, bounds = np.array([[1.0, 0.0]]), np.array([0.004])
+    y0 = np.array([0.004 - 1e-7, 0.001])
+    y, scaled = repair_point(y0, c, normals, bounds, c - EPS, c + EPS)
+    assert not scaled and y[0] >= 0.004 and abs(y[1] - 0.001) < 1e-12
