@@ -160,6 +160,14 @@ class GridPlanner:
         ix, iy = self._fine(P)
         return np.asarray(self.space.clearance[ix, iy])
 
+    def in_sight(self, a: Array, b: Array) -> bool:
+        """Whether the segment from ``a`` to ``b`` (2,) [m] runs through the loader's free space,
+        sampled a fine cell apart: a goal near but behind a wall is reached along the path."""
+        fs = self.space
+        steps = math.ceil(float(np.linalg.norm(np.asarray(b) - np.asarray(a))) / min(fs.hx, fs.hy)) + 1
+        t = np.linspace(0.0, 1.0, steps)[:, None]
+        return bool(np.all(self.free_at(np.asarray(a) + t * (np.asarray(b) - np.asarray(a)))))
+
     def free_at(self, P: Array) -> np.ndarray:
         """Whether a disc of the footprint may stand at each point (k, 2) [m], as the loader's
         fine grid says of the cell it lies in (k,)."""
@@ -393,7 +401,7 @@ class Navigator:
                 self._since_plan = self.rank % self.replan_steps
         self._since_plan += 1
         assert self._grid is not None and self._pred is not None
-        if float(np.linalg.norm(goal - c)) <= self.lookahead:
+        if float(np.linalg.norm(goal - c)) <= self.lookahead and self._grid.in_sight(c, goal):
             return goal
         return self._grid.carrot(self._pred, c, goal, self.lookahead)
 

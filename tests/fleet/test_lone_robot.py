@@ -11,7 +11,7 @@ import pytest
 
 from agent.navigator import GridPlanner
 from agent.tube import validated_design
-from fleet.scenes import _box, _robot, _scene, pocket
+from fleet.scenes import LAYOUT_FAMILIES, _box, _robot, _scene, hard_scene, pocket
 from fleet.simulate import run
 from ground.freespace import free_space_model
 from ground.scenario import parse_scenario
@@ -70,7 +70,10 @@ def test_the_navigator_sees_every_passage_the_loader_accepts(width):
     assert not np.all(grid.free_at(line))
 
 
-SCENES = [pocket(w) for w in WIDTHS[:2]] + [_passage(0.277)]
+# The bench's pocket 0.283 m wide, whose robot came to 0.3 m of its goal on the far side of an
+# arm: the navigator took the goal itself for its target, the wall's rows stopped it there,
+# and it went to and fro for the whole run.
+SCENES = [pocket(w) for w in WIDTHS[:2]] + [_passage(0.277), hard_scene(60, LAYOUT_FAMILIES)]
 
 
 @pytest.mark.parametrize("scene", SCENES, ids=lambda s: s["name"])
