@@ -375,7 +375,7 @@ class TubeMPC:
         if res.ok and self.solver_fault is not None and self.solver_fault(self.k):
             res.ok, res.xi, status = False, None, "INJECTED_FAULT"
         if res.ok and res.xi is not None and over is not None:
-            y_sol = self._repair(res.xi[qp.iy].copy(), data)
+            y_sol = self._repair(res.xi[qp.iy].copy(), data, prob)
             if np.any(over[0] @ y_sol < over[1] - 1e-12):
                 res.ok, res.xi, status = False, None, "ROW_OVERFLOW_VIOLATED"
         ctr = self.counters
@@ -391,7 +391,7 @@ class TubeMPC:
             fallback = True
         if not fallback:
             y_sol = xi[qp.iy].copy()
-            xi[qp.iy] = self._repair(y_sol, data)
+            xi[qp.iy] = self._repair(y_sol, data, prob)
             # Keep the terminal equality exact: x̂_{t+N} moves by B·K_r·E·Δȳ
             # when v̂_{t+N−1} moves by K_r·E·Δȳ, which is what x̃_{t+N}(ȳ) needs.
             xi[qp.iv.stop - 2 : qp.iv.stop] += design.K_r @ design.E @ (xi[qp.iy] - y_sol)
@@ -511,15 +511,16 @@ class TubeMPC:
         if len(self._history) > SNAPSHOTS:
             del self._history[0]
 
-    def _repair(self, ybar: Array, data: StepData) -> Array:
-        """ȳ made to meet every coordination row exactly, inside its ε box about c_i
+    def _repair(self, ybar: Array, data: StepData, prob: dict[str, Array]) -> Array:
+        """ȳ made to meet every coordination row exactly, inside the QP's own box for it (``prob``,
+        :meth:`agent.qp.TubeQP.problem`: the ε box about c_i clipped to the arena)
         (:func:`agent.coordination.repair_point`): projected, or the step scaled if that fails."""
         if data.coord_bounds.size == 0:
             return ybar
-        c, eps, yb = self.last_point, self.params.epsilon, data.y_box
-        lo = np.array([max(yb[0], c[0] - eps), max(yb[2], c[1] - eps)])
-        hi = np.array([min(yb[1], c[0] + eps), min(yb[3], c[1] + eps)])
-        y, scaled = repair_point(ybar, c, data.coord_normals, data.coord_bounds, lo, hi)
+        iy = self.qp.iy
+        y, scaled = repair_point(
+            ybar, self.last_point, data.coord_normals, data.coord_bounds, prob["l_box"][iy], prob["u_box"][iy]
+        )
         if y is not ybar:
             self.counters.repairs += 1
             self.counters.scaled_repairs += scaled

@@ -197,6 +197,14 @@ class Hazard:
         return self.kind in OFF_PLAN
 
 
+DRIFT_SHARE = 0.99
+"""The share of ε·(|n_x| + |n_y|), the most the ε box lets ȳ move along n, that a row against a
+disc that comes on may ask for.  All of it would leave the box's corner as the only feasible
+point; 1 % less leaves the QP a sliver 0.01·ε wide (55 µm with ε = 5.5 mm), five times the
+solver's tolerance (``agent.qp`` ``eps_abs`` = 1e-5 m), so its tolerance cannot make the row
+infeasible (``tests/agent/test_hazards.py`` checks the margin against the settings)."""
+
+
 def hazard_halfplanes(
     c_i: Array, r_i: float, hazards: Sequence[Hazard], eps: float
 ) -> tuple[list[Array], list[float]]:
@@ -225,7 +233,7 @@ def hazard_halfplanes(
         if dist - need >= SQRT2 * eps * 1.01:
             continue  # implied by the ε box
         n = d / dist if dist > 1e-9 else np.array([1.0, 0.0])
-        push = min(hz.drift, 0.99 * eps * (abs(float(n[0])) + abs(float(n[1]))))
+        push = min(hz.drift, DRIFT_SHARE * eps * (abs(float(n[0])) + abs(float(n[1]))))
         normals.append(n)
         bounds.append(float(n @ hz.centre + min(need, dist + push)))
     return normals, bounds

@@ -423,3 +423,17 @@ def test_a_robot_driving_on_uncontrolled_is_kept_clear_of_in_full(design):
     assert apart >= 2 * fp - 1e-9, apart
     worn, touched = _crossing(design, 0.0)
     assert worn < -0.1 and touched < 2 * fp, (worn, touched)
+
+
+def test_the_drift_rows_sliver_is_wider_than_the_solvers_tolerance(design):
+    """A row against a disc that comes on asks at most DRIFT_SHARE of what the ε box allows: the
+    sliver left is at least five times the solver's absolute tolerance, with the project's own
+    settings and the shipped preset's ε."""
+    from types import SimpleNamespace
+
+    from agent.coordination import DRIFT_SHARE
+    from agent.qp import configure
+
+    s = SimpleNamespace()
+    configure(s, design.params)
+    assert (1.0 - DRIFT_SHARE) * design.params.epsilon >= 5 * s.eps_abs
