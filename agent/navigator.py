@@ -16,6 +16,7 @@ whatever it does cannot break a guarantee (docs/method.md §7).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -36,6 +37,10 @@ def point_segment_distance(p: Array, a: Array, b: Array) -> float:
     L2 = dx * dx + dy * dy
     t = 0.0 if L2 < 1e-12 else min(1.0, max(0.0, ((p[0] - a[0]) * dx + (p[1] - a[1]) * dy) / L2))
     return math.hypot(p[0] - a[0] - t * dx, p[1] - a[1] - t * dy)
+
+
+_DIRECTIONS = ((1, 0), (0, 1), (1, 1), (1, -1), (-1, 0), (0, -1), (-1, -1), (-1, 1))
+"""The 8 neighbours of a grid cell, as (di, dj)."""
 
 
 class GridPlanner:
@@ -99,6 +104,18 @@ class GridPlanner:
         self.cut = self.BLOCKED * self.length * ~self._joined(self.src, self.dst, free, footprint)
         """Per edge, the cost [m] added where the segment leaves free space (0 where it does not)."""
         self.indptr = np.concatenate([[0], np.cumsum(np.bincount(self.src, minlength=self.nx * self.ny))])
+        # Each cell's edge to its neighbour in each of the 8 directions (−1 where none): a window
+        # (:meth:`local_field`) takes its edges from here without scanning the whole grid.
+        n = self.nx * self.ny
+        keys = self.src * n + self.dst
+        self.edge_of = np.full((n, 8), -1, dtype=np.int64)
+        for d, (dx, dy) in enumerate(_DIRECTIONS):
+            ii, jj = np.divmod(np.arange(n), self.ny)
+            ok = (ii + dx >= 0) & (ii + dx < self.nx) & (jj + dy >= 0) & (jj + dy < self.ny)
+            a = np.flatnonzero(ok)
+            self.edge_of[a, d] = np.searchsorted(keys, a * n + (a + dx * self.ny + dy))
+        for arr in (self.static, self.points, self.length, self.cut, self.edge_of, self.src, self.dst):
+            arr.setflags(write=False)  # shared by every navigator of a process (:func:`grid_planner`)
 
     def _waypoints(self, radius: float, obstacles: Sequence[Any]) -> tuple[Array, np.ndarray]:
         """Each cell's waypoint (n, 2) [m] and whether the disc may stand there (n,)."""
@@ -174,21 +191,26 @@ class GridPlanner:
         ix, iy = self._fine(np.asarray(P, dtype=float).reshape(-1, 2))
         return np.asarray(self.space.free[ix, iy])
 
-    def add_discs(self, cost: Array, centres: list[Array], radii: list[float], extras: list[float]) -> None:
+    def add_discs(
+        self, cost: Array, centres: list[Array], radii: list[float], extras: list[float],
+        block: tuple[int, int, int, int] | None = None,
+    ) -> None:  # fmt: skip
         """Add ``extras[k]`` to every cell whose centre lies within ``radii[k]`` of ``centres[k]``.
 
-        Works on the bounding block of each disc only."""
-        grid = cost.reshape(self.nx, self.ny)
+        ``cost`` is the whole grid's (n,), or with ``block`` = (i0, i1, j0, j1) the cells
+        [i0, i1) × [j0, j1) of it only, row by row.  Works on the bounding block of each disc."""
+        I0, I1, J0, J1 = block if block is not None else (0, self.nx, 0, self.ny)
+        grid = cost.reshape(I1 - I0, J1 - J0)
         for (px, py), r, extra in zip(centres, radii, extras, strict=True):
-            i0 = max(0, int((px - r - self.x0) / self.hx))
-            i1 = min(self.nx, int((px + r - self.x0) / self.hx) + 1)
-            j0 = max(0, int((py - r - self.y0) / self.hy))
-            j1 = min(self.ny, int((py + r - self.y0) / self.hy) + 1)
+            i0 = max(I0, int((px - r - self.x0) / self.hx))
+            i1 = min(I1, int((px + r - self.x0) / self.hx) + 1)
+            j0 = max(J0, int((py - r - self.y0) / self.hy))
+            j1 = min(J1, int((py + r - self.y0) / self.hy) + 1)
             if i0 >= i1 or j0 >= j1:
                 continue
             dx = self.xs[i0:i1, None] - px
             dy = self.ys[None, j0:j1] - py
-            grid[i0:i1, j0:j1] += extra * (dx * dx + dy * dy < r * r)
+            grid[i0 - I0 : i1 - I0, j0 - J0 : j1 - J0] += extra * (dx * dx + dy * dy < r * r)
 
     def cell(self, p: Array) -> int:
         i = min(self.nx - 1, max(0, int((p[0] - self.x0) / self.hx)))
@@ -197,14 +219,79 @@ class GridPlanner:
 
     def field(self, goal: Array, cost: Array) -> Array:
         """Predecessor array of shortest paths *to* ``goal`` under cell ``cost``."""
+        return self.field_and_cost(goal, cost)[0]
+
+    def field_and_cost(self, goal: Array, cost: Array) -> tuple[Array, Array]:
+        """Predecessors (n,) and costs to go (n,) [m, weighted] of shortest paths *to* ``goal``
+        under cell ``cost`` (n,), over the whole grid."""
         n = self.nx * self.ny
         w = self.length * 0.5 * (cost[self.src] + cost[self.dst]) + self.cut
         G = csr_matrix((w, self.dst, self.indptr), shape=(n, n))
-        _, pred = dijkstra(G, directed=True, indices=self.cell(goal), return_predecessors=True)
-        return np.asarray(pred)
+        dist, pred = dijkstra(G, directed=True, indices=self.cell(goal), return_predecessors=True)
+        return np.asarray(pred), np.asarray(dist)
 
-    def carrot(self, pred: Array, start: Array, goal: Array, lookahead: float) -> Array:
-        """Point ``lookahead`` [m] along the path from ``start`` towards ``goal``."""
+    def window(self, centre: Array, half: float) -> tuple[int, int, int, int] | None:
+        """The cells [i0, i1) × [j0, j1) within ``half`` [m] of ``centre`` (2,) [m] along each axis,
+        and one more all round (the rim, where a path leaves the window); None if that is the
+        whole grid."""
+        i0 = max(0, int((centre[0] - half - self.x0) / self.hx) - 1)
+        i1 = min(self.nx, int((centre[0] + half - self.x0) / self.hx) + 2)
+        j0 = max(0, int((centre[1] - half - self.y0) / self.hy) - 1)
+        j1 = min(self.ny, int((centre[1] + half - self.y0) / self.hy) + 2)
+        if (i0, i1, j0, j1) == (0, self.nx, 0, self.ny):
+            return None
+        return i0, i1, j0, j1
+
+    def local_field(self, goal: Array, block: tuple[int, int, int, int], cost: Array, to_go: Array) -> Array:
+        """Shortest paths to ``goal`` within a window (:meth:`window`), each ending at the goal
+        or at a cell of the window's rim, from where the rest of the way costs ``to_go``
+        (the whole grid's costs to go (n,), :meth:`field_and_cost`).  ``cost`` holds the cell
+        costs of the block (m,), row by row.  Its work grows with the window, not the arena.
+
+        Returns the predecessors (m,) by the block's own numbering: the next cell towards the
+        goal, :data:`EXIT` where the path leaves the window here (follow ``to_go``'s field from
+        there), −9999 where no path is."""
+        i0, i1, j0, j1 = block
+        bw = j1 - j0
+        m = (i1 - i0) * bw
+        ii, jj = np.divmod(np.arange(m), bw)
+        cells = (ii + i0) * self.ny + (jj + j0)
+        E = self.edge_of[cells]  # (m, 8)
+        ok = E >= 0
+        e = E[ok]
+        a_l = np.repeat(np.arange(m), ok.sum(axis=1))
+        b = self.dst[e]
+        bi, bj = np.divmod(b, self.ny)
+        inside = (bi >= i0) & (bi < i1) & (bj >= j0) & (bj < j1)
+        e, a_l = e[inside], a_l[inside]
+        b_l = (bi[inside] - i0) * bw + (bj[inside] - j0)
+        w = self.length[e] * 0.5 * (cost[a_l] + cost[b_l]) + self.cut[e]
+        # One source more, joined to the rim's cells at their cost to go and to the goal at 0
+        # (a hair above: a sparse graph's zero is no edge).
+        # The rim: the block's outer cells, where the grid goes on beyond them.
+        rim = ((ii == 0) & (i0 > 0)) | ((ii == i1 - i0 - 1) & (i1 < self.nx))
+        rim |= ((jj == 0) & (j0 > 0)) | ((jj == bw - 1) & (j1 < self.ny))
+        src_l = np.flatnonzero(rim & np.isfinite(to_go[cells]))
+        src_w = np.maximum(to_go[cells[src_l]], 1e-9)
+        gi, gj = divmod(self.cell(goal), self.ny)
+        if i0 <= gi < i1 and j0 <= gj < j1:
+            src_l = np.append(src_l, (gi - i0) * bw + (gj - j0))
+            src_w = np.append(src_w, 1e-9)
+        rows = np.concatenate([a_l, np.full(src_l.size, m)])
+        cols = np.concatenate([b_l, src_l])
+        G = csr_matrix((np.concatenate([w, src_w]), (rows, cols)), shape=(m + 1, m + 1))
+        _, pred = dijkstra(G, directed=True, indices=m, return_predecessors=True)
+        pred = np.asarray(pred[:m])
+        pred[pred == m] = EXIT
+        return pred
+
+    def carrot(
+        self, pred: Array, start: Array, goal: Array, lookahead: float,
+        block: tuple[int, int, int, int] | None = None, then: Array | None = None,
+    ) -> Array:  # fmt: skip
+        """Point ``lookahead`` [m] along the path from ``start`` towards ``goal``: along ``pred``
+        (the whole grid's, or with ``block`` a window's, :meth:`local_field`), and from where
+        it leaves the window along ``then`` (the whole grid's)."""
         c = self.cell(start)
         gcell = self.cell(goal)
         travelled = 0.0
@@ -212,7 +299,18 @@ class GridPlanner:
         for _ in range(self.nx * self.ny):
             if c == gcell:
                 return goal
-            nxt = int(pred[c])
+            nxt = -1
+            if block is not None:
+                i0, i1, j0, j1 = block
+                ci, cj = divmod(c, self.ny)
+                bw = j1 - j0
+                k = int(pred[(ci - i0) * bw + cj - j0]) if i0 <= ci < i1 and j0 <= cj < j1 else EXIT
+                if k >= 0:
+                    nxt = (k // bw + i0) * self.ny + k % bw + j0
+                elif k == EXIT and then is not None:  # left the window: the whole grid's field on
+                    block, pred = None, then
+            if block is None:
+                nxt = int(pred[c])
             if nxt < 0:
                 return goal
             p = self.points[nxt]
@@ -224,6 +322,21 @@ class GridPlanner:
         return goal
 
 
+@functools.lru_cache(maxsize=8)
+def _grid(arena: tuple[float, ...], footprint: float, obstacles: tuple[Any, ...]) -> GridPlanner:
+    return GridPlanner((arena[0], arena[1], arena[2], arena[3]), footprint, obstacles)
+
+
+def grid_planner(
+    arena: tuple[float, float, float, float], footprint: float, obstacles: Sequence[Any]
+) -> GridPlanner:
+    """The :class:`GridPlanner` of an arena, a footprint [m] and obstacles, made once per process
+    and shared, read-only, by every navigator in it (``fleet simulate`` runs them all in one)."""
+    return _grid(tuple(float(v) for v in arena), float(footprint), tuple(obstacles))
+
+
+EXIT = -2
+"""A window's predecessor (:meth:`GridPlanner.local_field`) where the path leaves it."""
 PARKING_REACH = 0.6
 """How far from a goal a stopped robot covers the navigator looks for a point to park at [m]."""
 _ANGLES = np.linspace(0.0, 2.0 * math.pi, 36, endpoint=False)
@@ -234,6 +347,16 @@ PARKING_RINGS = np.vstack(
     ]
 )
 """Offsets (k, 2) [m] the navigator tries about a covered goal, ring by ring outwards."""
+
+WINDOW = 2.0
+"""Half side [m] of the window in which a replan weighs the other robots
+(:meth:`GridPlanner.local_field`); beyond it the path follows the walls, obstacles and stopped
+robots only, planned once per goal.  So a replan costs the same in any arena.  It must hold
+every robot the rules act on, and the carrot: the yield range r_i + r_j + ``conflict_range``
+(0.62 m with the epuck preset) plus the lookahead (0.3 m) plus what the robot moves between
+replans (``replan_steps``·v_max·Ts, 0.13 m), under 1.1 m; the plan by place hears less still.
+2 m holds a 2 m lab arena whole from anywhere in it, where the plan is then the same as over the
+whole grid (docs/method.md §7)."""
 
 CORRIDOR_MARGIN = 0.05
 """Extra half-width of the corridor of a robot that goes first, beyond r_i + r_j [m]."""
@@ -279,6 +402,9 @@ class Navigator:
     barely over R) is reachable no other way (docs/method.md §7, "Close goals")."""
     lookahead: float = 0.3
     """Carrot distance along the planned path [m]."""
+    window: float = WINDOW
+    """Half side of the square about the robot in which each replan weighs the other robots [m]
+    (:data:`WINDOW`)."""
     replan_steps: int = 10
     """Steps between grid replans; robot of rank r replans at the steps ≡ −r (mod this) after its first."""
     soft_cost: float = 8.0
@@ -305,9 +431,13 @@ class Navigator:
     _stall: int = 0
     _discs: list[tuple[Array, float]] = field(default_factory=list)
     _discs_key: tuple[tuple[float, float, float], ...] = ()
+    _static_key: tuple[Any, ...] | None = None
+    _static_cost: Array = field(default_factory=lambda: np.zeros(0))
+    _to_go: tuple[Array, Array] | None = None
+    _block: tuple[int, int, int, int] | None = None
 
     def __post_init__(self) -> None:
-        self._grid = GridPlanner(self.arena, self.footprint, self.obstacles)
+        self._grid = grid_planner(self.arena, self.footprint, self.obstacles)
         ang = np.linspace(0.0, 2.0 * math.pi, 24, endpoint=False)
         unit = np.column_stack([np.cos(ang), np.sin(ang)])
         self._ring = np.vstack([0.5 * unit, unit])
@@ -369,11 +499,23 @@ class Navigator:
     def _plan(self, c: Array, goal: Array, neighbours: Sequence[NeighbourInfo]) -> None:
         g = self._grid
         assert g is not None
-        cost = g.static.copy()
-        if self._discs:  # robots off their plans for good: as static obstacles
-            g.add_discs(
-                cost, [c for c, _ in self._discs], [r for _, r in self._discs], [g.BLOCKED] * len(self._discs)
-            )
+        key = (float(goal[0]), float(goal[1]), self._discs_key)
+        if key != self._static_key:  # walls, obstacles and stopped robots: once per goal
+            self._static_cost = g.static.copy()
+            if self._discs:  # robots off their plans for good: as static obstacles
+                g.add_discs(
+                    self._static_cost, [c for c, _ in self._discs], [r for _, r in self._discs],
+                    [g.BLOCKED] * len(self._discs),
+                )  # fmt: skip
+            self._static_key, self._to_go = key, None
+        self._block = g.window(c, self.window)
+        if self._block is None:
+            cost = self._static_cost.copy()
+        else:
+            if self._to_go is None:
+                self._to_go = g.field_and_cost(goal, self._static_cost)
+            i0, i1, j0, j1 = self._block
+            cost = self._static_cost.reshape(g.nx, g.ny)[i0:i1, j0:j1].ravel()  # a copy
         me = self.precedence
         pts, radii, extras = [], [], []
         for nb in neighbours:
@@ -386,8 +528,12 @@ class Navigator:
             pts.append(nb.last_point)
             radii.append(self.footprint + nb.footprint)
         if pts:
-            g.add_discs(cost, pts, radii, extras)
-        self._pred = g.field(goal, cost)
+            g.add_discs(cost, pts, radii, extras, self._block)
+        if self._block is None:
+            self._pred = g.field(goal, cost)
+        else:
+            assert self._to_go is not None
+            self._pred = g.local_field(goal, self._block, cost, self._to_go[1])
         self._since_plan = 0
 
     def waypoint(self, c: Array, goal: Array, neighbours: Sequence[NeighbourInfo] = ()) -> Array:
@@ -403,7 +549,8 @@ class Navigator:
         assert self._grid is not None and self._pred is not None
         if float(np.linalg.norm(goal - c)) <= self.lookahead and self._grid.in_sight(c, goal):
             return goal
-        return self._grid.carrot(self._pred, c, goal, self.lookahead)
+        then = None if self._to_go is None else self._to_go[0]
+        return self._grid.carrot(self._pred, c, goal, self.lookahead, self._block, then)
 
     def target(self, c: Array, goal: Array, neighbours: Sequence[NeighbourInfo]) -> tuple[Array, str]:
         """Target of the goal term and the mode (``goal``, ``path``, ``yield``, ``escape``)."""
@@ -412,10 +559,13 @@ class Navigator:
         me = self.precedence
         corridors = []
         for nb in neighbours:
+            R = self.footprint + nb.footprint
+            q = nb.last_point
+            if abs(q[0] - c[0]) > R + self.conflict_range or abs(q[1] - c[1]) > R + self.conflict_range:
+                continue  # out of range (the exact test is below); cheaper than the order
             # Yield to those that go first (:func:`agent.coordination.precedence`).
             if nb.phase == PARKED or precedence(nb.phase, nb.phase_age, nb.priority, nb.rank) > me:
                 continue
-            R = self.footprint + nb.footprint
             if (
                 self.phase == PARKED
                 and nb.phase == RETURNING
@@ -427,7 +577,6 @@ class Navigator:
                 # from its goal, and the two would trade places for ever.  The returning robot
                 # plans around this parked one instead (docs/method.md §7, "Close goals").
                 continue
-            q = nb.last_point
             if math.hypot(q[0] - c[0], q[1] - c[1]) > R + self.conflict_range:
                 continue
             end = nb.target if nb.target is not None else nb.last_point

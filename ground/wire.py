@@ -68,13 +68,18 @@ MAX_PAYLOAD = 64 * 1024
 """Largest accepted message [bytes]."""
 MAX_HORIZON = 200
 """Largest accepted committed-reference length [points]."""
-MAX_RELAYED = 64
-"""Most plans one :class:`Digest` carries [robots] (msgpack's array limit in :func:`decode`)."""
+MAX_ROBOTS = 256
+"""Most robots a fleet may have, and so the most entries of any array or map a message carries
+(:func:`decode`'s msgpack limits): a digest's rows, a tick's ``fallback`` and ``braked``, a plan's
+``discs``, a goal's ``batch``.  A bound, so that a hostile message cannot make a process allocate
+without limit; each message's byte cap (``MAX_BYTES``) fits this many robots."""
+MAX_RELAYED = MAX_ROBOTS
+"""Most plans one :class:`Digest` carries [robots]."""
 ROBOT_ID = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 SCRIPT = "script"
 """The id of a script driving a fleet (``fleet.Fleet``): the sender of :class:`Script`, and its
 liveliness token ``fleet/F/alive/script``."""
-MAX_BATCH = 64
+MAX_BATCH = MAX_ROBOTS
 """Most goals one :class:`Goal` may carry in its ``batch`` [robots]."""
 _DTYPES = {"<f8": np.float64, "<f4": np.float32}
 _ITEMSIZE = {"<f8": 8, "<f4": 4}
@@ -385,7 +390,7 @@ class Plan(Message):
     so far [messages] (its inbox's count, docs/method.md §6.7); 0 where nothing is measured
     (every plan to every agent, ``fleet simulate``)."""
     discs: dict[str, Disc] = field(compare=False, default_factory=dict)
-    """The other robots this step kept clear of as discs, robot id → :data:`Disc` (at most 64;
+    """The other robots this step kept clear of as discs, robot id → :data:`Disc` (at most MAX_ROBOTS;
     empty while every robot in reach is a neighbour)."""
     blocked: str = ""
     """The robot whose static disc (off its plans for good, :data:`OFF_PLAN`) covers this robot's
@@ -585,7 +590,7 @@ class Tick(_Executed, Message):
     fallback: dict[str, int] = field(default_factory=dict)
     """Robots whose command of step ``step − 1`` the robot side did not apply, and
     followed instead the shifted candidate of its last applied command: robot id →
-    the step of that command.  At most 64 robots; in lockstep only for commands lost or
+    the step of that command.  At most MAX_ROBOTS robots; in lockstep only for commands lost or
     not sent within the timeout.  From the camera tracker, and for emulated robots, it is
     what the ``epuck_link`` processes reported (:class:`Applied`)."""
     braked: dict[str, int] = field(default_factory=dict)
@@ -622,7 +627,7 @@ class Outcome(_Executed, Message):
     fallback: dict[str, int] = field(default_factory=dict)
     """Robots whose command of ``step`` the robot side did not apply, and that followed the
     shifted candidate of their last applied command instead: robot id → the step of that
-    command (< ``step``).  At most 64 robots."""
+    command (< ``step``).  At most MAX_ROBOTS robots."""
     braked: dict[str, int] = field(default_factory=dict)
     """Robots braked over ``step`` instead: robot id → the step of the last applied command,
     −1 if none (< ``step``)."""
@@ -648,7 +653,8 @@ def _blocker(v: Any, me: Any) -> str:
 
 
 def _discs(v: Any, me: Any) -> dict[str, Disc]:
-    """A map robot id (never ``me``) → :data:`Disc` (at most 64 entries: :func:`decode`'s map limit)."""
+    """A map robot id (never ``me``) → :data:`Disc` (at most MAX_ROBOTS entries: :func:`decode`'s
+    map limit)."""
     if type(v) is not dict:
         raise WireError("discs: expected a map of robot ids to discs")
     out: dict[str, Disc] = {}
@@ -671,7 +677,7 @@ def _discs(v: Any, me: Any) -> dict[str, Disc]:
 
 
 def _steps_by_robot(v: Any, name: str, lo: int, hi: int) -> dict[str, int]:
-    """A map robot id → step in lo..hi (at most 64 entries: :func:`decode`'s map limit)."""
+    """A map robot id → step in lo..hi (at most MAX_ROBOTS entries: :func:`decode`'s map limit)."""
     if type(v) is not dict:
         raise WireError(f"{name}: expected a map of robot ids to steps")
     return {_str(r, name, ROBOT_ID): _int(s, name, lo, hi) for r, s in v.items()}
@@ -692,7 +698,10 @@ class Digest(Message):
     ``robot`` is the sender ("tracker")."""
 
     TYPE: ClassVar[str] = "digest"
-    MAX_BYTES: ClassVar[int] = 4 * MAX_PAYLOAD
+    MAX_BYTES: ClassVar[int] = MAX_RELAYED * (MAX_HORIZON * 2 * 8 + 256)
+    """A row per robot: its committed reference (at most MAX_HORIZON points of two float64)
+    and, within 256 bytes, its id (≤ 32 characters), step, precedence, footprint, target and goal
+    (test_wire.py packs the largest)."""
     step: int
     """The step k − 1 whose plans the digest is for (sent before tick k)."""
     Ts: float
@@ -930,7 +939,7 @@ def decode(payload: bytes, expected: type[M], robot: str | None = None) -> M:
     try:
         d = msgpack.unpackb(
             payload, raw=False, strict_map_key=True, max_bin_len=expected.MAX_BYTES, max_str_len=4096,
-            max_array_len=64, max_map_len=64,
+            max_array_len=MAX_ROBOTS, max_map_len=MAX_ROBOTS,
         )  # fmt: skip
     except (ValueError, TypeError, OverflowError) as e:  # msgpack's errors for garbage
         raise WireError(f"payload: not msgpack ({type(e).__name__})") from None

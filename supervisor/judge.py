@@ -138,7 +138,11 @@ class Judge:
         xmin, xmax, ymin, ymax = self.scn.arena
         radius = self.radius
         centres = {r: np.array(poses[r][:2], dtype=float) for r in self.ids}
-        for i, a in enumerate(self.ids):
+        d = _pair_distances(np.array([centres[r] for r in self.ids]).reshape(-1, 2))
+        if d.size:
+            self.min_distance = min(self.min_distance, float(d.min()))
+            self.collisions += int(np.count_nonzero(d < 2.0 * radius))
+        for a in self.ids:
             c = centres[a]
             if not (xmin + radius - SLACK <= c[0] <= xmax - radius + SLACK) or not (
                 ymin + radius - SLACK <= c[1] <= ymax - radius + SLACK
@@ -148,11 +152,6 @@ class Judge:
             for ob in self.scn.obstacles:
                 if ob.distance(c) < radius - SLACK:
                     self.obstacle_violations += 1
-            for b in self.ids[i + 1 :]:
-                d = float(np.linalg.norm(c - centres[b]))
-                self.min_distance = min(self.min_distance, d)
-                if d < 2.0 * radius:
-                    self.collisions += 1
             pose = tuple(float(v) for v in poses[a])
             self.poses[a].append(pose)
             pt = controlled_point(pose, self.lookahead)
@@ -212,18 +211,17 @@ class Judge:
         # plan of this step did not reach the supervisor (lost, or its agent left out as gone
         # while the supervisor's own Zenoh lease lapsed): where its reference is, is unknown.
         known = set(plans) | skipped
-        for i, a in enumerate(self.ids):
+        checked = [r for r in self.ids if r in last and r in known and r not in self.off]
+        if len(checked) > 1:
+            d = _pair_distances(np.array([last[r].committed[-1] for r in checked]).reshape(-1, 2))
+            f = np.array([last[r].footprint for r in checked])
+            iu = np.triu_indices(len(checked), 1)
+            self.min_ref = min(self.min_ref, float(d.min()))
+            self.ref_violations += int(np.count_nonzero(d < f[iu[0]] + f[iu[1]] - SLACK))
+        for a in self.ids:
             if a not in last:
                 continue
             pa = last[a]
-            for b in self.ids[i + 1 :]:
-                if b not in last or a in self.off or b in self.off or not {a, b} <= known:
-                    continue
-                pb = last[b]
-                d = float(np.linalg.norm(pa.committed[-1] - pb.committed[-1]))
-                self.min_ref = min(self.min_ref, d)
-                if d < pa.footprint + pb.footprint - SLACK:
-                    self.ref_violations += 1
             made = plans.get(a)
             if made is None:
                 continue
@@ -558,3 +556,10 @@ def continues(prev: Plan, plan: Plan) -> bool:
     if not np.array_equal(plan.committed[:kept], prev.committed[d : d + kept]):
         return False
     return bool(np.all(plan.committed[kept : n - 1] == prev.committed[-1]))
+
+
+def _pair_distances(P: Array) -> Array:
+    """Distances [m] between the points (n, 2) [m], one per pair i < j, in
+    ``np.triu_indices(n, 1)`` order (n(n − 1)/2,)."""
+    i, j = np.triu_indices(len(P), 1)
+    return np.asarray(np.hypot(P[i, 0] - P[j, 0], P[i, 1] - P[j, 1]))

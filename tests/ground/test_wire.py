@@ -14,9 +14,11 @@ from ground.bus import Inbox
 from ground.faults import FaultPlan
 from ground.wire import (
     MAX_BATCH,
+    MAX_HORIZON,
     MAX_MAGNITUDE,
     MAX_PAYLOAD,
     MAX_RELAYED,
+    MAX_ROBOTS,
     SCHEMA_VERSION,
     SCRIPT,
     Applied,
@@ -312,6 +314,34 @@ def test_a_digest_relays_what_neighbours_use_of_each_plan():
         _checked(Plan, robot="r1", step=1)
     empty = decode(Digest.of("tracker", 3, 0.1, 20, []).encode(), Digest)
     assert empty.ids == [] and empty.plans() == []
+
+
+def test_the_largest_fleet_fits_every_messages_caps():
+    """A fleet of MAX_ROBOTS robots with the longest ids (32 characters) and the longest horizon
+    (a nominal plan of N + 1 ≤ MAX_HORIZON points): its digest, a tick and an outcome naming
+    every robot, a plan keeping clear of every other robot and a goal batch for the whole fleet
+    each fit their byte cap and decode whole; one entry more is refused by the decoder's limit,
+    not by luck."""
+    assert MAX_ROBOTS >= 256 and MAX_RELAYED == MAX_BATCH == MAX_ROBOTS
+    ids = [f"{i:032d}" for i in range(MAX_ROBOTS)]
+    every, none = dict.fromkeys(ids, 2**31 - 2), dict.fromkeys(ids, -1)
+    big = [dataclasses.replace(_plan(robot=r, n=MAX_HORIZON - 1), priority=-(2**31), rank=2**31 - 1,
+                               phase_age=2**31 - 1, step=2**31 - 1) for r in ids]  # fmt: skip
+    worst: list[Plan | Digest | Tick | Outcome | Goal] = [
+        Digest.of("tracker", 2**31 - 1, 0.1, MAX_HORIZON - 1, big),
+        Tick(robot="tracker", step=2**31 - 1, t=1e9, stop=False, misses=9, fallback=every, braked=none),
+        Outcome(robot="tracker", step=2**31 - 1, fallback=every, braked=none),
+        dataclasses.replace(big[0], discs={r: ("braked", True, -1e3, 1e3, 0.25) for r in ids[1:]}),
+        Goal(robot=ids[0], goal=np.zeros(2), batch={r: np.array([-1e3, 1e3]) for r in ids[1:]}),
+    ]
+    for msg in worst:
+        payload = msg.encode()
+        assert len(payload) <= type(msg).MAX_BYTES, (type(msg).__name__, len(payload))
+        assert decode(payload, type(msg)) == msg
+    over = Tick(robot="tracker", step=9, t=0.9, stop=False, misses=0,
+                fallback={f"r{i}": 1 for i in range(MAX_ROBOTS + 1)})  # fmt: skip
+    with pytest.raises(WireError, match="payload"):
+        decode(over.encode(), Tick)
 
 
 def test_relayed_plans_pass_the_receivers_fault_plan_like_plans_on_their_own_keys():
