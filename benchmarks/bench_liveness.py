@@ -17,6 +17,8 @@ prints a table per family and overall:
   in free space (``travel_floor_s``, :func:`ground.model.travel_floor`), p50 / p90;
 * well-formed: scenes whose layout forces no order of arrival (no robot's way home walled in
   by the others' goals: ``ground.scenario.forced_order``, docs/method.md §7).
+* ms/robot-step: the wall time of the scenes' runs (``fleet simulate``, one process each) over
+  their steps times their robots: what a robot costs the simulator a step, at each size.
 
 A scene the loader refuses counts as refused, not run.  The JSON (``--json``, default
 ``out/bench/liveness.json``) holds every scene's figures.
@@ -87,13 +89,19 @@ def _pct(values: list[float], q: float) -> str:
     return f"{np.percentile(values, q):.1f}" if values else "–"
 
 
+def _cost(ran: list[dict[str, Any]]) -> str:
+    """Wall time per robot-step [ms] over the scenes ``ran`` (all their steps, all their robots)."""
+    work = sum(r["steps"] * r["robots"] for r in ran)
+    return f"{1e3 * sum(r['wall_s'] for r in ran) / work:.2f}" if work else "–"
+
+
 def table(rows: list[dict[str, Any]]) -> list[str]:
     """The printed table: one line per family and one for all."""
     fams = sorted({r["family"] for r in rows})
     out = [
         f"{'family':<10} {'scenes':>6} {'refused':>7} {'complete':>9} {'robots home':>12} {'collisions':>10} "
         f"{'ttg p50':>8} {'ttg p90':>8} {'path p50':>8} {'path p90':>8} "
-        f"{'t/floor p50':>11} {'t/floor p90':>11} {'well-formed':>11}"
+        f"{'t/floor p50':>11} {'t/floor p90':>11} {'well-formed':>11} {'ms/robot-step':>13}"
     ]
     for fam in [*fams, "all"]:
         sel = [r for r in rows if fam in ("all", r["family"])]
@@ -110,7 +118,7 @@ def table(rows: list[dict[str, Any]]) -> list[str]:
             f"{fam:<10} {len(sel):>6} {len(sel) - len(ran):>7} {rate:>9} {f'{home}/{total}':>12} "
             f"{sum(r['collisions'] for r in ran):>10} {_pct(ttg, 50):>8} {_pct(ttg, 90):>8} "
             f"{_pct(eff, 50):>8} {_pct(eff, 90):>8} {_pct(slow, 50):>11} {_pct(slow, 90):>11} "
-            f"{f'{formed}/{len(ran)}':>11}"
+            f"{f'{formed}/{len(ran)}':>11} {_cost(ran):>13}"
         )
     return out
 
@@ -157,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--liveness", type=int, default=105, metavar="N", help="scenes to run (default 105)")
     ap.add_argument("--seed", type=int, default=0, help="first scene seed (default 0)")
     ap.add_argument("--jobs", type=int, default=2, help="processes (default 2)")
-    ap.add_argument("--families", default="hard", help="hard, layout, all, or a comma-separated list")
+    ap.add_argument("--families", default="hard", help="hard, layout, scale, all, or a comma-separated list")
     ap.add_argument("--out", default="out/bench", help="directory of the JSON (default out/bench)")
     ap.add_argument("--json", default=None, help="where the JSON goes (default OUT/liveness.json)")
     ap.add_argument(

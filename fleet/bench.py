@@ -108,7 +108,9 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
         "--families", default="hard", metavar="LIST",
         help="--liveness: the scene families, in turn by seed: 'hard' (the seven of "
         "fleet.scenes.HARD_FAMILIES, the default), 'layout' (fleet.scenes.LAYOUT_FAMILIES: pockets, "
-        "single-file lanes, rooms, concentric rings, clutter), 'all', or a comma-separated list",
+        "single-file lanes, rooms, concentric rings, clutter), 'scale' (fleet.scenes.SCALE_FAMILIES: "
+        "100 robots on a circle, in a grid permutation, among obstacles), 'all' (hard and layout), "
+        "or a comma-separated list",
     )  # fmt: skip
     ap.add_argument(
         "--cpu", type=int, default=None, metavar="N",
@@ -132,13 +134,16 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
 def families(text: str) -> tuple[str, ...]:
     """``--families``: 'hard', 'layout', 'all' or a comma-separated list of family names, as a
     tuple; ValueError names an unknown one."""
-    from fleet.scenes import HARD_FAMILIES, LAYOUT_FAMILIES
+    from fleet.scenes import HARD_FAMILIES, LAYOUT_FAMILIES, SCALE_FAMILIES
 
-    named = {"hard": HARD_FAMILIES, "layout": LAYOUT_FAMILIES, "all": HARD_FAMILIES + LAYOUT_FAMILIES}
+    named = {
+        "hard": HARD_FAMILIES, "layout": LAYOUT_FAMILIES, "scale": SCALE_FAMILIES,
+        "all": HARD_FAMILIES + LAYOUT_FAMILIES,
+    }  # fmt: skip
     if text in named:
         return named[text]
     out = tuple(f.strip() for f in text.split(",") if f.strip())
-    known = HARD_FAMILIES + LAYOUT_FAMILIES
+    known = HARD_FAMILIES + LAYOUT_FAMILIES + SCALE_FAMILIES
     for f in out:
         if f not in known:
             raise ValueError(f"unknown family {f!r} (families: {', '.join(known)})")

@@ -412,16 +412,19 @@ def concentric_rings(
     return _scene(f"rings_{rings}x_{len(robots)}", robots, duration, seed, arena=(-half, half, -half, half))
 
 
-def cluttered(n: int, obstacles: int = 6, duration: float = 400.0, seed: int = 0) -> dict[str, Any]:
-    """n robots with random starts and goals among ``obstacles`` random discs in a 2 m arena, the
-    goals at the closest legal spacing; drawn again (from the same generator) until the loader
-    accepts every goal as reachable."""
+def cluttered(
+    n: int, obstacles: int = 6, duration: float = 400.0, seed: int = 0, half: float = 1.0
+) -> dict[str, Any]:
+    """n robots with random starts and goals among ``obstacles`` random discs in an arena of
+    half side ``half`` [m] (2 m by default), the goals at the closest legal spacing; drawn again
+    (from the same generator) until the loader accepts every goal as reachable."""
     from ground.scenario import ConfigError, parse_scenario
 
     rng = np.random.default_rng(seed)
     fp = EPUCK_FOOTPRINT
+    inner, edge = half - 0.3, half - 0.15
     for _ in range(200):
-        discs = [(rng.uniform(-0.7, 0.7, 2), float(rng.uniform(0.06, 0.14))) for _ in range(obstacles)]
+        discs = [(rng.uniform(-inner, inner, 2), float(rng.uniform(0.06, 0.14))) for _ in range(obstacles)]
 
         def clear(p: np.ndarray, discs: list = discs) -> bool:
             return all(float(np.linalg.norm(p - c)) >= r + fp + 0.02 for c, r in discs)
@@ -429,23 +432,57 @@ def cluttered(n: int, obstacles: int = 6, duration: float = 400.0, seed: int = 0
         goals: list[np.ndarray] = []
         starts: list[np.ndarray] = []
         for out, sep in ((goals, MIN_GOAL_SPACING), (starts, 0.3)):
-            for _ in range(4000):
+            for _ in range(max(4000, 100 * n)):
                 if len(out) == n:
                     break
-                q = rng.uniform(-0.85, 0.85, 2)
+                q = rng.uniform(-edge, edge, 2)
                 if clear(q) and _far_enough(q, out, sep):
                     out.append(q)
         if len(goals) < n or len(starts) < n:
             continue
         robots = [_robot(k, starts[k].tolist(), goals[k].tolist()) for k in range(n)]
         obs = [{"circle": {"center": [_clean(c[0]), _clean(c[1])], "radius": _clean(r)}} for c, r in discs]
-        d = _scene(f"cluttered_{n}", robots, duration, seed, obstacles=obs)
+        box = (-half, half, -half, half)
+        d = _scene(f"cluttered_{n}", robots, duration, seed, obstacles=obs, arena=box)
         try:
             parse_scenario(d)
         except ConfigError:
             continue
         return d
     raise RuntimeError(f"cluttered: no accepted layout of {n} robots among {obstacles} discs in 200 draws")
+
+
+def grid_permutation(
+    rows: int, cols: int, spacing: float = 0.5, duration: float = 600.0, seed: int = 0
+) -> dict[str, Any]:
+    """A rows × cols grid of robots ``spacing`` [m] apart in an arena 1 m wider than the grid,
+    each heading for the start of another, a random permutation drawn from ``seed``."""
+    pts = [
+        ((i - (rows - 1) / 2) * spacing, (j - (cols - 1) / 2) * spacing)
+        for i in range(rows)
+        for j in range(cols)
+    ]
+    perm = np.random.default_rng(seed).permutation(len(pts))
+    robots = [_robot(k, p, pts[int(perm[k])]) for k, p in enumerate(pts)]
+    hx, hy = (rows - 1) / 2 * spacing + 0.5, (cols - 1) / 2 * spacing + 0.5
+    return _scene(f"permutation_{rows}x{cols}", robots, duration, seed, arena=(-hx, hx, -hy, hy))
+
+
+def hundred(kind: str, seed: int = 0) -> dict[str, Any]:
+    """A scene of 100 robots: ``circle`` (an antipodal swap on a circle of 4.6 m in a 10 m
+    arena), ``permutation`` (a 10 × 10 grid 5/9 m apart in a 6 m arena, goals permuted) or
+    ``cluttered`` (random starts and goals at the closest legal spacing among 40 random discs,
+    6 m arena)."""
+    if kind == "circle":
+        d = antipodal_swap(100, radius=4.6, duration=900.0, seed=seed, arena=(-5.0, 5.0, -5.0, 5.0))
+    elif kind == "permutation":
+        d = grid_permutation(10, 10, spacing=5.0 / 9.0, duration=900.0, seed=seed)
+    elif kind == "cluttered":
+        d = cluttered(100, obstacles=40, duration=900.0, seed=seed, half=3.0)
+    else:
+        raise ValueError(f"hundred: unknown kind {kind!r}")
+    d["name"] = f"{kind}_100"
+    return d
 
 
 HARD_FAMILIES = ("dense", "ring", "grid", "swap", "corridor", "gap", "obstacles")
@@ -459,12 +496,19 @@ through a doorway at the legal minimum, concentric rings turning opposite ways, 
 scenes among random obstacles."""
 
 
+SCALE_FAMILIES = ("circle100", "permutation100", "cluttered100")
+"""Families of 100 robots (:func:`hundred`): an antipodal circle in a 10 m arena, a 10 × 10 grid
+permutation, and a dense random scene among 40 obstacles."""
+
+
 def hard_scene(seed: int, families: Sequence[str] = HARD_FAMILIES) -> dict[str, Any]:
-    """One scene of family ``families[seed % len(families)]`` (of :data:`HARD_FAMILIES` and
-    :data:`LAYOUT_FAMILIES`), its size and layout drawn from ``seed``."""
+    """One scene of family ``families[seed % len(families)]`` (of :data:`HARD_FAMILIES`,
+    :data:`LAYOUT_FAMILIES` and :data:`SCALE_FAMILIES`), its size and layout drawn from ``seed``."""
     rng = np.random.default_rng(seed)
     family = families[seed % len(families)]
-    if family in LAYOUT_FAMILIES:
+    if family in SCALE_FAMILIES:
+        d = hundred(family.removesuffix("100"), seed=seed)
+    elif family in LAYOUT_FAMILIES:
         d = _layout_scene(family, rng, seed)
     elif family == "dense":
         n = int(rng.integers(8, 17))

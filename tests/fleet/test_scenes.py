@@ -17,6 +17,7 @@ from fleet.scenes import (
     EPUCK_FOOTPRINT,
     LAYOUT_FAMILIES,
     MIN_GOAL_SPACING,
+    SCALE_FAMILIES,
     concentric_rings,
     hard_scene,
     pocket,
@@ -51,6 +52,25 @@ def test_every_drawn_layout_scene_is_accepted_and_every_family_is_drawn():
             for h in goals[i + 1 :]:
                 assert np.linalg.norm(g - h) >= MIN_GOAL_SPACING - 1e-9, data["name"]
     assert seen == set(LAYOUT_FAMILIES)
+
+
+def test_the_scale_families_are_fleets_of_a_hundred_the_loader_accepts():
+    """Over the old cap of 64 robots a tick and a digest carried: the loader takes 100, at the
+    closest legal goal spacing or wider, and the tube design accepts the scene."""
+    from agent.tube import validated_design
+    from ground.wire import MAX_ROBOTS
+
+    for seed, family in enumerate(SCALE_FAMILIES):
+        data = hard_scene(seed, SCALE_FAMILIES)
+        scn = parse_scenario(data)
+        validated_design(scn)
+        assert len(scn.robots) == 100 < MAX_ROBOTS
+        assert data["name"] == f"hard_{seed}_{family.removesuffix('100')}_100"
+        goals = np.array(_goals(data))
+        d = np.hypot(*(goals[:, None, :] - goals[None, :, :]).transpose(2, 0, 1))
+        assert d[np.triu_indices(100, 1)].min() >= MIN_GOAL_SPACING - 1e-9
+    side = np.diff(parse_scenario(hard_scene(1, SCALE_FAMILIES)).arena)[::2]
+    assert np.allclose(side, 6.0)  # the grid permutation: a 6 m × 6 m arena
 
 
 def test_a_single_file_shift_sends_each_robot_to_the_next_start_in_a_lane_too_narrow_to_pass():
@@ -98,7 +118,8 @@ def test_liveness_bench_runs_the_layout_families_and_refuses_an_unknown_one(tmp_
         capture_output=True, text=True, timeout=600, cwd=ROOT, env=env,
     )  # fmt: skip
     assert out.returncode == 0, out.stderr[-2000:]
-    assert "t/floor p50" in out.stdout and "\nfile " in out.stdout, out.stdout
+    assert "t/floor p50" in out.stdout and "ms/robot-step" in out.stdout, out.stdout
+    assert "\nfile " in out.stdout, out.stdout
     row = json.loads((tmp_path / "liveness.json").read_text())["scenes"][0]
     assert row["family"] == "file" and row["name"].startswith("hard_3_file_")
     bad = subprocess.run(
@@ -108,5 +129,6 @@ def test_liveness_bench_runs_the_layout_families_and_refuses_an_unknown_one(tmp_
     assert bad.returncode == 2
     assert bad.stderr.strip().splitlines() == [
         "fleet: error: --families: unknown family 'hallway' (families: dense, ring, grid, swap, "
-        "corridor, gap, obstacles, pocket, file, rooms, rings, cluttered)"
+        "corridor, gap, obstacles, pocket, file, rooms, rings, cluttered, circle100, permutation100, "
+        "cluttered100)"
     ]

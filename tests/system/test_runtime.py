@@ -214,6 +214,25 @@ def test_relayed_plans_give_the_same_run(three, tmp_path):
     assert strip(relay) == strip(mesh), "\n".join(events[-20:])
 
 
+def test_a_fleet_over_the_old_cap_of_64_runs_as_processes_as_in_fleet_simulate(tmp_path):
+    """70 robots, plans relayed in one digest a step through a star: every tick, outcome and
+    digest names more than 64 robots, which the wire refused before.  No payload is rejected,
+    every agent plans every step, and the run is ``fleet simulate``'s to the last bit."""
+    from fleet.scenes import antipodal_swap, scene_to_toml
+
+    scene = antipodal_swap(70, radius=3.5, duration=1.5, arena=(-4.0, 4.0, -4.0, 4.0))
+    path = tmp_path / "circle_70.toml"
+    path.write_text(scene_to_toml(scene))
+    res = _fleet("run", str(path), "--out", str(tmp_path / "run"), "--exchange", "relay", "--topology=star")
+    assert "goal not reached" in res.stderr and "Traceback" not in res.stderr, res.stderr[-2000:]
+    sim = _fleet("simulate", str(path), "--out", str(tmp_path / "sim"))
+    assert "Traceback" not in sim.stderr, sim.stderr[-2000:]
+    run = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert run["rejected_payloads"] == 0 and run["steps"] == 15 and len(run["robots"]) == 70
+    assert all(r["qp_solves"] == 15 for r in run["robots"].values())
+    _same_run(tmp_path / "run", tmp_path / "sim")
+
+
 @pytest.mark.parametrize("exchange", ["mesh", "relay"])
 def test_lockstep_run_with_delay_compensation_is_fleet_simulate_with_it(tmp_path, exchange):
     """``--delay-compensation``: each agent plans step k + 1 during step k, from the prediction,
