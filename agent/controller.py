@@ -306,6 +306,7 @@ class TubeMPC:
         neighbours: Sequence[NeighbourInfo],
         hazards: Sequence[Hazard] = (),
         predicted: bool = False,
+        seen: Sequence[NeighbourInfo] = (),
     ) -> StepOutput:
         """One control step from measured state ``x`` (4,) [m, m/s].
 
@@ -315,7 +316,9 @@ class TubeMPC:
         ``predicted``: ``x`` is the prediction A x + B u of a state not measured yet, the plan
         being made a step ahead (delay compensation, docs/method.md §5): constraint (a) and
         :attr:`StepOutput.tube_ok` then use Z ⊖ W (:attr:`TubeDesign.Z_f_ahead`), and the
-        returned ``a`` is the law at the prediction, not a command to apply."""
+        returned ``a`` is the law at the prediction, not a command to apply.  ``seen``: robots
+        beyond the neighbours that the navigator plans around and yields to as well (plans by
+        place: those up to :data:`~agent.coordination.VIEW_CELLS` cells away); no constraint."""
         t0 = time.perf_counter()
         self._snapshot()
         p, design, qp = self.params, self.design, self.qp
@@ -337,7 +340,9 @@ class TubeMPC:
             self.target, mode = ahead[1], ahead[2]
             self.counters.ahead += 1
         else:
-            self.target, mode = self.steer([*neighbours, *(h.info for h in hazards if h.info is not None)])
+            self.target, mode = self.steer(
+                [*neighbours, *(h.info for h in hazards if h.info is not None), *seen]
+            )
         pen = None
         if p.penalty:
             pen = polynomial_penalty(

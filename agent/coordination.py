@@ -113,6 +113,24 @@ def place_side(footprint: float, eps: float, share_hi: float) -> float:
     return 2.0 * footprint + SQRT2 * eps * 1.01 / s + 2.0 * PLACE_LAG * SQRT2 * eps
 
 
+VIEW_CELLS = 2
+"""With plans by place, the navigator sees the robots up to this many cells from its own
+(Chebyshev), where the constraints need one: every agent hears them, since it subscribes to
+its own group of cells and the eight groups around it (``agent.node.GROUP``), which hold every
+cell two or fewer from its own.  A robot whose cell is three or more from its own is more than
+two sides away (:func:`navigator_view`)."""
+
+
+def navigator_view(side: float, eps: float) -> float:
+    """How far [m] the navigator of an agent with plans by place sees every robot, whatever it
+    heard last: what :data:`VIEW_CELLS` cells of ``side`` [m] guarantee, less what both robots
+    may have moved towards each other (√2·``eps`` [m] a step each) in the :data:`PLACE_LAG`
+    steps what it heard may be old.  The navigator's yielding rule acts on robots up to
+    r_i + r_j + ``conflict_range`` away (``agent.navigator.Navigator.target``); an agent with
+    plans by place caps its ``conflict_range`` so that this stays within the view."""
+    return VIEW_CELLS * side - 2.0 * PLACE_LAG * SQRT2 * eps
+
+
 def split_halfplanes(
     c_i: Array, r_i: float, prio_i: int, neighbours: Sequence[NeighbourInfo], share_hi: float, eps: float
 ) -> tuple[list[Array], list[float], float]:

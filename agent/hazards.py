@@ -58,18 +58,21 @@ def in_reach(
     others: Sequence[str], mine: Cell, side: float, last: Mapping[str, Plan | None],
     places: Mapping[str, Whereabouts], starts: Mapping[str, NeighbourInfo], live: Container[str],
     discs: Container[str] = (),
+    within: int = 1,
 ) -> list[str]:  # fmt: skip
     """The robots of ``others`` that an agent whose last committed point is in cell ``mine``
-    (cells of ``side`` [m]) coordinates with, with plans by place (docs/method.md §6):
+    (cells of ``side`` [m]) coordinates with, with plans by place (docs/method.md §6); with
+    ``within`` = :data:`~agent.coordination.VIEW_CELLS`, those its navigator sees:
 
     * every robot whose agent is gone (not in ``live``), and every one in ``discs``: those its
       robot side braked, whose link is down (:func:`loose`) or whose last plan says its agent
       is blind.  They are kept clear of as discs, which can be wider than a cell, so their
       rows may be needed beyond the reach; the QP drops the rows of a far disc itself
       (:func:`agent.coordination.hazard_halfplanes`);
-    * every other robot whose last committed point is in ``mine`` or one of the eight cells
-      around it, by what was last heard of it: its newest plan (``last``), or its place token
-      (``places``) if that is newer, or else its start (``starts``).
+    * every other robot whose last committed point is at most ``within`` cells from ``mine``
+      (Chebyshev: its own cell and the eight around it by default), by what was last heard of
+      it: its newest plan (``last``), or its place token (``places``) if that is newer, or
+      else its start (``starts``).
 
     A robot farther away gets no row from the split rule (:func:`agent.coordination.place_side`),
     so leaving it out changes nothing the constraints guarantee."""
@@ -84,7 +87,7 @@ def in_reach(
             j not in live
             or j in discs
             or (pl is not None and pl.status == BLIND)
-            or cells_apart(cell, mine) <= 1
+            or cells_apart(cell, mine) <= within
         ):
             out.append(j)
     return out

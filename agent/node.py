@@ -49,7 +49,7 @@ from typing import Any
 import numpy as np
 
 from agent.controller import SNAPSHOTS, TUBE_TOL, StepOutput, TubeMPC
-from agent.coordination import PLACE_LAG, NeighbourInfo, place_side
+from agent.coordination import PLACE_LAG, VIEW_CELLS, NeighbourInfo, navigator_view, place_side
 from agent.hazards import Guard, in_reach, loose, neighbour_of, starts_of
 from agent.messages import command_message, plan_message
 from agent.tube import validated_design
@@ -169,6 +169,11 @@ class Agent:
             start=controlled_point(spec.start, p.lookahead),
         )
         self.inbox = self.link.inbox
+        if self.side is not None:  # the navigator acts only on robots it is sure to see
+            nav = self.ctrl.nav
+            nav.conflict_range = min(
+                nav.conflict_range, navigator_view(self.side, p.epsilon) - 2 * design.footprint
+            )
         self.others = [r for r in ids if r != me]
         self.starts = starts_of(scn.robots, p.lookahead, design.footprint)
         self.guard = Guard(me, p, partial(log, self.role), side=self.side)
@@ -299,7 +304,7 @@ class Agent:
         if cut:
             out = ctrl.hold(x, LINK_DOWN)
         else:
-            out = ctrl.hold(x) if blind else ctrl.step(x, nbs, hazards)
+            out = ctrl.hold(x) if blind else ctrl.step(x, nbs, hazards, seen=self._seen(reach, tick.braked))
         self.ran.append(k)
         self.x_est, self.a_prev = x, out.a
         # The command first: the robot side waits on it; the neighbours need the plan only at
@@ -356,7 +361,7 @@ class Agent:
         self._goals(goal, k + 1)
         x_next = np.asarray(design.A @ x + design.B @ a)
         nbs, hazards = self._classify(k + 1, reach, fresh, live, outcome.braked)
-        out = ctrl.step(x_next, nbs, hazards, predicted=True)
+        out = ctrl.step(x_next, nbs, hazards, predicted=True, seen=self._seen(reach, outcome.braked))
         self.ran.append(k + 1)
         self.ahead = ready = _Ready(
             k + 1, ctrl.xi[0:4].copy(), ctrl.xi[4:6].copy(), design.K,
@@ -581,11 +586,13 @@ class Agent:
             self.links = {j: inbox.get(LinkState, j) for j in self.others}
         return fresh, live, goal, self._reach(braked)
 
-    def _reach(self, braked: Collection[str]) -> list[str]:
+    def _reach(self, braked: Collection[str], within: int = 1) -> list[str]:
         """The other robots that a step may need to know: every one, or with plans by place those
         :func:`agent.hazards.in_reach` keeps, from the plans and place tokens heard so far, about
         the controller's own last committed point (moved by a rejoin, before any plan from it
-        goes out).  ``braked``: the robots the step's tick or outcome says were braked."""
+        goes out).  ``braked``: the robots the step's tick or outcome says were braked;
+        ``within``: how many cells away (:data:`~agent.coordination.VIEW_CELLS` for the
+        navigator's view)."""
         if self.side is None:
             return self.others
         inbox = self.inbox
@@ -594,7 +601,23 @@ class Agent:
             live = set(inbox.live)
             discs = {*braked, *(j for j in self.others if loose(inbox.get(LinkState, j), self.last.get(j)))}
         mine = cell_of(self.ctrl.last_point, self.side)
-        return in_reach(self.others, mine, self.side, self.last, self.places, self.starts, live, discs)
+        return in_reach(
+            self.others, mine, self.side, self.last, self.places, self.starts, live, discs, within
+        )
+
+    def _seen(self, reach: list[str], braked: Collection[str]) -> list[NeighbourInfo]:
+        """With plans by place, the robots beyond ``reach`` that the navigator sees too (up to
+        :data:`~agent.coordination.VIEW_CELLS` cells away), by their newest plan heard, else their
+        start; none otherwise, where the step knows every robot.  Shaping only: the step's
+        constraints are those of ``reach``."""
+        if self.side is None:
+            return []
+        near = set(reach)
+        return [
+            self.starts[j] if (pl := self.last.get(j)) is None else neighbour_of(pl)
+            for j in self._reach(braked, VIEW_CELLS)
+            if j not in near
+        ]
 
     def _goals(self, goal: Goal | None, k: int) -> None:
         """Take, for the plan of step k, a goal published at run time (checked here) and one a

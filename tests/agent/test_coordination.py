@@ -301,3 +301,28 @@ def test_the_row_of_a_disc_that_comes_on_is_met_by_backing_away():
     y0 = np.array([0.004 - 1e-7, 0.001])
     y, scaled = repair_point(y0, c, normals, bounds, c - EPS, c + EPS)
     assert not scaled and y[0] >= 0.004 and abs(y[1] - 0.001) < 1e-12
+
+
+def test_robots_seen_beyond_the_neighbours_shape_the_target_and_add_no_constraint():
+    """``TubeMPC.step(seen=...)``: a robot the agent sees but does not coordinate with (plans
+    by place, two cells away) makes the navigator yield, as a neighbour would, and adds no
+    row: the QP's constraints, and so the guarantee, are those of the neighbours alone."""
+    from agent.controller import TubeMPC
+    from agent.tube import require_admissible, synthesize
+    from ground.params import preset
+
+    arena = (-1.0, 1.0, -1.0, 1.0)
+    design = require_admissible(synthesize(preset("epuck"), arena))
+    me, goal = np.array([0.0, -0.5]), np.array([0.0, 0.8])
+    # Under way before this robot (rank 0), 0.5 m ahead on its line, heading through it.
+    first = NeighbourInfo(
+        "r0", np.array([0.0, 0.0]), design.footprint, rank=0, target=np.array([0.0, -0.9]),
+        goal=np.array([0.0, -0.9]), phase=UNDER_WAY,
+    )  # fmt: skip
+    alone, seeing = (
+        TubeMPC(design, me, goal, arena, rank=5).step(np.zeros(4), [], seen=s) for s in ([], [first])
+    )
+    assert alone.mode in ("path", "goal") and seeing.mode == "yield", (alone.mode, seeing.mode)
+    assert abs(seeing.target[0]) > 0.1  # out of the corridor, to one side
+    # No split row against it: the smallest slack the rows saw is that of no neighbour at all.
+    assert alone.status == seeing.status and alone.min_slack == seeing.min_slack == math.inf

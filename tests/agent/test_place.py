@@ -11,7 +11,14 @@ import numpy as np
 import pytest
 import zenoh
 
-from agent.coordination import PLACE_LAG, NeighbourInfo, place_side, split_halfplanes
+from agent.coordination import (
+    PLACE_LAG,
+    VIEW_CELLS,
+    NeighbourInfo,
+    navigator_view,
+    place_side,
+    split_halfplanes,
+)
 from agent.hazards import Guard, in_reach
 from agent.node import group_of
 from agent.tube import validated_design
@@ -119,6 +126,40 @@ def test_in_reach_takes_the_newest_of_plan_token_and_start():
     assert in_reach(["a", "b", "c", "d", "e", "f"], (3, 0), SIDE, last, places, starts, set(starts)) == [
         "d", "f",
     ]  # fmt: skip
+
+
+@pytest.mark.parametrize("scenario", ["swap_16", "swap_8"])
+def test_the_navigator_sees_every_robot_its_yielding_rule_acts_on(scenario):
+    """With plans by place the navigator takes the robots up to VIEW_CELLS cells away, all of
+    them in the groups an agent hears.  Every robot now within navigator_view of c_i is among
+    them, by a plan up to PLACE_LAG steps old (both robots moving towards each other since);
+    the agent caps its yield range r_i + r_j + conflict_range there (compact designs, whose
+    cells are small), and the epuck design's full range fits uncapped."""
+    from agent.navigator import Navigator
+
+    design = validated_design(
+        load_scenario(Path(__file__).resolve().parents[2] / "scenarios" / f"{scenario}.toml")
+    )
+    p, r = design.params, design.footprint
+    side = place_side(r, p.epsilon, p.priority_share)
+    view = navigator_view(side, p.epsilon)
+    lag = PLACE_LAG * math.sqrt(2.0) * p.epsilon
+    rng = np.random.default_rng(11)
+    for _ in range(3000):
+        now_i = rng.uniform(-2.0, 2.0, 2)
+        ang, dist = rng.uniform(0, 2 * math.pi), view * math.sqrt(rng.uniform(0.0, 1.0))
+        now_j = now_i + dist * np.array([math.cos(ang), math.sin(ang)])
+        # What i heard of j, and i's own point then: each up to the lag behind, anywhere.
+        heard_j = now_j + lag * rng.uniform(-1, 1, 2) / math.sqrt(2.0)
+        last = {"j": _plan("j", 5, heard_j)}
+        assert in_reach(["j"], cell_of(now_i, side), side, last, {}, _starts({"j": (9.0, 9.0)}), {"j"},
+                        within=VIEW_CELLS) == ["j"]  # fmt: skip
+    # Three cells away a robot is not seen (the view is what the cells give, no more), though
+    # it may be just over two sides from c_i: the view is two sides less the lag.
+    far = {"j": _plan("j", 5, (3.0 * side + 1e-6, 0.5 * side))}
+    assert in_reach(["j"], (0, 0), side, far, {}, _starts({"j": (9.0, 9.0)}), {"j"}, within=VIEW_CELLS) == []
+    full = 2 * r + Navigator.conflict_range
+    assert (full <= view) == (scenario == "swap_8"), (full, view)
 
 
 def test_guard_keeps_clear_of_a_robot_known_by_its_token_only():
