@@ -20,6 +20,11 @@ prints a table per family and overall:
 * ms/robot-step: the wall time of the scenes' runs (``fleet simulate``, one process each) over
   their steps times their robots: what a robot costs the simulator a step, at each size.
 
+``--liveness-realtime`` runs each scene instead as a process fleet on the realtime clock with
+its defaults (``fleet run --clock realtime``: plans by place, planned a step ahead), one at a
+time, and adds the deadline misses and the places heard late; its files go under
+``OUT/realtime``.
+
 A scene the loader refuses counts as refused, not run.  The JSON (``--json``, default
 ``out/bench/liveness.json``) holds every scene's figures.
 """
@@ -35,6 +40,7 @@ import functools
 import json
 import multiprocessing
 import platform
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -45,12 +51,16 @@ import numpy as np
 SCHEMA = 3
 
 
-def one(seed: int, ahead: bool = True, families: tuple[str, ...] | None = None) -> dict[str, Any]:
+def one(
+    seed: int, ahead: bool = True, families: tuple[str, ...] | None = None, realtime: Path | None = None
+) -> dict[str, Any]:
     """Run hard scene ``seed`` of ``families`` (default :data:`fleet.scenes.HARD_FAMILIES`) in
     this process, with every plan made a step ahead as ``fleet simulate`` makes them by default
-    (``ahead`` False: each from its measurement); its figures."""
+    (``ahead`` False: each from its measurement); its figures.  ``realtime``: instead run it as
+    a process fleet on the realtime clock with its defaults (``fleet run --clock realtime``:
+    plans by place, planned ahead), its files under that directory."""
     from agent.tube import validated_design
-    from fleet.scenes import HARD_FAMILIES, hard_scene
+    from fleet.scenes import HARD_FAMILIES, hard_scene, scene_to_toml
     from fleet.simulate import run
     from ground.scenario import ConfigError, parse_scenario
 
@@ -63,8 +73,23 @@ def one(seed: int, ahead: bool = True, families: tuple[str, ...] | None = None) 
         design = validated_design(scn)
     except ConfigError as e:
         return {"seed": seed, "name": data["name"], "family": family, "refused": str(e)}
-    res = run(scn, design=design, ahead=ahead)
-    s = res.summary()
+    extra: dict[str, Any] = {}
+    if realtime is None:
+        s = run(scn, design=design, ahead=ahead).summary()
+    else:
+        where = realtime / data["name"]
+        where.mkdir(parents=True, exist_ok=True)
+        (where / "scene.toml").write_text(scene_to_toml(data))
+        cmd = [sys.executable, "-m", "fleet.cli", "run", str(where / "scene.toml"), "--clock", "realtime",
+               "--out", str(where / "run")]  # fmt: skip
+        if not ahead:
+            cmd.append("--no-delay-compensation")
+        with open(where / "fleet.stderr", "w") as err:
+            subprocess.run(
+                cmd, stdout=subprocess.DEVNULL, stderr=err, timeout=3 * scn.duration + 300, check=False
+            )
+        s = json.loads((where / "run" / "summary.json").read_text())
+        extra = {"deadline_misses": s["deadline_misses"], "places_heard_late": s["places_heard_late"]}
     robots = s["robots"]
     moved = [r for r in robots.values() if r["straight_line_m"] > 0.05 and r["reached_goal"]]
     eff = [r["path_to_arrival_m"] / r["straight_line_m"] for r in moved]
@@ -82,6 +107,7 @@ def one(seed: int, ahead: bool = True, families: tuple[str, ...] | None = None) 
         "time_over_floor": slow,
         "forced": len(s["forced_order"] or {}),
         "wall_s": time.perf_counter() - t0,
+        **extra,
     }
 
 
@@ -91,6 +117,8 @@ def _pct(values: list[float], q: float) -> str:
 
 def _cost(ran: list[dict[str, Any]]) -> str:
     """Wall time per robot-step [ms] over the scenes ``ran`` (all their steps, all their robots)."""
+    if any("deadline_misses" in r for r in ran):
+        return "–"  # on the realtime clock the wall time is the run's length
     work = sum(r["steps"] * r["robots"] for r in ran)
     return f"{1e3 * sum(r['wall_s'] for r in ran) / work:.2f}" if work else "–"
 
@@ -145,7 +173,11 @@ def run(args: argparse.Namespace) -> int:
         sys.path.insert(0, here)  # spawn hands the workers this process's sys.path
     ctx = multiprocessing.get_context("spawn")
     ahead = bool(getattr(args, "delay_compensation", True))
-    work = functools.partial(one, ahead=ahead, families=fams)
+    realtime = out / "realtime" if getattr(args, "liveness_realtime", False) else None
+    if realtime is not None:
+        jobs = 1  # a realtime fleet needs the machine to itself
+        print("each scene a process fleet on the realtime clock (fleet run --clock realtime), one at a time")
+    work = functools.partial(one, ahead=ahead, families=fams, realtime=realtime)
     with ctx.Pool(jobs) as pool:
         for r in pool.imap_unordered(work, range(seed0, seed0 + n)):
             rows.append(r)
@@ -153,6 +185,13 @@ def run(args: argparse.Namespace) -> int:
             print(f"  [{len(rows):>3}/{n}] {r['name']}: {what}", flush=True)
     rows.sort(key=lambda r: r["seed"])
     lines = table(rows)
+    if realtime is not None:
+        ran = [r for r in rows if "refused" not in r]
+        lines.append(
+            f"realtime: deadline misses {sum(r['deadline_misses'] for r in ran)} of "
+            f"{sum(r['steps'] * r['robots'] for r in ran)} commands, places heard late "
+            f"{sum(r['places_heard_late'] for r in ran)}"
+        )
     print("\n".join(lines), flush=True)
     print(f"wall time {time.perf_counter() - t0:.0f} s", flush=True)
     json_path.write_text(json.dumps({"schema": SCHEMA, "scenes": rows, "table": lines}, indent=1))
@@ -168,6 +207,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--families", default="hard", help="hard, layout, scale, all, or a comma-separated list")
     ap.add_argument("--out", default="out/bench", help="directory of the JSON (default out/bench)")
     ap.add_argument("--json", default=None, help="where the JSON goes (default OUT/liveness.json)")
+    ap.add_argument(
+        "--liveness-realtime", action="store_true",
+        help="run each scene as a process fleet on the realtime clock, one at a time",
+    )  # fmt: skip
     ap.add_argument(
         "--delay-compensation", action=argparse.BooleanOptionalAction, default=True,
         help="plans made a step ahead, as fleet simulate makes them by default",

@@ -105,6 +105,11 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     ap.add_argument("--jobs", type=int, default=2, help="--liveness: processes (default 2)")
     ap.add_argument(
+        "--liveness-realtime", action="store_true",
+        help="--liveness: run each scene as a process fleet on the realtime clock with its defaults "
+        "(fleet run --clock realtime: plans by place), one at a time, instead of in fleet simulate",
+    )  # fmt: skip
+    ap.add_argument(
         "--families", default="hard", metavar="LIST",
         help="--liveness: the scene families, in turn by seed: 'hard' (the seven of "
         "fleet.scenes.HARD_FAMILIES, the default), 'layout' (fleet.scenes.LAYOUT_FAMILIES: pockets, "
