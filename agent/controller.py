@@ -28,10 +28,7 @@ from typing import Any
 import numpy as np
 
 from agent.coordination import (
-    PARKED,
     PARKED_RADIUS,
-    RETURNING,
-    UNDER_WAY,
     Hazard,
     NeighbourInfo,
     hazard_halfplanes,
@@ -46,7 +43,7 @@ from agent.sets import Array
 from agent.tube import TubeDesign
 from ground.model import ancillary_law, brake_input
 from ground.scenario import AT_GOAL, GOAL_MARGIN
-from ground.wire import BLIND, LINK_DOWN, MAX_AGE
+from ground.wire import BLIND, LINK_DOWN, MAX_AGE, PARKED, RETURNING, UNDER_WAY
 
 TUBE_TOL = 2e-5
 """Tolerance of the tube check x − x̂ ∈ Z [m, m/s]: twice ProxSuite's eps_abs,

@@ -29,13 +29,11 @@ from typing import Any, Protocol
 import numpy as np
 
 from agent.sets import Array
-from ground.wire import OFF_PLAN
+from ground.wire import OFF_PLAN, RETURNING
 
 SQRT2 = math.sqrt(2.0)
 
 
-UNDER_WAY, RETURNING, PARKED = 0, 1, 2
-"""Precedence phases of :class:`NeighbourInfo` (lower goes first)."""
 PARKED_RADIUS = 0.05
 """A robot that has reached its goal counts as parked within this distance of it [m] (its
 committed end point's distance; farther, it is returning)."""

@@ -26,9 +26,10 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from agent.coordination import PARKED, PARKED_RADIUS, RETURNING, NeighbourInfo, precedence
+from agent.coordination import PARKED_RADIUS, NeighbourInfo, precedence
 from agent.sets import Array
 from ground.freespace import free_space_model
+from ground.wire import PARKED, RETURNING
 
 
 def point_segment_distance(p: Array, a: Array, b: Array) -> float:

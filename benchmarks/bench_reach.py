@@ -79,7 +79,9 @@ def run_one(scenario_path: str, reach: float, cell: float = CELL) -> dict[str, A
     rows: list[int] = []
     step, split = controller.TubeMPC.step, controller.split_halfplanes
 
-    def near_only(self: Any, x: Any, neighbours: Any, hazards: Any = (), predicted: bool = False) -> Any:
+    def near_only(
+        self: Any, x: Any, neighbours: Any, hazards: Any = (), predicted: bool = False, seen: Any = ()
+    ) -> Any:
         c = self.last_point
         near = [nb for nb in neighbours if math.hypot(*(nb.last_point - c)) <= reach]
         known.append(len(near))
@@ -87,7 +89,7 @@ def run_one(scenario_path: str, reach: float, cell: float = CELL) -> dict[str, A
             mine = np.floor(c / cell)
             theirs = np.floor(np.array([nb.last_point for nb in neighbours]) / cell)
             in_cells.append(int(np.sum(np.all(np.abs(theirs - mine) <= 1, axis=1))))
-        return step(self, x, near, hazards, predicted)
+        return step(self, x, near, hazards, predicted, seen)
 
     def counted(*args: Any, **kwargs: Any) -> Any:
         out = split(*args, **kwargs)

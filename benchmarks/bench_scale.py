@@ -77,11 +77,12 @@ import bench_step as bs  # noqa: E402
 import proxsuite  # noqa: E402
 
 from agent.controller import TubeMPC  # noqa: E402
-from agent.coordination import UNDER_WAY, NeighbourInfo  # noqa: E402
+from agent.coordination import NeighbourInfo  # noqa: E402
 from agent.qp import TubeQP, configure  # noqa: E402
 from agent.tube import require_admissible, synthesize  # noqa: E402
 from fleet.scenes import scene_to_toml  # noqa: E402
 from ground.params import preset  # noqa: E402
+from ground.wire import UNDER_WAY  # noqa: E402
 
 try:
     import daqp

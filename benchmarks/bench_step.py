@@ -63,13 +63,14 @@ if str(ROOT) not in sys.path:
 
 import agent.controller as controller_mod  # noqa: E402
 from agent.controller import TubeMPC  # noqa: E402
-from agent.coordination import UNDER_WAY, NeighbourInfo  # noqa: E402
+from agent.coordination import NeighbourInfo  # noqa: E402
 from agent.navigator import Navigator  # noqa: E402
 from agent.qp import TubeQP  # noqa: E402
 from agent.tube import require_admissible, synthesize  # noqa: E402
 from fleet import simulate as harness  # noqa: E402
 from fleet.scenes import random_scene  # noqa: E402
 from ground.scenario import check_geometry, load_scenario, parse_scenario  # noqa: E402
+from ground.wire import UNDER_WAY  # noqa: E402
 
 try:
     import daqp

@@ -17,12 +17,25 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 REACH_CELLS = 400
 """Cells along the arena's longer side of the free-space grid (a 2 m arena: 5 mm cells)."""
+
+
+@dataclass(frozen=True)
+class Carved:
+    """Free space with discs standing in it (:meth:`FreeSpace.carve`)."""
+
+    labels: np.ndarray
+    """Piece (nx, ny) of each free cell left, 1 …; 0 where not free."""
+    stamps: list[tuple[slice, slice, np.ndarray]]
+    """Per disc, the cells it covers (:meth:`FreeSpace.disc_cells`)."""
+    discs: list[tuple[np.ndarray, float]]
+    """Per disc, its centre (2,) [m] and radius [m]."""
 
 
 class FreeSpace:
@@ -109,26 +122,39 @@ class FreeSpace:
         keep the disc from going from ``a`` to ``b`` (2,) [m] that :meth:`joined` joins: those
         that border the piece ``a`` or ``b`` is then shut in (each of the two that is not the
         largest piece left); [] if the way is open."""
-        from scipy import ndimage
-
         if not self.joined(a, b):
             return []
+        return self.walls(self.carve(discs), a, b)
+
+    def carve(self, discs: Sequence[tuple[np.ndarray, float]]) -> Carved:
+        """Free space with the discs (centre (2,) [m], radius [m]) standing in it all at once,
+        labelled into its pieces: one labelling, for :meth:`walls` to ask of many ways."""
+        from scipy import ndimage
+
         free = self.free.copy()
         stamps = [self.disc_cells(np.asarray(c, dtype=float), r) for c, r in discs]
         for rows, cols, m in stamps:
             free[rows, cols] &= ~m
         lab, _ = ndimage.label(free, structure=np.ones((3, 3), dtype=bool))
+        return Carved(np.asarray(lab), stamps, [(np.asarray(c, dtype=float), float(r)) for c, r in discs])
+
+    def walls(self, carved: Carved, a: np.ndarray, b: np.ndarray) -> list[int]:
+        """Of the discs ``carved`` (:meth:`carve`), those that keep the way from ``a`` to ``b``
+        (2,) [m] shut, as :meth:`walled_in` says; [] if it is open."""
+        from scipy import ndimage
+
+        lab = carved.labels
         pa, pb = self.piece_in(lab, a), self.piece_in(lab, b)
         if pa is not None and pa == pb:
             return []
         if pa is None or pb is None:  # a disc covers the point itself
             p = a if pa is None else b
-            return [k for k, (c, r) in enumerate(discs) if np.hypot(*(p - np.asarray(c))) < r + self.reach]
+            return [k for k, (c, r) in enumerate(carved.discs) if np.hypot(*(p - c)) < r + self.reach]
         sizes = np.bincount(lab.ravel())
         sizes[0] = 0
         shut = np.isin(lab, [p for p in (pa, pb) if p != int(np.argmax(sizes))])
         rim = ndimage.binary_dilation(shut, structure=np.ones((3, 3), dtype=bool))
-        return [k for k, (rows, cols, m) in enumerate(stamps) if np.any(m & rim[rows, cols])]
+        return [k for k, (rows, cols, m) in enumerate(carved.stamps) if np.any(m & rim[rows, cols])]
 
     def piece_in(self, lab: np.ndarray, p: np.ndarray) -> int | None:
         """The label in ``lab`` of the labelled cell nearest ``p`` (2,) [m] within a cell diagonal."""

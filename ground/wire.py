@@ -62,6 +62,9 @@ and :class:`Script` lets a script hold the lockstep clock and end the run;
 7: :class:`Plan` carries the discs its agent kept clear of (``discs``) and the robot whose stopped
 disc covers its goal (``blocked``), and :class:`Command` may ask the robot side to brake
 (``brake``)."""
+UNDER_WAY, RETURNING, PARKED = 0, 1, 2
+"""A plan's precedence phase (:attr:`Plan.phase`): under way (its goal never reached), returning
+(reached once, now displaced), parked (at its goal).  Lower goes first (docs/method.md §7)."""
 MAX_AGE = 2**31
 """Largest ``phase_age`` a plan carries [steps] (an agent's count stops there)."""
 MAX_PAYLOAD = 64 * 1024

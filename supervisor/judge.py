@@ -33,7 +33,7 @@ from ground.bus import remember_steps
 from ground.geometry import Array, controlled_point, wrap_angle
 from ground.model import travel_floor
 from ground.scenario import GOAL_TOLERANCE, Scenario, forced_order, settled_since
-from ground.wire import BLIND, LINK_DOWN, Plan
+from ground.wire import BLIND, LINK_DOWN, PARKED, Plan
 
 SOLVED = "PROXQP_SOLVED"
 """The one solver status whose plan is a solution; every other status is a fallback."""
@@ -51,6 +51,12 @@ exactly, so its disc is not judged."""
 
 Pose3 = Sequence[float] | Array
 """A pose (x [m], y [m], θ [rad]), world frame, (3,)."""
+
+
+WALL_CHECK_STEPS = 10
+"""How often the judge asks whose way home the parked robots wall in [steps] (1 s at Ts = 0.1 s):
+how soon an event can say so, at one labelling of free space each time the parked robots
+change."""
 
 
 class Judge:
@@ -122,6 +128,12 @@ class Judge:
         self._layout: tuple[float, dict[str, dict[str, list[str]]]] | None = None
         """(footprint [m], :meth:`layout` for it), once worked out."""
         """Per robot, the figures only the in-process simulator measures (:meth:`simulated`)."""
+        self.walled: dict[str, list[str]] = {}
+        """Per robot whose way home parked robots wall in now, those robots (:meth:`_walls`)."""
+        self.walled_episodes: list[dict[str, Any]] = []
+        """Each time a robot's way home was walled in: ``robot``, ``by`` (the parked robots),
+        ``from_step`` and ``to_step`` (the check it was found open again at; None while shut)."""
+        self._carved: tuple[tuple[Any, ...], Any] | None = None
         self.repairs: dict[str, int] = {}
         """Per robot, solutions whose ȳ was pulled back onto the coordination rows (the
         in-process simulator reads the controller's counter)."""
@@ -243,7 +255,50 @@ class Judge:
             # The executed reference for the next sample ("stay put" past its end).
             at = min(max(k - pa.step, 0), len(pa.committed) - 1)
             self.refs[a].append(pa.committed[at].copy())
+        if k % WALL_CHECK_STEPS == 0 and self.footprint is not None:
+            self._walls(k, last)
         self.steps += 1
+
+    def _walls(self, k: int, last: Mapping[str, Plan]) -> None:
+        """Whose way home the parked robots wall in at step k: each robot under way or returning
+        whose committed point and goal the discs of radius r_i + r_j about the parked robots'
+        committed points, past the walls and obstacles, leave in different pieces of free space
+        (the loader's model, ``ground/freespace.py``: the assumption (B) of docs/method.md §7
+        failing as the run goes).  Starts and ends an episode of :attr:`walled_episodes`."""
+        from ground.freespace import free_space_model
+
+        assert self.footprint is not None
+        model = free_space_model(self.scn.arena, self.scn.obstacles, self.footprint)
+        parked = tuple(r for r in self.ids if r in last and last[r].phase == PARKED and r not in self.off)
+        # Labelled again when a parked robot comes, goes or moves by a centimetre or so.
+        key = tuple((r, *np.round(last[r].committed[-1], 2).tolist()) for r in parked)
+        if self._carved is None or self._carved[0] != key:
+            discs = [(last[r].committed[-1], 2.0 * self.footprint) for r in parked]
+            self._carved = (key, model.carve(discs))
+        carved = self._carved[1]
+        now: dict[str, list[str]] = {}
+        for r in self.ids:
+            pl = last.get(r)
+            if pl is None or r in parked or r in self.off:
+                continue
+            here, goal = pl.committed[-1], self.goals[r]
+            if model.piece_in(carved.labels, here) is None or not model.joined(here, goal):
+                continue  # on a disc's rim (the grid's cells), or no way home even alone
+            walls = model.walls(carved, here, goal)
+            if walls:
+                now[r] = [parked[i] for i in walls]
+        for r, by in now.items():
+            if self.walled.get(r) != by:
+                self._end_wall(r, k)
+                self.walled_episodes.append({"robot": r, "by": by, "from_step": k, "to_step": None})
+        for r in set(self.walled) - set(now):
+            self._end_wall(r, k)
+        self.walled = now
+
+    def _end_wall(self, r: str, k: int) -> None:
+        for ep in self.walled_episodes:
+            if ep["robot"] == r and ep["to_step"] is None:
+                ep["to_step"] = k
 
     def layout(self) -> dict[str, dict[str, list[str]]] | None:
         """Whose way home the scenario's other goals wall in (:func:`~ground.scenario.forced_order`),
@@ -391,6 +446,8 @@ class Judge:
             "places_heard_late": sum(v["places_heard_late"] for v in robots.values()),
             # Whose way home the others' goals wall in (the scenario's goals): null before a plan.
             "forced_order": self.layout(),
+            # Whose way home parked robots walled in as the run went, and when (steps).
+            "walled_in": [dict(ep) for ep in self.walled_episodes],
             "robots": robots,
         }
         steps_ms = [v for r in self.ids for v in self.extras[r].get("step_ms", [])]
@@ -429,6 +486,7 @@ class Judge:
             "steps_held_link_down": st["held_link_down"],
             "arena_violations": st["arena"],
             "goal_blocked_by": self.blocked[r] or None,
+            "walled_in_by": self.walled.get(r),
             "kept_clear_as": {**st["as"], "largest_disc_m": st["largest"] or None},
             "disc_escapes": st["escapes"],
             "places_heard_late": st["late"],
@@ -489,7 +547,9 @@ def verdict(summary: Mapping[str, Any]) -> str | None:
         out = ", ".join(r for r, v in robots.items() if v.get("disc_escapes"))
         why.append(f"{summary['disc_escapes']} samples of a robot outside the disc that claimed it ({out})")
     missing = [
-        r + (f" (goal blocked by {v['goal_blocked_by']})" if v.get("goal_blocked_by") else "")
+        r
+        + (f" (goal blocked by {v['goal_blocked_by']})" if v.get("goal_blocked_by") else "")
+        + (f" (way home walled in by {', '.join(v['walled_in_by'])})" if v.get("walled_in_by") else "")
         for r, v in robots.items()
         if not v["reached_goal"]
     ]

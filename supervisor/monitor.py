@@ -195,10 +195,11 @@ class Monitor:
                 self.recorder.truth(self.k_truth, self.Ts, truth, measured)
             self.k_truth += 1
         for plans, skipped, braked in plan_steps:
-            blocked = dict(self.judge.blocked)
+            blocked, walled = dict(self.judge.blocked), dict(self.judge.walled)
             self.judge.plans(plans, skipped, braked)
             self.recorder.plans(self.k_plan, self.Ts, plans)
             self._blocked(self.k_plan, blocked)
+            self._walled(self.k_plan, walled)
             self.k_plan += 1
         if not self.layout_said and self.judge.footprint is not None:
             # Off the judging loop: the free-space search takes a good part of a second.
@@ -233,6 +234,19 @@ class Monitor:
             else:
                 self.recorder.event(f"{rid}: its goal is clear again")
                 log(ROLE, f"step {k}: {rid}: goal clear again")
+
+    def _walled(self, k: int, before: dict[str, list[str]]) -> None:
+        """An event and a log line for each robot whose way home the parked robots came to wall
+        in at step k (``walled_in``, :meth:`Judge._walls`), or no longer wall in."""
+        now = self.judge.walled
+        for rid, by in now.items():
+            if by != before.get(rid):
+                who = ", ".join(by)
+                self.recorder.event(f"walled_in: {rid}: its way home is walled in by {who}, parked", "WARN")
+                log(ROLE, f"step {k}: {rid}: way home walled in by {who}, parked")
+        for rid in set(before) - set(now):
+            self.recorder.event(f"{rid}: its way home is open again")
+            log(ROLE, f"step {k}: {rid}: way home open again")
 
     def _applied(self, t: Tick) -> None:
         """What the robot sides applied over step t.step − 1 (Tick.fallback, Tick.braked)."""

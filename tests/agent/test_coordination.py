@@ -8,10 +8,7 @@ import numpy as np
 import pytest
 
 from agent.coordination import (
-    PARKED,
     PARKED_RADIUS,
-    RETURNING,
-    UNDER_WAY,
     NeighbourInfo,
     obstacle_halfplanes,
     repair_point,
@@ -20,7 +17,7 @@ from agent.coordination import (
 )
 from agent.navigator import CORRIDOR_MARGIN, GridPlanner, Navigator
 from ground.scenario import Circle
-from ground.wire import MAX_AGE
+from ground.wire import MAX_AGE, PARKED, RETURNING, UNDER_WAY
 
 EPS = 0.0055
 

@@ -331,8 +331,9 @@ def test_a_goal_a_stopped_robot_covers_is_named_and_the_robot_parks_where_others
     of the disc by 1 cm, inside the walls, and as far from r3's goal as goals must be apart, so
     that r3 can still park at its own.  The constraint keeps every appended point out of the
     disc all the while; a goal clear of every disc is not blocked, and is steered to."""
-    from agent.coordination import PARKED, Hazard, NeighbourInfo
+    from agent.coordination import Hazard, NeighbourInfo
     from ground.scenario import GOAL_MARGIN
+    from ground.wire import PARKED
 
     fp = design.footprint
     goal = np.array([0.3, 0.0])

@@ -80,7 +80,8 @@ def test_a_replans_work_is_bounded_by_the_window_not_the_arena():
 def test_a_robot_on_a_long_way_steers_around_a_robot_in_its_window():
     """The window weighs the robots that go first: the carrot leaves the straight line to pass
     a robot standing on it, as over the whole grid, and then heads on along the static field."""
-    from agent.coordination import UNDER_WAY, NeighbourInfo
+    from agent.coordination import NeighbourInfo
+    from ground.wire import UNDER_WAY
 
     nav = Navigator(footprint=0.134, arena=BIG, rank=3)
     start, goal = np.array([-4.0, 3.0]), np.array([4.0, 3.0])

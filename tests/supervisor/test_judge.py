@@ -415,3 +415,46 @@ def test_the_verdict_and_the_faults_line_name_what_faults_did() -> None:
     note = fault_note(judge.summary(True, 1.0))
     assert note is not None and "links lost: r2 1×" in note
     assert "r2 (uncontrolled 1 steps; largest disc 0.300 m)" in note and "goals blocked: r1 by r2" in note
+
+
+def test_parked_robots_that_wall_in_a_way_home_are_named_while_they_do() -> None:
+    """The run-time half of assumption (B) (docs/method.md §7): a robot parked at the mouth of
+    a dead-end pocket walls in the way of the robot whose goal is deeper.  The judge names it,
+    within a check period, and ends the episode once the parked robot has stepped out; a robot
+    parked off the way walls in nothing."""
+    from fleet.scenes import EPUCK_FOOTPRINT, pocket
+    from ground.scenario import parse_scenario
+    from supervisor.judge import WALL_CHECK_STEPS, Judge, verdict
+
+    scn = parse_scenario(pocket(0.30, depth=2 * 0.2782 + 0.2, robots=2))
+    deep, mouth = (np.array(r.goal) for r in scn.robots)
+    outside = np.array([0.6, -0.7])
+    judge = Judge(scn)
+
+    def plan(robot: str, step: int, end, phase: int) -> Plan:
+        return Plan(
+            robot=robot, step=step, t0=0.1 * (step + 1), Ts=0.1, committed=np.tile(end, (20, 1)),
+            nominal=np.zeros((21, 2)), footprint=EPUCK_FOOTPRINT, priority=0, rank=int(robot[1:]) - 1,
+            phase=phase, target=np.zeros(2), goal=deep if robot == "r1" else mouth,
+            status="PROXQP_SOLVED", solve_time=1e-4, tube_ok=True,
+        )  # fmt: skip
+
+    def step(k: int, r2_at, r2_phase: int) -> None:
+        judge.plans({"r1": plan("r1", k, outside, 0), "r2": plan("r2", k, r2_at, r2_phase)})
+
+    for k in range(WALL_CHECK_STEPS + 1):  # r2 parked at the mouth, r1 outside
+        step(k, mouth, 2)
+    assert judge.walled == {"r1": ["r2"]}
+    for k in range(WALL_CHECK_STEPS + 1, 2 * WALL_CHECK_STEPS + 1):  # r2 steps out, returning
+        step(k, np.array([-0.6, -0.7]), 1)
+    assert judge.walled == {}
+    assert judge.walled_episodes == [
+        {"robot": "r1", "by": ["r2"], "from_step": 0, "to_step": 2 * WALL_CHECK_STEPS}
+    ]
+    for k in range(2 * WALL_CHECK_STEPS + 1, 3 * WALL_CHECK_STEPS + 1):  # parked out of the way
+        step(k, np.array([-0.6, -0.7]), 2)
+    assert judge.walled == {} and len(judge.summary(True, 1.0)["walled_in"]) == 1
+    for k in range(3 * WALL_CHECK_STEPS + 1, 4 * WALL_CHECK_STEPS + 1):  # back at the mouth
+        step(k, mouth, 2)
+    assert judge.summary(True, 1.0)["robots"]["r1"]["walled_in_by"] == ["r2"]
+    assert "r1 (way home walled in by r2)" in (verdict(judge.summary(True, 1.0)) or "")
