@@ -267,9 +267,9 @@ class GridPlanner:
         e, a_l = e[inside], a_l[inside]
         b_l = (bi[inside] - i0) * bw + (bj[inside] - j0)
         w = self.length[e] * 0.5 * (cost[a_l] + cost[b_l]) + self.cut[e]
-        # One source more, joined to the rim's cells at their cost to go and to the goal at 0
-        # (a hair above: a sparse graph's zero is no edge).
-        # The rim: the block's outer cells, where the grid goes on beyond them.
+        # The rim: the block's outer cells, where the grid goes on beyond them.  One source
+        # more, joined to the rim's cells at their cost to go and to the goal at 0 (a hair
+        # above: a sparse graph's zero is no edge).
         rim = ((ii == 0) & (i0 > 0)) | ((ii == i1 - i0 - 1) & (i1 < self.nx))
         rim |= ((jj == 0) & (j0 > 0)) | ((jj == bw - 1) & (j1 < self.ny))
         src_l = np.flatnonzero(rim & np.isfinite(to_go[cells]))

@@ -127,7 +127,7 @@ def table(rows: list[dict[str, Any]]) -> list[str]:
     """The printed table: one line per family and one for all."""
     fams = sorted({r["family"] for r in rows})
     out = [
-        f"{'family':<10} {'scenes':>6} {'refused':>7} {'complete':>9} {'robots home':>12} {'collisions':>10} "
+        f"{'family':<14} {'scenes':>6} {'refused':>7} {'complete':>9} {'robots home':>12} {'collisions':>10} "
         f"{'ttg p50':>8} {'ttg p90':>8} {'path p50':>8} {'path p90':>8} "
         f"{'t/floor p50':>11} {'t/floor p90':>11} {'well-formed':>11} {'ms/robot-step':>13}"
     ]
@@ -143,7 +143,7 @@ def table(rows: list[dict[str, Any]]) -> list[str]:
         rate = f"{100.0 * done / len(ran):.1f} %" if ran else "–"
         formed = sum(r["forced"] == 0 for r in ran)
         out.append(
-            f"{fam:<10} {len(sel):>6} {len(sel) - len(ran):>7} {rate:>9} {f'{home}/{total}':>12} "
+            f"{fam:<14} {len(sel):>6} {len(sel) - len(ran):>7} {rate:>9} {f'{home}/{total}':>12} "
             f"{sum(r['collisions'] for r in ran):>10} {_pct(ttg, 50):>8} {_pct(ttg, 90):>8} "
             f"{_pct(eff, 50):>8} {_pct(eff, 90):>8} {_pct(slow, 50):>11} {_pct(slow, 90):>11} "
             f"{f'{formed}/{len(ran)}':>11} {_cost(ran):>13}"
