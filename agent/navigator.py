@@ -234,7 +234,10 @@ class GridPlanner:
     def window(self, centre: Array, half: float) -> tuple[int, int, int, int] | None:
         """The cells [i0, i1) × [j0, j1) within ``half`` [m] of ``centre`` (2,) [m] along each axis,
         and one more all round (the rim, where a path leaves the window); None if that is the
-        whole grid."""
+        whole grid, or if the arena is no wider than the window (2·``half`` along each side):
+        planning it whole costs no more than a window would."""
+        if self.nx * self.hx <= 2 * half and self.ny * self.hy <= 2 * half:
+            return None
         i0 = max(0, int((centre[0] - half - self.x0) / self.hx) - 1)
         i1 = min(self.nx, int((centre[0] + half - self.x0) / self.hx) + 2)
         j0 = max(0, int((centre[1] - half - self.y0) / self.hy) - 1)
@@ -356,8 +359,8 @@ robots only, planned once per goal.  So a replan costs the same in any arena.  I
 every robot the rules act on, and the carrot: the yield range r_i + r_j + ``conflict_range``
 (0.62 m with the epuck preset) plus the lookahead (0.3 m) plus what the robot moves between
 replans (``replan_steps``·v_max·Ts, 0.13 m), under 1.1 m; the plan by place hears less still.
-2 m holds a 2 m lab arena whole from anywhere in it, where the plan is then the same as over the
-whole grid (docs/method.md §7)."""
+An arena no wider than the window (4 m along each side) is planned whole, as before windows:
+that costs no more than a window would (docs/method.md §7)."""
 
 CORRIDOR_MARGIN = 0.05
 """Extra half-width of the corridor of a robot that goes first, beyond r_i + r_j [m]."""

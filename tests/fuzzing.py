@@ -30,6 +30,7 @@ from ground.wire import (
     MAX_HORIZON,
     MAX_PAYLOAD,
     MAX_RELAYED,
+    MAX_ROBOTS,
     SCHEMA_VERSION,
     Applied,
     Command,
@@ -620,7 +621,7 @@ class Generator:
         if how == 0:
             d[f] = self.choice([None, [], [[other, good]], other, 0, 1.5, b"\x80", good])
         elif how == 1:  # more robots than a map may name
-            d[f] = {f"q{i}": good for i in range(65 + int(self.rng.integers(0, 8)))}
+            d[f] = {f"q{i}": good for i in range(MAX_ROBOTS + 1 + int(self.rng.integers(0, 8)))}
         else:
             d[f] = {**d[f], **dict([self.choice(bad_entries)])}
         return d, True

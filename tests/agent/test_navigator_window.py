@@ -93,7 +93,12 @@ def test_a_robot_on_a_long_way_steers_around_a_robot_in_its_window():
     assert abs(alone[1] - 3.0) < 0.03 and alone[0] > start[0] + 0.25, alone  # straight on
 
 
-def test_in_an_arena_the_window_holds_whole_the_plan_is_the_whole_grids():
-    g = grid_planner((-1.0, 1.0, -1.0, 1.0), 0.134, ())
-    for centre in ([-0.95, -0.95], [0.0, 0.0], [0.9, -0.2]):
-        assert g.window(np.array(centre), WINDOW) is None
+def test_an_arena_no_wider_than_the_window_is_planned_whole():
+    """From anywhere in a 2 m arena, and in the 3.6 m one of the 32-robot swap, and a 3 m × 0.6 m
+    corridor: no window, the plan is the whole grid's, as before windows."""
+    for arena in ((-1.0, 1.0, -1.0, 1.0), (-1.8, 1.8, -1.8, 1.8), (-1.5, 1.5, -0.3, 0.3)):
+        g = grid_planner(arena, 0.134, ())
+        for centre in ([-0.95 * arena[1], 0.0], [0.0, 0.0], [0.9 * arena[1], 0.9 * arena[3]]):
+            assert g.window(np.array(centre), WINDOW) is None, (arena, centre)
+    wide = grid_planner((-2.5, 2.5, -0.3, 0.3), 0.134, ())  # 5 m long: windowed at either end
+    assert wide.window(np.array([-2.2, 0.0]), WINDOW) is not None
