@@ -79,12 +79,14 @@ def test_a_robot_out_of_reach_gets_no_split_row_even_after_the_lag(prio):
 
 def test_the_groups_subscribed_hold_the_reach_and_one_ring_more():
     """Whichever cell of its group a robot is in (negative indices too), the 3 x 3 groups about
-    its group hold every cell at most two apart from its own; ``auto`` is place on the realtime
+    its group hold every cell at most two apart from its own: the navigator's view
+    (``VIEW_CELLS``) is what the subscription delivers, no more; ``auto`` is place on the realtime
     clock only."""
     rng = np.random.default_rng(5)
     for cell in [tuple(int(v) for v in rng.integers(-50, 50, 2)) for _ in range(400)] + [(0, 0), (-1, -1)]:
         groups = block(group_of(cell), 1)
-        assert {group_of(c) for c in block(cell, 2)} <= groups, cell
+        assert {group_of(c) for c in block(cell, VIEW_CELLS)} <= groups, cell
+        assert not {group_of(c) for c in block(cell, VIEW_CELLS + 1)} <= groups, cell
     assert (exchange_for("realtime"), exchange_for("lockstep")) == ("place", "mesh")
     assert exchange_for("realtime", "relay") == "relay"
 
