@@ -33,7 +33,7 @@ from ground.bus import remember_steps
 from ground.geometry import Array, controlled_point, wrap_angle
 from ground.model import travel_floor
 from ground.scenario import GOAL_TOLERANCE, Scenario, forced_order, settled_since
-from ground.wire import BLIND, LINK_DOWN, PARKED, Plan
+from ground.wire import BLIND, LINK_DOWN, PARKED, RETURNING, Plan
 
 SOLVED = "PROXQP_SOLVED"
 """The one solver status whose plan is a solution; every other status is a fallback."""
@@ -52,6 +52,11 @@ exactly, so its disc is not judged."""
 Pose3 = Sequence[float] | Array
 """A pose (x [m], y [m], θ [rad]), world frame, (3,)."""
 
+
+MAX_EPISODES = 1000
+"""Displacements kept one by one in ``summary.json`` (``displaced``) [episodes]: the first so
+many; each robot's count (``displaced``) and each pair's turns (``traded_places``) are exact.
+It bounds the summary's size over a run of any length."""
 
 WALL_CHECK_STEPS = 10
 """How often the judge asks whose way home the parked robots wall in [steps] (1 s at Ts = 0.1 s):
@@ -105,7 +110,7 @@ class Judge:
         self.robot: dict[str, dict[str, Any]] = {
             r: {"solves": 0, "failures": 0, "tube_exits": 0, "status": {}, "solve_ms": [], "candidate": 0,
                 "braked": 0, "breaks": 0, "blind": 0, "link_losses": 0, "late": 0, "arena": 0,
-                "uncontrolled": 0, "held_link_down": 0, "escapes": 0, "largest": 0.0,
+                "uncontrolled": 0, "held_link_down": 0, "escapes": 0, "largest": 0.0, "displaced": 0,
                 "as": dict.fromkeys(KEPT_CLEAR_AS.values(), 0)}
             for r in self.ids
         }  # fmt: skip
@@ -134,6 +139,19 @@ class Judge:
         """Each time a robot's way home was walled in: ``robot``, ``by`` (the parked robots),
         ``from_step`` and ``to_step`` (the check it was found open again at; None while shut)."""
         self._carved: tuple[tuple[Any, ...], Any] | None = None
+        self.phases: dict[str, int] = {}
+        """Each robot's phase in its latest executed plan (:data:`~ground.wire.UNDER_WAY` …)."""
+        self.displaced: list[dict[str, Any]] = []
+        """Each time a parked robot left its goal (its plan's phase went from parked to
+        returning: it stepped aside): ``robot``, ``for`` (the nearest robot that moves, whose way
+        it cleared, or None), ``from_step`` and ``to_step`` (the step it parked again; None while
+        out).  The first :data:`MAX_EPISODES`."""
+        self.displacements = 0
+        """Displacements of the run, all of them [episodes]."""
+        self.turns: dict[tuple[str, str], tuple[str, int]] = {}
+        """Per pair of robots (sorted ids), the one displaced for the other last, and how many
+        times the two have displaced each other in turn (each displacement for the other of the
+        pair counts after the first) (:meth:`_displacements`)."""
         self.repairs: dict[str, int] = {}
         """Per robot, solutions whose ȳ was pulled back onto the coordination rows (the
         in-process simulator reads the controller's counter)."""
@@ -216,6 +234,7 @@ class Judge:
             else:
                 self.off.discard(r)
         self.off.update(braked)
+        self._displacements(k, executed, last)
         self._discs(k, plans.values())
         for pl in plans.values():
             self.footprint = pl.footprint if self.footprint is None else max(self.footprint, pl.footprint)
@@ -258,6 +277,40 @@ class Judge:
         if k % WALL_CHECK_STEPS == 0 and self.footprint is not None:
             self._walls(k, last)
         self.steps += 1
+
+    def _displacements(self, k: int, executed: Mapping[str, Plan], last: Mapping[str, Plan]) -> None:
+        """The robots whose executed plan of step k left their goal (parked → returning): a
+        displacement each, for the nearest robot that moves (under way or returning, on its
+        plan), whose way it cleared.  Where two robots displace each other in turn, the count of
+        :attr:`turns` grows: at 2 the same robot has stepped aside for the same other again, a
+        cycle the progress argument does not rule out (docs/method.md §7, "What is not ruled
+        out")."""
+        for r, pl in executed.items():
+            before, self.phases[r] = self.phases.get(r), pl.phase
+            if before == RETURNING and pl.phase == PARKED:
+                for ep in self.displaced:
+                    if ep["robot"] == r and ep["to_step"] is None:
+                        ep["to_step"] = k
+            if before != PARKED or pl.phase != RETURNING:
+                continue
+            here = pl.committed[-1]
+            movers = [
+                j for j in self.ids if j != r and j in last and j not in self.off and last[j].phase != PARKED
+            ]
+            by = min(movers, key=lambda j: float(np.linalg.norm(last[j].committed[-1] - here)), default=None)
+            self.robot[r]["displaced"] += 1
+            self.displacements += 1
+            if len(self.displaced) < MAX_EPISODES:
+                self.displaced.append({"robot": r, "for": by, "from_step": k, "to_step": None})
+            if by is not None:
+                pair = (min(r, by), max(r, by))
+                last_one, n = self.turns.get(pair, (r, 0))
+                self.turns[pair] = (r, n + (last_one != r))
+
+    def traded(self) -> list[dict[str, Any]]:
+        """The pairs of robots that have displaced each other in turn twice or more: ``robots``
+        and ``turns`` (:attr:`turns`)."""
+        return [{"robots": list(p), "turns": n} for p, (_, n) in sorted(self.turns.items()) if n >= 2]
 
     def _walls(self, k: int, last: Mapping[str, Plan]) -> None:
         """Whose way home the parked robots wall in at step k: each robot under way or returning
@@ -420,7 +473,8 @@ class Judge:
 
     def summary(self, completed: bool, wall_time: float) -> dict[str, Any]:
         """``summary.json`` of the run (see the README's "summary.json")."""
-        robots = {r: self._robot_summary(r) for r in self.ids}
+        traded = self.traded()
+        robots = {r: self._robot_summary(r, traded) for r in self.ids}
         fin = lambda v: v if math.isfinite(v) else None  # noqa: E731
         sim = self.steps * self.Ts
         out: dict[str, Any] = {
@@ -448,6 +502,12 @@ class Judge:
             "forced_order": self.layout(),
             # Whose way home parked robots walled in as the run went, and when (steps).
             "walled_in": [dict(ep) for ep in self.walled_episodes],
+            # Parked robots that stepped aside, for whom, and until when (steps); the first
+            # MAX_EPISODES of them, and all of them counted.
+            "displacements": self.displacements,
+            "displaced": [dict(ep) for ep in self.displaced],
+            # Pairs that displaced each other in turn twice or more (a cycle, docs/method.md §7).
+            "traded_places": traded,
             "robots": robots,
         }
         steps_ms = [v for r in self.ids for v in self.extras[r].get("step_ms", [])]
@@ -455,7 +515,7 @@ class Judge:
             out["step_time_ms"] = percentiles(steps_ms)
         return out
 
-    def _robot_summary(self, r: str) -> dict[str, Any]:
+    def _robot_summary(self, r: str, traded: Sequence[Mapping[str, Any]] = ()) -> dict[str, Any]:
         err = np.array(self.errors[r]) if self.errors[r] else np.array([math.inf])
         since = settled_since(self.errors[r], self.Ts)
         pts = np.array([controlled_point(q, self.lookahead) for q in self.poses[r]]).reshape(-1, 2)
@@ -487,6 +547,8 @@ class Judge:
             "arena_violations": st["arena"],
             "goal_blocked_by": self.blocked[r] or None,
             "walled_in_by": self.walled.get(r),
+            "displaced": st["displaced"],
+            "traded_places_with": [j for p in traded if r in p["robots"] for j in p["robots"] if j != r],
             "kept_clear_as": {**st["as"], "largest_disc_m": st["largest"] or None},
             "disc_escapes": st["escapes"],
             "places_heard_late": st["late"],
@@ -550,6 +612,11 @@ def verdict(summary: Mapping[str, Any]) -> str | None:
         r
         + (f" (goal blocked by {v['goal_blocked_by']})" if v.get("goal_blocked_by") else "")
         + (f" (way home walled in by {', '.join(v['walled_in_by'])})" if v.get("walled_in_by") else "")
+        + (
+            f" (traded places with {', '.join(v['traded_places_with'])})"
+            if v.get("traded_places_with")
+            else ""
+        )
         for r, v in robots.items()
         if not v["reached_goal"]
     ]

@@ -196,10 +196,12 @@ class Monitor:
             self.k_truth += 1
         for plans, skipped, braked in plan_steps:
             blocked, walled = dict(self.judge.blocked), dict(self.judge.walled)
+            displaced, turns = self.judge.displacements, dict(self.judge.turns)
             self.judge.plans(plans, skipped, braked)
             self.recorder.plans(self.k_plan, self.Ts, plans)
             self._blocked(self.k_plan, blocked)
             self._walled(self.k_plan, walled)
+            self._displaced(self.k_plan, displaced, turns)
             self.k_plan += 1
         if not self.layout_said and self.judge.footprint is not None:
             # Off the judging loop: the free-space search takes a good part of a second.
@@ -247,6 +249,22 @@ class Monitor:
         for rid in set(before) - set(now):
             self.recorder.event(f"{rid}: its way home is open again")
             log(ROLE, f"step {k}: {rid}: way home open again")
+
+    def _displaced(self, k: int, before: int, turns: dict[tuple[str, str], tuple[str, int]]) -> None:
+        """An event for each parked robot that left its goal at step k (``displaced``,
+        :meth:`Judge._displacements`), and an event and a log line for each pair of robots that
+        has now displaced each other in turn twice or more (``traded_places``)."""
+        if self.judge.displacements > before:
+            for ep in self.judge.displaced:
+                if ep["from_step"] == k:
+                    why = f" for {ep['for']}" if ep["for"] else ""
+                    self.recorder.event(f"displaced: {ep['robot']}: left its goal{why}")
+        for pair, (_, n) in self.judge.turns.items():
+            if n >= 2 and n != turns.get(pair, ("", 0))[1]:
+                a, b = pair
+                said = f"{a} and {b} have displaced each other in turn {n} times"
+                self.recorder.event(f"traded_places: {said}", "WARN")
+                log(ROLE, f"step {k}: {said}")
 
     def _applied(self, t: Tick) -> None:
         """What the robot sides applied over step t.step − 1 (Tick.fallback, Tick.braked)."""

@@ -458,3 +458,45 @@ def test_parked_robots_that_wall_in_a_way_home_are_named_while_they_do() -> None
         step(k, mouth, 2)
     assert judge.summary(True, 1.0)["robots"]["r1"]["walled_in_by"] == ["r2"]
     assert "r1 (way home walled in by r2)" in (verdict(judge.summary(True, 1.0)) or "")
+
+
+def test_parked_robots_that_step_aside_are_named_and_a_pair_that_does_so_in_turn_is_flagged() -> None:
+    """The run-time side of the queue of docs/method.md §7: each time a parked robot leaves its
+    goal (its plan's phase goes parked → returning) the judge records a displacement, for the
+    nearest robot that moves, and ends it when the robot parks again.  Two robots that displace
+    each other in turn, the same one for the same other a second time, are the cycle the
+    progress argument does not rule out: the summary and the verdict name them."""
+    from pathlib import Path
+
+    from ground.scenario import load_scenario
+    from ground.wire import PARKED, RETURNING, UNDER_WAY
+    from supervisor.judge import Judge, verdict
+
+    scn = load_scenario(Path(__file__).resolve().parents[2] / "scenarios" / "paper_three_robots.toml")
+    judge = Judge(scn)
+    at = {"r1": (0.0, 0.0), "r2": (0.3, 0.0), "r3": (0.8, 0.0)}
+
+    def step(k: int, phases: dict[str, int]) -> None:
+        plans = {}
+        for i, r in enumerate(("r1", "r2", "r3")):
+            pl = _plan("r1", k)
+            end = np.tile(at[r], (20, 1))
+            plans[r] = Plan(**{**pl.__dict__, "robot": r, "rank": i, "phase": phases[r], "committed": end})
+        judge.plans(plans)
+
+    P, R, U = PARKED, RETURNING, UNDER_WAY
+    step(0, {"r1": P, "r2": U, "r3": U})
+    step(1, {"r1": R, "r2": U, "r3": U})  # r1 steps aside, for r2 (nearer than r3)
+    assert judge.displaced == [{"robot": "r1", "for": "r2", "from_step": 1, "to_step": None}]
+    step(2, {"r1": R, "r2": P, "r3": P})
+    step(3, {"r1": R, "r2": R, "r3": P})  # r2 for r1, the only robot that moves
+    step(4, {"r1": P, "r2": R, "r3": P})  # r1 home again
+    assert [ep["to_step"] for ep in judge.displaced] == [4, None]
+    assert judge.traded() == []  # each has stepped aside for the other once: not yet a cycle
+    step(5, {"r1": R, "r2": R, "r3": P})  # r1 for r2 again: the pair is back where it was
+    s = judge.summary(True, 1.0)
+    assert s["displacements"] == 3 and len(s["displaced"]) == 3
+    assert s["traded_places"] == [{"robots": ["r1", "r2"], "turns": 2}]
+    assert [s["robots"][r]["displaced"] for r in ("r1", "r2", "r3")] == [2, 1, 0]
+    assert s["robots"]["r1"]["traded_places_with"] == ["r2"] and s["robots"]["r3"]["traded_places_with"] == []
+    assert "r1 (traded places with r2)" in (verdict(s) or "")
