@@ -231,6 +231,47 @@ class GridPlanner:
         dist, pred = dijkstra(G, directed=True, indices=self.cell(goal), return_predecessors=True)
         return np.asarray(pred), np.asarray(dist)
 
+    def shortest(self, a: Array, b: Array) -> float:
+        """Length [m] of the shortest way from ``a`` to ``b`` (2,) [m] of a robot alone, past the
+        walls and obstacles only: the grid's path (:attr:`static` costs), pulled taut through
+        the loader's free space (each point joined to the farthest later one in sight,
+        :meth:`in_sight`).  Pulled taut, the path loses the grid's 8-way zigzag (up to 8 % on a
+        diagonal): in the open it is the straight line.  Its corners are the grid's waypoints,
+        which may pass an obstacle up to a cell wider than the taut string: 2.4 % longer round
+        the end of a wall (``tests/agent/test_navigator_window.py``).  inf if the taut path
+        has to take an edge the grid does not join, out of sight (there is no way).  What no design can beat, to that margin: the floor of path efficiency
+        (``fleet bench --liveness-floor``)."""
+        a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+        if self.in_sight(a, b):
+            return float(np.linalg.norm(b - a))
+        pred = self.field(b, self.static)
+        c, goal = self.cell(a), self.cell(b)
+        pts, joined = [a], [True]  # joined[k]: the grid joins pts[k − 1] to pts[k]
+        for _ in range(self.nx * self.ny):
+            if c == goal or pred[c] < 0:
+                break
+            nxt = int(pred[c])
+            joined.append(self.cut[self.edge_of[c, _DIRECTIONS.index(self._direction(c, nxt))]] == 0.0)
+            c = nxt
+            pts.append(self.points[c])
+        pts.append(b)
+        joined.append(True)
+        length, i = 0.0, 0
+        while i < len(pts) - 1:
+            j = len(pts) - 1
+            while j > i + 1 and not self.in_sight(pts[i], pts[j]):
+                j -= 1
+            if j == i + 1 and not joined[j] and not self.in_sight(pts[i], pts[j]):
+                return math.inf  # the cheapest path leaves free space: there is no way
+            length += float(np.linalg.norm(pts[j] - pts[i]))
+            i = j
+        return length
+
+    def _direction(self, a: int, b: int) -> tuple[int, int]:
+        """The step (di, dj) from cell ``a`` to its neighbour ``b``."""
+        (ia, ja), (ib, jb) = divmod(a, self.ny), divmod(b, self.ny)
+        return ib - ia, jb - ja
+
     def window(self, centre: Array, half: float) -> tuple[int, int, int, int] | None:
         """The cells [i0, i1) × [j0, j1) within ``half`` [m] of ``centre`` (2,) [m] along each axis,
         and one more all round (the rim, where a path leaves the window); None if that is the

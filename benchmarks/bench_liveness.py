@@ -13,12 +13,18 @@ prints a table per family and overall:
 * path efficiency: each robot's path length over the straight line from its start to its
   goal (robots that do not move are left out), p50 / p90, measured to the moment it arrived
   (``path_to_arrival_m``: the hold at the goal left out);
+* alone: the floor of path efficiency, p50 / p90 over the same robots: the shortest way of each
+  robot alone past the walls and obstacles (:meth:`agent.navigator.GridPlanner.shortest`) over
+  the straight line.  What path efficiency exceeds it by, the other robots cost;
 * time over floor: each robot's time to goal over the least time the model's bounds allow
   in free space (``travel_floor_s``, :func:`ground.model.travel_floor`), p50 / p90;
 * well-formed: scenes whose layout forces no order of arrival (no robot's way home walled in
   by the others' goals: ``ground.scenario.forced_order``, docs/method.md §7).
 * ms/robot-step: the wall time of the scenes' runs (``fleet simulate``, one process each) over
   their steps times their robots: what a robot costs the simulator a step, at each size.
+
+``--liveness-floor`` runs nothing: per family, that floor over every robot that has to move
+(each scene's robots whose goal is over 5 cm from their start), in a second or so a scene.
 
 ``--liveness-realtime`` runs each scene instead as a process fleet on the realtime clock with
 its defaults (``fleet run --clock realtime``: plans by place, planned a step ahead), one at a
@@ -48,7 +54,47 @@ from typing import Any
 
 import numpy as np
 
-SCHEMA = 3
+SCHEMA = 4
+
+MOVES = 0.05
+"""A robot whose goal is this far from its start or nearer [m] is left out of path efficiency."""
+
+
+def _alone(scn: Any, footprint: float) -> dict[str, float]:
+    """Per robot of scenario ``scn`` whose goal is over :data:`MOVES` from its start (its
+    controlled point's), the shortest way alone over the straight line (the floor of path
+    efficiency, :meth:`agent.navigator.GridPlanner.shortest`)."""
+    from agent.navigator import grid_planner
+    from ground.geometry import controlled_point
+
+    grid = grid_planner(scn.arena, footprint, scn.obstacles)
+    out = {}
+    for r in scn.robots:
+        a, b = controlled_point(r.start, scn.controller.lookahead), np.asarray(r.goal, dtype=float)
+        line = float(np.linalg.norm(b - a))
+        if line > MOVES:
+            out[r.id] = grid.shortest(a, b) / line
+    return out
+
+
+def floor(seed: int, families: tuple[str, ...] | None = None) -> dict[str, Any]:
+    """The floor of path efficiency of hard scene ``seed`` of ``families`` (:func:`_alone`), no run."""
+    from agent.tube import validated_design
+    from fleet.scenes import HARD_FAMILIES, hard_scene
+    from ground.scenario import ConfigError, parse_scenario
+
+    fams = families or HARD_FAMILIES
+    data = hard_scene(seed, fams)
+    family = fams[seed % len(fams)]
+    try:
+        scn = parse_scenario(data)
+        design = validated_design(scn)
+    except ConfigError as e:
+        return {"seed": seed, "name": data["name"], "family": family, "refused": str(e)}
+    return {
+        "seed": seed, "name": data["name"], "family": family, "robots": len(scn.robots),
+        "alone": list(_alone(scn, design.footprint).values()),
+    }  # fmt: skip
 
 
 def one(
@@ -91,9 +137,10 @@ def one(
         s = json.loads((where / "run" / "summary.json").read_text())
         extra = {"deadline_misses": s["deadline_misses"], "places_heard_late": s["places_heard_late"]}
     robots = s["robots"]
-    moved = [r for r in robots.values() if r["straight_line_m"] > 0.05 and r["reached_goal"]]
-    eff = [r["path_to_arrival_m"] / r["straight_line_m"] for r in moved]
-    slow = [r["time_to_goal_s"] / r["travel_floor_s"] for r in moved if r["travel_floor_s"] > 0]
+    moved = {k: r for k, r in robots.items() if r["straight_line_m"] > MOVES and r["reached_goal"]}
+    eff = [r["path_to_arrival_m"] / r["straight_line_m"] for r in moved.values()]
+    slow = [r["time_to_goal_s"] / r["travel_floor_s"] for r in moved.values() if r["travel_floor_s"] > 0]
+    alone = _alone(scn, design.footprint)
     return {
         "seed": seed,
         "name": data["name"],
@@ -104,6 +151,7 @@ def one(
         "steps": s["steps"],
         "time_to_goal_s": [r["time_to_goal_s"] for r in robots.values() if r["time_to_goal_s"] is not None],
         "path_efficiency": eff,
+        "alone": [alone[k] for k in moved if k in alone],
         "time_over_floor": slow,
         "forced": len(s["forced_order"] or {}),
         "wall_s": time.perf_counter() - t0,
@@ -129,6 +177,7 @@ def table(rows: list[dict[str, Any]]) -> list[str]:
     out = [
         f"{'family':<14} {'scenes':>6} {'refused':>7} {'complete':>9} {'robots home':>12} {'collisions':>10} "
         f"{'ttg p50':>8} {'ttg p90':>8} {'path p50':>8} {'path p90':>8} "
+        f"{'alone p50':>9} {'alone p90':>9} "
         f"{'t/floor p50':>11} {'t/floor p90':>11} {'well-formed':>11} {'ms/robot-step':>13}"
     ]
     for fam in [*fams, "all"]:
@@ -140,13 +189,34 @@ def table(rows: list[dict[str, Any]]) -> list[str]:
         ttg = [t for r in ran for t in r["time_to_goal_s"]]
         eff = [e for r in ran for e in r["path_efficiency"]]
         slow = [e for r in ran for e in r["time_over_floor"]]
+        alone = [e for r in ran for e in r["alone"]]
         rate = f"{100.0 * done / len(ran):.1f} %" if ran else "–"
         formed = sum(r["forced"] == 0 for r in ran)
         out.append(
             f"{fam:<14} {len(sel):>6} {len(sel) - len(ran):>7} {rate:>9} {f'{home}/{total}':>12} "
             f"{sum(r['collisions'] for r in ran):>10} {_pct(ttg, 50):>8} {_pct(ttg, 90):>8} "
-            f"{_pct(eff, 50):>8} {_pct(eff, 90):>8} {_pct(slow, 50):>11} {_pct(slow, 90):>11} "
+            f"{_pct(eff, 50):>8} {_pct(eff, 90):>8} {_pct(alone, 50):>9} {_pct(alone, 90):>9} "
+            f"{_pct(slow, 50):>11} {_pct(slow, 90):>11} "
             f"{f'{formed}/{len(ran)}':>11} {_cost(ran):>13}"
+        )
+    return out
+
+
+def floor_table(rows: list[dict[str, Any]]) -> list[str]:
+    """The printed table of ``--liveness-floor``: one line per family and one for all."""
+    fams = sorted({r["family"] for r in rows})
+    out = [
+        f"{'family':<14} {'scenes':>6} {'refused':>7} {'robots':>6} {'alone p50':>9} {'alone p90':>9} "
+        f"{'max':>6}"
+    ]
+    for fam in [*fams, "all"]:
+        sel = [r for r in rows if fam in ("all", r["family"])]
+        ran = [r for r in sel if "refused" not in r]
+        alone = [e for r in ran for e in r["alone"]]
+        top = f"{max(alone):.2f}" if alone else "–"
+        out.append(
+            f"{fam:<14} {len(sel):>6} {len(sel) - len(ran):>7} {len(alone):>6} "
+            f"{_pct(alone, 50):>9} {_pct(alone, 90):>9} {top:>6}"
         )
     return out
 
@@ -177,14 +247,24 @@ def run(args: argparse.Namespace) -> int:
     if realtime is not None:
         jobs = 1  # a realtime fleet needs the machine to itself
         print("each scene a process fleet on the realtime clock (fleet run --clock realtime), one at a time")
-    work = functools.partial(one, ahead=ahead, families=fams, realtime=realtime)
+    floor_only = bool(getattr(args, "liveness_floor", False))
+    if floor_only:
+        print("the floor of path efficiency only: each robot's shortest way alone, nothing run")
+    work: Any = (
+        functools.partial(floor, families=fams)
+        if floor_only
+        else functools.partial(one, ahead=ahead, families=fams, realtime=realtime)
+    )
     with ctx.Pool(jobs) as pool:
         for r in pool.imap_unordered(work, range(seed0, seed0 + n)):
             rows.append(r)
-            what = r.get("refused") or f"{r['home']}/{r['robots']} home, {r['collisions']} collisions"
+            what = r.get("refused") or (
+                f"{len(r['alone'])} robots to move" if floor_only
+                else f"{r['home']}/{r['robots']} home, {r['collisions']} collisions"
+            )  # fmt: skip
             print(f"  [{len(rows):>3}/{n}] {r['name']}: {what}", flush=True)
     rows.sort(key=lambda r: r["seed"])
-    lines = table(rows)
+    lines = floor_table(rows) if floor_only else table(rows)
     if realtime is not None:
         ran = [r for r in rows if "refused" not in r]
         lines.append(
@@ -214,6 +294,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--delay-compensation", action=argparse.BooleanOptionalAction, default=True,
         help="plans made a step ahead, as fleet simulate makes them by default",
+    )  # fmt: skip
+    ap.add_argument(
+        "--liveness-floor", action="store_true",
+        help="run nothing: the floor of path efficiency (each robot's shortest way alone) per family",
     )  # fmt: skip
     args = ap.parse_args(argv)
     from fleet.bench import families

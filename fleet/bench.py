@@ -110,6 +110,11 @@ def add_arguments(ap: argparse.ArgumentParser) -> None:
         "(fleet run --clock realtime: plans by place), one at a time, instead of in fleet simulate",
     )  # fmt: skip
     ap.add_argument(
+        "--liveness-floor", action="store_true",
+        help="--liveness: run nothing; print per family the floor of path efficiency, each robot's "
+        "shortest way alone past the walls and obstacles over its straight line",
+    )  # fmt: skip
+    ap.add_argument(
         "--families", default="hard", metavar="LIST",
         help="--liveness: the scene families, in turn by seed: 'hard' (the seven of "
         "fleet.scenes.HARD_FAMILIES, the default), 'layout' (fleet.scenes.LAYOUT_FAMILIES: pockets, "

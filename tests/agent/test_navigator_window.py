@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from agent.navigator import EXIT, WINDOW, GridPlanner, Navigator, grid_planner
 from ground.scenario import Circle
@@ -102,3 +103,33 @@ def test_an_arena_no_wider_than_the_window_is_planned_whole():
             assert g.window(np.array(centre), WINDOW) is None, (arena, centre)
     wide = grid_planner((-2.5, 2.5, -0.3, 0.3), 0.134, ())  # 5 m long: windowed at either end
     assert wide.window(np.array([-2.2, 0.0]), WINDOW) is not None
+
+
+def test_the_shortest_way_alone_is_the_straight_line_in_the_open_and_the_taut_string_round_a_wall() -> None:
+    """:meth:`GridPlanner.shortest`, the floor of path efficiency: in free space exactly the
+    straight line (the grid's 8-way zigzag would be up to 8 % longer); past a thin wall, the
+    taut string round the wall's end inflated by the footprint, worked out by hand (two
+    tangents, two arcs about the end's corners and the end itself), never shorter and at most
+    3 % longer; and no way
+    (inf) to a point the walls shut off."""
+    from ground.scenario import Polygon
+
+    r, w = 0.08, 0.02
+    open_grid = grid_planner((-1.0, 1.0, -1.0, 1.0), r, ())
+    line = open_grid.shortest(np.array([-0.7, -0.7]), np.array([0.7, 0.6]))
+    assert line == pytest.approx(math.hypot(1.4, 1.3))
+    wall = Polygon(((-w / 2, -0.5), (w / 2, -0.5), (w / 2, 1.0), (-w / 2, 1.0)))
+    grid = grid_planner((-1.0, 1.0, -1.0, 1.0), r, (wall,))
+    a, b = np.array([-0.5, 0.0]), np.array([0.5, 0.0])
+    corner = np.array([-w / 2, -0.5])  # the left corner of the wall's end; the right by symmetry
+    d = float(np.linalg.norm(a - corner))
+    towards_a = math.atan2(a[1] - corner[1], a[0] - corner[0])
+    arc = 1.5 * math.pi - (towards_a + math.acos(r / d))  # from the tangent point down to the bottom
+    by_hand = 2.0 * (math.sqrt(d * d - r * r) + r * arc) + w
+    got = grid.shortest(a, b)
+    # Never shorter (the 5 mm cells of the loader's free space aside), at most 3 % longer: its
+    # corners are the grid's waypoints, up to a cell wider of an obstacle than the string.
+    assert by_hand - 0.01 <= got <= 1.03 * by_hand, (got, by_hand)
+    assert got > float(np.linalg.norm(b - a)) + 0.5
+    sealed = Polygon(((-w / 2, -1.0), (w / 2, -1.0), (w / 2, 1.0), (-w / 2, 1.0)))
+    assert math.isinf(grid_planner((-1.0, 1.0, -1.0, 1.0), r, (sealed,)).shortest(a, b))

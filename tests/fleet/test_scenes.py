@@ -119,9 +119,10 @@ def test_liveness_bench_runs_the_layout_families_and_refuses_an_unknown_one(tmp_
     )  # fmt: skip
     assert out.returncode == 0, out.stderr[-2000:]
     assert "t/floor p50" in out.stdout and "ms/robot-step" in out.stdout, out.stdout
-    assert "\nfile " in out.stdout, out.stdout
+    assert "\nfile " in out.stdout and "alone p50" in out.stdout, out.stdout
     row = json.loads((tmp_path / "liveness.json").read_text())["scenes"][0]
     assert row["family"] == "file" and row["name"].startswith("hard_3_file_")
+    assert len(row["alone"]) == len(row["path_efficiency"]) and min(row["alone"]) >= 1.0 - 1e-9, row
     bad = subprocess.run(
         [sys.executable, "-m", "fleet.cli", "bench", "--liveness", "1", "--families", "hallway"],
         capture_output=True, text=True, timeout=120, cwd=ROOT, env=env,
@@ -132,3 +133,24 @@ def test_liveness_bench_runs_the_layout_families_and_refuses_an_unknown_one(tmp_
         "corridor, gap, obstacles, pocket, file, rooms, rings, cluttered, circle100, permutation100, "
         "cluttered100)"
     ]
+
+
+def test_the_floor_of_path_efficiency_is_the_straight_line_in_the_open_and_more_round_a_pocket(tmp_path):
+    """``fleet bench --liveness-floor`` runs nothing and prints, per family, each robot's shortest
+    way alone over its straight line: exactly 1 for swaps in an empty arena, more for robots
+    whose goal is at the bottom of a pocket whose mouth faces away (the way goes round an arm),
+    and never under 1."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "RERUN_ANALYTICS": "0"}
+    out = subprocess.run(
+        [sys.executable, "-m", "fleet.cli", "bench", "--liveness", "4", "--liveness-floor", "--families",
+         "swap,pocket", "--jobs", "1", "--out", str(tmp_path)],
+        capture_output=True, text=True, timeout=600, cwd=ROOT, env=env,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "alone p50" in out.stdout and "t/floor" not in out.stdout, out.stdout
+    rows = json.loads((tmp_path / "liveness.json").read_text())["scenes"]
+    swap = [a for r in rows if r["family"] == "swap" for a in r["alone"]]
+    pocket_ = [a for r in rows if r["family"] == "pocket" for a in r["alone"]]
+    assert swap and max(abs(a - 1.0) for a in swap) < 1e-9, swap
+    assert pocket_ and min(pocket_) >= 1.0 - 1e-9 and max(pocket_) > 1.2, pocket_
+    assert all("steps" not in r for r in rows)  # nothing was run
