@@ -239,8 +239,9 @@ class GridPlanner:
         diagonal): in the open it is the straight line.  Its corners are the grid's waypoints,
         which may pass an obstacle up to a cell wider than the taut string: 2.4 % longer round
         the end of a wall (``tests/agent/test_navigator_window.py``).  inf if the taut path
-        has to take an edge the grid does not join, out of sight (there is no way).  What no design can beat, to that margin: the floor of path efficiency
-        (``fleet bench --liveness-floor``)."""
+        has to take an edge the grid does not join, out of sight (there is no way).  What no
+        design can beat, to that margin: the floor of path efficiency (``fleet bench
+        --liveness-floor``)."""
         a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
         if self.in_sight(a, b):
             return float(np.linalg.norm(b - a))
