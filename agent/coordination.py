@@ -94,6 +94,12 @@ def precedence(phase: int, phase_age: int, priority: int, rank: int) -> tuple[in
     return (phase, -phase_age if phase == RETURNING else 0, *order_key(priority, rank))
 
 
+UNCONTROLLED_PRIORITY = 2**31
+"""The priority the navigator gives a robot that drives on uncontrolled (its link down): above
+every priority a plan can carry (the wire's are below 2³¹), so it goes before every robot and
+the robots in its way make way for it, as for any robot that goes first (docs/method.md §6.4)."""
+
+
 PLACE_LAG = 2
 """Steps [steps] by which what an agent knows of another robot's place (its plan by place, its
 place token) may lag behind where that robot's last committed point is."""

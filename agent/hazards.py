@@ -18,12 +18,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agent.coordination import PLACE_LAG, Hazard, NeighbourInfo
+from agent.coordination import PLACE_LAG, UNCONTROLLED_PRIORITY, Hazard, NeighbourInfo
 from ground.geometry import Array, Cell, Whereabouts, cell_centre, cell_of, cells_apart, controlled_point
 from ground.model import stopping
 from ground.params import ControllerParams
 from ground.scenario import RobotSpec
-from ground.wire import BLIND, LinkState, Plan
+from ground.wire import BLIND, UNDER_WAY, LinkState, Plan
 
 
 def neighbour_of(plan: Plan) -> NeighbourInfo:
@@ -91,6 +91,13 @@ def in_reach(
         ):
             out.append(j)
     return out
+
+
+TRAIL_STEPS = 10
+"""Steps [steps] over which the heading of a robot driving on uncontrolled is measured
+(:meth:`Guard._velocity`): the camera's noise on each point (√2·η, 0.2 mm with the epuck
+preset) is then a small part of the robot's motion over them (about 5 cm at cruise), and the
+heading is of the last second."""
 
 
 @dataclass
@@ -178,6 +185,9 @@ class Guard:
         self._state: dict[str, str] = {}
         self._logged: set[tuple[str, str, str]] = set()
         self._off: dict[str, _OffPlan] = {}
+        self._trail: dict[str, list[tuple[int, float, float]]] = {}
+        """Per robot driving on uncontrolled, the camera's controlled points of it the link
+        states carried, (seq [steps], x [m], y [m]), over the last :data:`TRAIL_STEPS` steps."""
 
     @property
     def watched(self) -> set[str]:
@@ -354,7 +364,27 @@ class Guard:
             r_j += self.N * self.eps
             step_reach = max(ls.speed * self.Ts, self.eps)
         radius = r_j + step_reach * max(k + self.N + 1 - since, 0)
-        return Hazard(j, centre, radius, None, "loose", drift=step_reach)
+        heads = centre + self._velocity(j, ls) * self.Ts * max(k + self.N + 1 - since, 0)
+        info = NeighbourInfo(
+            j, centre, r_j, priority=UNCONTROLLED_PRIORITY, rank=0, target=heads, phase=UNDER_WAY
+        )
+        return Hazard(j, centre, radius, info, "loose", drift=step_reach)
+
+    def _velocity(self, j: str, ls: LinkState) -> Array:
+        """Where a robot that drives on uncontrolled heads: its controlled point's velocity (2,)
+        [m/s], from the camera's points of it over the last :data:`TRAIL_STEPS` steps (0 with
+        fewer than two, or none).  For the navigator only, which makes way for its sweep to
+        where it will be at the end of the horizon (shaping: the disc bounds it whatever it
+        does)."""
+        trail = self._trail.setdefault(j, [])
+        if ls.seq >= 0 and (not trail or ls.seq > trail[-1][0]):
+            trail.append((ls.seq, ls.x, ls.y))
+        while trail and trail[0][0] < trail[-1][0] - TRAIL_STEPS:
+            trail.pop(0)
+        if len(trail) < 2:
+            return np.zeros(2)
+        (s0, x0, y0), (s1, x1, y1) = trail[0], trail[-1]
+        return np.array([x1 - x0, y1 - y0]) / ((s1 - s0) * self.Ts)
 
     def _placed(self, j: str, where: Whereabouts, start: NeighbourInfo) -> Hazard:
         """A robot known only by its place token: its last committed point was in the token's

@@ -26,7 +26,7 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from agent.coordination import PARKED_RADIUS, NeighbourInfo, precedence
+from agent.coordination import PARKED_RADIUS, UNCONTROLLED_PRIORITY, NeighbourInfo, precedence
 from agent.sets import Array
 from ground.freespace import free_space_model
 from ground.wire import PARKED, RETURNING
@@ -604,6 +604,7 @@ class Navigator:
         mode = "goal" if wp is goal else "path"
         me = self.precedence
         corridors = []
+        sweeps = 0  # of those corridors, the sweeps of robots driving on uncontrolled
         for nb in neighbours:
             R = self.footprint + nb.footprint
             q = nb.last_point
@@ -627,12 +628,21 @@ class Navigator:
                 continue
             end = nb.target if nb.target is not None else nb.last_point
             corridors.append((nb.last_point, end, R + self.corridor_margin))
+            if nb.priority == UNCONTROLLED_PRIORITY:
+                sweeps += point_segment_distance(c, nb.last_point, end) < R + self.corridor_margin
         blocked = [cd for cd in corridors if point_segment_distance(c, cd[0], cd[1]) < cd[2]]
         if blocked:
-            self._escape = self._escape_point(c, wp, corridors, neighbours)
+            # In the sweep of a robot driving on uncontrolled, the point already made for stands
+            # while it is still clear of every corridor and free: chosen afresh each step, a
+            # robot on the line of the one that comes on (both sides alike) turns from side to
+            # side and stays on it, and the other does not stop (docs/method.md §6.4).
+            held = self._escape
+            if held is None or not (sweeps and self._clear_of(held, corridors)):
+                held = self._escape_point(c, wp, corridors, neighbours)
+            self._escape = held
             self._escape_left = self.hold_steps
             self._stall = 0
-            return self._escape, "yield"
+            return held, "yield"
 
         # Progress watchdog: no progress for long → a clearance-seeking escape
         # point, held for a while (docs/method.md §7).  Time spent yielding or escaping
@@ -656,6 +666,16 @@ class Navigator:
             self._escape_left = 40
             return self._escape, "escape"
         return wp, mode
+
+    def _clear_of(self, p: Array, corridors: list[tuple[Array, Array, float]]) -> bool:
+        """Whether point ``p`` (2,) [m] is outside every corridor, where the footprint may stand and
+        off every static disc."""
+        assert self._grid is not None
+        if not bool(self._grid.free_at(p[None, :])[0]):
+            return False
+        if any(math.hypot(p[0] - q[0], p[1] - q[1]) < r for q, r in self._discs):
+            return False
+        return all(point_segment_distance(p, a, b) >= w for a, b, w in corridors)
 
     def _escape_point(
         self,

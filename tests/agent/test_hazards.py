@@ -438,3 +438,75 @@ def test_the_drift_rows_sliver_is_wider_than_the_solvers_tolerance(design):
     s = SimpleNamespace()
     configure(s, design.params)
     assert (1.0 - DRIFT_SHARE) * design.params.epsilon >= 5 * s.eps_abs
+
+
+def _head_on(design, informed: bool, share: float) -> float:
+    """r1 stands parked at its goal at the origin; r2, whose link is down, drives on at it along
+    the x axis at ``share``·ε/Ts, from 0.9 m away, as the link states say (a camera point a
+    step).  r1 keeps clear of it as :meth:`Guard._loose` makes the disc; ``informed`` False takes
+    away what the navigator is told of r2.  The least distance [m] of r1's committed point of
+    each step to where r2 is then."""
+    from ground.wire import LinkState
+
+    p = design.params
+    guard, starts = _guard(design)
+    ctrl = _controller(design, [0.0, 0.0], [0.0, 0.0])
+    x = np.zeros(4)
+    step = share * p.epsilon
+    where = lambda k: np.array([0.9 - step * k, 0.0])  # noqa: E731
+    ours: dict[int, np.ndarray] = {}
+    apart = math.inf
+    for k in range(1, 260):
+        at = where(k)
+        ls = LinkState(
+            robot="r2", up=False, step=k, lost=0, back=-1, left=500, right=500, speed=step / p.Ts,
+            seq=k, x=float(at[0]), y=float(at[1]),
+        )  # fmt: skip
+        hz = guard._loose(k, "r2", ls, None, starts["r2"])
+        if not informed:
+            hz = dataclasses.replace(hz, info=None)
+        out = ctrl.step(x, [], [hz])
+        x = design.A @ x + design.B @ out.a
+        ours[k + p.horizon] = out.committed[-1]  # r1's reference at step k + N
+        if k in ours:
+            apart = min(apart, float(np.linalg.norm(ours[k] - where(k))))
+    return apart
+
+
+@pytest.mark.parametrize("share", [0.9, 1.0, 1.2, "v_max"])
+def test_a_robot_driving_on_faster_than_the_box_is_dodged_not_outrun(design, share):
+    """A robot whose link is down drives on at its last wheel speeds, up to v_max, which is
+    faster than any reference moves (ε/Ts per axis).  Straight at a parked robot, the disc's row
+    alone only backs that robot away along the line, slower than the other comes, until the
+    references are closer than r_1 + r_2 (the navigator not told of it).  Told where it heads
+    (:meth:`Guard._velocity`: its sweep to the end of the horizon) and that it goes first, the
+    navigator makes way sideways, out of its sweep, keeping to one side, and the two stay
+    r_1 + r_2 apart at every speed up to v_max."""
+    p, fp = design.params, design.footprint
+    s = p.v_max * p.Ts / p.epsilon if share == "v_max" else float(share)
+    assert _head_on(design, informed=True, share=s) >= 2 * fp - 1e-9
+    if s > 1.1:
+        assert _head_on(design, informed=False, share=s) < 2 * fp - 0.05
+
+
+def test_where_a_robot_driving_on_heads_is_measured_from_its_camera_points(design):
+    """The navigator is told that a robot driving on uncontrolled goes before every robot, and
+    heads to where its last second of camera points carries it by the end of the horizon."""
+    from agent.coordination import precedence
+    from ground.wire import LinkState
+
+    p = design.params
+    guard, starts = _guard(design)
+    v = np.array([0.03, -0.04])  # [m/s]
+    for k in range(1, 30):
+        at = np.array([0.2, 0.1]) + v * p.Ts * k
+        ls = LinkState(
+            robot="r2", up=False, step=k, lost=0, back=-1, left=300, right=300, speed=0.05, seq=k,
+            x=float(at[0]), y=float(at[1]),
+        )  # fmt: skip
+        hz = guard._loose(k, "r2", ls, None, starts["r2"])
+    info = hz.info
+    assert info is not None and np.allclose(info.last_point, at)
+    assert np.allclose(info.target, at + v * p.Ts * (p.horizon + 1), atol=1e-9)
+    first = precedence(info.phase, info.phase_age, info.priority, info.rank)
+    assert all(first < precedence(0, 0, s.priority, s.rank) for s in starts.values())

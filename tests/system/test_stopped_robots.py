@@ -211,7 +211,11 @@ def test_a_robot_whose_link_is_cut_mid_crossing_is_kept_clear_of_and_its_agent_h
     assert noticed and cut[0] + 1 <= int(noticed.group(1)) <= cut[0] + 8, err[-3000:]
     assert r2["steps_held_link_down"] >= 10 and r2["qp_failures"] <= 3 and r2["tube_exits"] <= 5, r2
     faults_line = next(ln for ln in stdout_text.splitlines() if ln.startswith("faults: "))
-    assert "links lost: r2 1× (" in faults_line, faults_line
+    # r2's own loss, once; on a loaded machine another link may miss a reply and be lost for a
+    # step or two as well, which the line names too (and the disc rule covers).
+    assert faults_line.startswith("faults: links lost: ") and re.search(r"\br2 1× \(", faults_line), (
+        faults_line
+    )
     others = {rid: r for rid, r in s["robots"].items() if rid != "r2"}
     assert all(r["reached_goal"] for r in others.values()), others
     if cut[1] - cut[0] == 30:
