@@ -242,13 +242,19 @@ def test_guard_grows_stale_discs_by_epsilon_and_caps_dead_ones():
     assert hz[0].info is None and np.array_equal(hz[0].centre, [0.3, 0.2])
     # A robot whose link is down drives on uncontrolled: a disc about where the camera saw its
     # controlled point last (seq 10), grown by its speed until the step after the one ȳ is for
-    # (k + N), from that pose: a moving obstacle, whose disc grows step by step.
+    # (k + N), from that pose: a moving obstacle, whose disc grows step by step.  The navigator
+    # is told of it as of a robot that goes before every robot, there (one camera point: no
+    # heading yet).
+    from agent.coordination import UNCONTROLLED_PRIORITY
+
     down = LinkState(
         robot="r2", up=False, step=11, lost=9, back=-1, left=400, right=400, speed=0.05, seq=10, x=-0.1, y=0.4
     )  # fmt: skip
     for k in (12, 13):
         nbs, hz = g.classify(k, ["r2"], {"r2": old}, {"r2": old}, {"r2"}, starts, links={"r2": down})
-        assert not nbs and np.array_equal(hz[0].centre, [-0.1, 0.4]) and hz[0].info is None
+        info = hz[0].info
+        assert not nbs and np.array_equal(hz[0].centre, [-0.1, 0.4]) and info is not None
+        assert info.priority == UNCONTROLLED_PRIORITY and np.array_equal(info.target, [-0.1, 0.4])
         assert hz[0].radius == pytest.approx(design.footprint + 0.05 * p.Ts * (k + p.horizon + 1 - 10))
     # No camera pose yet: about its last committed point (plan of step 7), within N steps of
     # where its reference was then, and growing from that plan's step (not from the loss,
