@@ -93,11 +93,16 @@ def in_reach(
     return out
 
 
-TRAIL_STEPS = 10
-"""Steps [steps] over which the heading of a robot driving on uncontrolled is measured
-(:meth:`Guard._velocity`): the camera's noise on each point (√2·η, 0.2 mm with the epuck
-preset) is then a small part of the robot's motion over them (about 5 cm at cruise), and the
-heading is of the last second."""
+def trail_steps(point_noise: float, horizon: int, epsilon: float) -> int:
+    """Steps [steps] over which the heading of a robot driving on uncontrolled is measured
+    (:meth:`Guard._velocity`): the fewest W ≥ 1 whose noise moves the predicted end of its sweep
+    by at most ε.  Each camera point is within √2·η of the true one (η = ``point_noise`` [m] per
+    axis), so two W steps apart give the velocity within 2·√2·η/(W·Ts), and the point N + 1
+    steps ahead within 2·√2·η·(N + 1)/W; ε [m] is what a reference moves a step, the most one
+    step of the navigator's replies could make up.  Fewer steps follow the robot's arc more
+    closely (its chord over W steps lags its heading by half the angle turned): 2 steps with
+    the epuck preset, 11 with η = 1 mm."""
+    return max(1, math.ceil(2.0 * math.sqrt(2.0) * point_noise * (horizon + 1) / epsilon - 1e-9))
 
 
 @dataclass
@@ -185,9 +190,11 @@ class Guard:
         self._state: dict[str, str] = {}
         self._logged: set[tuple[str, str, str]] = set()
         self._off: dict[str, _OffPlan] = {}
+        self.trail = trail_steps(p.point_noise, p.horizon, p.epsilon)
+        """Steps over which a robot driving on uncontrolled is seen heading (:func:`trail_steps`)."""
         self._trail: dict[str, list[tuple[int, float, float]]] = {}
         """Per robot driving on uncontrolled, the camera's controlled points of it the link
-        states carried, (seq [steps], x [m], y [m]), over the last :data:`TRAIL_STEPS` steps."""
+        states carried, (seq [steps], x [m], y [m]), over the last :attr:`trail` steps."""
 
     @property
     def watched(self) -> set[str]:
@@ -372,14 +379,14 @@ class Guard:
 
     def _velocity(self, j: str, ls: LinkState) -> Array:
         """Where a robot that drives on uncontrolled heads: its controlled point's velocity (2,)
-        [m/s], from the camera's points of it over the last :data:`TRAIL_STEPS` steps (0 with
+        [m/s], from the camera's points of it over the last :attr:`trail` steps (0 with
         fewer than two, or none).  For the navigator only, which makes way for its sweep to
         where it will be at the end of the horizon (shaping: the disc bounds it whatever it
         does)."""
         trail = self._trail.setdefault(j, [])
         if ls.seq >= 0 and (not trail or ls.seq > trail[-1][0]):
             trail.append((ls.seq, ls.x, ls.y))
-        while trail and trail[0][0] < trail[-1][0] - TRAIL_STEPS:
+        while trail and trail[0][0] < trail[-1][0] - self.trail:
             trail.pop(0)
         if len(trail) < 2:
             return np.zeros(2)

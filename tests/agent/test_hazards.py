@@ -510,3 +510,37 @@ def test_where_a_robot_driving_on_heads_is_measured_from_its_camera_points(desig
     assert np.allclose(info.target, at + v * p.Ts * (p.horizon + 1), atol=1e-9)
     first = precedence(info.phase, info.phase_age, info.priority, info.rank)
     assert all(first < precedence(0, 0, s.priority, s.rank) for s in starts.values())
+
+
+@pytest.mark.parametrize("eta", [0.00014, 0.001])
+def test_the_heading_is_measured_over_the_fewest_steps_whose_noise_stays_within_a_step(design, eta):
+    """:func:`trail_steps`: with camera points off by the worst the noise allows (η per axis,
+    the oldest and the newest of the window off in opposite directions), the predicted end of
+    the sweep is within ε of the true one over W steps, and not over W − 1."""
+    from agent.hazards import trail_steps
+    from ground.wire import LinkState
+
+    p = dataclasses.replace(design.params, pose_noise=(eta, 0.0))
+    W = trail_steps(p.point_noise, p.horizon, p.epsilon)
+    v = np.array([0.04, 0.0])  # [m/s]
+
+    def end_error(window: int) -> float:
+        guard = Guard("r1", p, lambda _: None)
+        guard.trail = window
+        _, starts = _guard(design)
+        for k in range(1, window + 2):
+            true = v * p.Ts * k
+            off = eta * np.array([1.0, 1.0]) * (1.0 if k == window + 1 else -1.0)
+            at = true + off
+            ls = LinkState(
+                robot="r2", up=False, step=k, lost=0, back=-1, left=300, right=300, speed=0.04, seq=k,
+                x=float(at[0]), y=float(at[1]),
+            )  # fmt: skip
+            hz = guard._loose(k, "r2", ls, None, starts["r2"])
+        ahead = (p.horizon + 1) * p.Ts
+        assert hz.info is not None
+        return float(np.linalg.norm((hz.info.target - hz.info.last_point) - v * ahead))
+
+    assert end_error(W) <= p.epsilon + 1e-12
+    if W > 1:
+        assert end_error(W - 1) > p.epsilon
