@@ -667,15 +667,20 @@ class Navigator:
             return self._escape, "escape"
         return wp, mode
 
-    def _clear_of(self, p: Array, corridors: list[tuple[Array, Array, float]]) -> bool:
-        """Whether point ``p`` (2,) [m] is outside every corridor, where the footprint may stand and
-        off every static disc."""
+    def _standable(self, P: Array) -> np.ndarray:
+        """Whether the footprint may stand at each point (k, 2) [m], clear of the walls, the
+        obstacles and every static disc (k,)."""
         assert self._grid is not None
-        if not bool(self._grid.free_at(p[None, :])[0]):
-            return False
-        if any(math.hypot(p[0] - q[0], p[1] - q[1]) < r for q, r in self._discs):
-            return False
-        return all(point_segment_distance(p, a, b) >= w for a, b, w in corridors)
+        free = self._grid.free_at(P)
+        for q, r in self._discs:
+            free &= np.hypot(P[:, 0] - q[0], P[:, 1] - q[1]) >= r
+        return free
+
+    def _clear_of(self, p: Array, corridors: list[tuple[Array, Array, float]]) -> bool:
+        """Whether point ``p`` (2,) [m] is outside every corridor and the footprint may stand there."""
+        return bool(self._standable(p[None, :])[0]) and all(
+            point_segment_distance(p, a, b) >= w for a, b, w in corridors
+        )
 
     def _escape_point(
         self,
@@ -690,12 +695,8 @@ class Navigator:
         48 candidates on two rings around ``c``, scored (all at once) by the
         distance travelled, the distance left to ``wp``, corridor penetration
         and lack of clearance from the neighbours' committed points."""
-        assert self._grid is not None
-        g = self._grid
         P = c + self._ring * radius  # (48, 2)
-        free = g.free_at(P)
-        for q, r in self._discs:
-            free &= np.hypot(P[:, 0] - q[0], P[:, 1] - q[1]) >= r
+        free = self._standable(P)
         if not np.any(free):
             return c.copy()
         score = 0.5 * radius * self._ring_norm + 0.2 * np.hypot(wp[0] - P[:, 0], wp[1] - P[:, 1])

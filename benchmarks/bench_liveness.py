@@ -77,24 +77,29 @@ def _alone(scn: Any, footprint: float) -> dict[str, float]:
     return out
 
 
-def floor(seed: int, families: tuple[str, ...] | None = None) -> dict[str, Any]:
-    """The floor of path efficiency of hard scene ``seed`` of ``families`` (:func:`_alone`), no run."""
+def _scene(seed: int, families: tuple[str, ...] | None) -> tuple[dict[str, Any], str, Any, Any]:
+    """Hard scene ``seed`` of ``families`` (default :data:`fleet.scenes.HARD_FAMILIES`): its
+    data, its family, and the loaded scenario and design, or None and the loader's reason."""
     from agent.tube import validated_design
     from fleet.scenes import HARD_FAMILIES, hard_scene
     from ground.scenario import ConfigError, parse_scenario
 
     fams = families or HARD_FAMILIES
     data = hard_scene(seed, fams)
-    family = fams[seed % len(fams)]
     try:
         scn = parse_scenario(data)
-        design = validated_design(scn)
+        return data, fams[seed % len(fams)], scn, validated_design(scn)
     except ConfigError as e:
-        return {"seed": seed, "name": data["name"], "family": family, "refused": str(e)}
-    return {
-        "seed": seed, "name": data["name"], "family": family, "robots": len(scn.robots),
-        "alone": list(_alone(scn, design.footprint).values()),
-    }  # fmt: skip
+        return data, fams[seed % len(fams)], None, str(e)
+
+
+def floor(seed: int, families: tuple[str, ...] | None = None) -> dict[str, Any]:
+    """The floor of path efficiency of hard scene ``seed`` of ``families`` (:func:`_alone`), no run."""
+    data, family, scn, design = _scene(seed, families)
+    head = {"seed": seed, "name": data["name"], "family": family}
+    if scn is None:
+        return {**head, "refused": design}
+    return {**head, "robots": len(scn.robots), "alone": list(_alone(scn, design.footprint).values())}
 
 
 def one(
@@ -105,20 +110,13 @@ def one(
     (``ahead`` False: each from its measurement); its figures.  ``realtime``: instead run it as
     a process fleet on the realtime clock with its defaults (``fleet run --clock realtime``:
     plans by place, planned ahead), its files under that directory."""
-    from agent.tube import validated_design
-    from fleet.scenes import HARD_FAMILIES, hard_scene, scene_to_toml
+    from fleet.scenes import scene_to_toml
     from fleet.simulate import run
-    from ground.scenario import ConfigError, parse_scenario
 
-    fams = families or HARD_FAMILIES
-    data = hard_scene(seed, fams)
-    family = fams[seed % len(fams)]
     t0 = time.perf_counter()
-    try:
-        scn = parse_scenario(data)
-        design = validated_design(scn)
-    except ConfigError as e:
-        return {"seed": seed, "name": data["name"], "family": family, "refused": str(e)}
+    data, family, scn, design = _scene(seed, families)
+    if scn is None:
+        return {"seed": seed, "name": data["name"], "family": family, "refused": design}
     extra: dict[str, Any] = {}
     if realtime is None:
         s = run(scn, design=design, ahead=ahead).summary()

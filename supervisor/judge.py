@@ -152,6 +152,12 @@ class Judge:
         """Per pair of robots (sorted ids), the one displaced for the other last, and how many
         times the two have displaced each other in turn (each displacement for the other of the
         pair counts after the first) (:meth:`_displacements`)."""
+        self.news: list[dict[str, Any]] = []
+        """The displacements of the latest step judged (``robot``, ``for``), each with
+        ``traded``: its pair's turns where this one made them two or more, else 0; what the
+        supervisor says as events."""
+        self._out: dict[str, dict[str, Any]] = {}
+        """Per robot off its goal now, its open episode of :attr:`displaced`."""
         self.repairs: dict[str, int] = {}
         """Per robot, solutions whose ȳ was pulled back onto the coordination rows (the
         in-process simulator reads the controller's counter)."""
@@ -285,12 +291,11 @@ class Judge:
         :attr:`turns` grows: at 2 the same robot has stepped aside for the same other again, a
         cycle the progress argument does not rule out (docs/method.md §7, "What is not ruled
         out")."""
+        self.news = []
         for r, pl in executed.items():
             before, self.phases[r] = self.phases.get(r), pl.phase
-            if before == RETURNING and pl.phase == PARKED:
-                for ep in self.displaced:
-                    if ep["robot"] == r and ep["to_step"] is None:
-                        ep["to_step"] = k
+            if before == RETURNING and pl.phase == PARKED and r in self._out:
+                self._out.pop(r)["to_step"] = k
             if before != PARKED or pl.phase != RETURNING:
                 continue
             here = pl.committed[-1]
@@ -300,12 +305,17 @@ class Judge:
             by = min(movers, key=lambda j: float(np.linalg.norm(last[j].committed[-1] - here)), default=None)
             self.robot[r]["displaced"] += 1
             self.displacements += 1
+            ep = {"robot": r, "for": by, "from_step": k, "to_step": None}
+            self._out[r] = ep
             if len(self.displaced) < MAX_EPISODES:
-                self.displaced.append({"robot": r, "for": by, "from_step": k, "to_step": None})
+                self.displaced.append(ep)
+            traded = 0
             if by is not None:
                 pair = (min(r, by), max(r, by))
                 last_one, n = self.turns.get(pair, (r, 0))
                 self.turns[pair] = (r, n + (last_one != r))
+                traded = n + 1 if last_one != r and n + 1 >= 2 else 0
+            self.news.append({"robot": r, "for": by, "traded": traded})
 
     def traded(self) -> list[dict[str, Any]]:
         """The pairs of robots that have displaced each other in turn twice or more: ``robots``

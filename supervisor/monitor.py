@@ -196,12 +196,11 @@ class Monitor:
             self.k_truth += 1
         for plans, skipped, braked in plan_steps:
             blocked, walled = dict(self.judge.blocked), dict(self.judge.walled)
-            displaced, turns = self.judge.displacements, dict(self.judge.turns)
             self.judge.plans(plans, skipped, braked)
             self.recorder.plans(self.k_plan, self.Ts, plans)
             self._blocked(self.k_plan, blocked)
             self._walled(self.k_plan, walled)
-            self._displaced(self.k_plan, displaced, turns)
+            self._displaced(self.k_plan)
             self.k_plan += 1
         if not self.layout_said and self.judge.footprint is not None:
             # Off the judging loop: the free-space search takes a good part of a second.
@@ -250,19 +249,15 @@ class Monitor:
             self.recorder.event(f"{rid}: its way home is open again")
             log(ROLE, f"step {k}: {rid}: way home open again")
 
-    def _displaced(self, k: int, before: int, turns: dict[tuple[str, str], tuple[str, int]]) -> None:
+    def _displaced(self, k: int) -> None:
         """An event for each parked robot that left its goal at step k (``displaced``,
-        :meth:`Judge._displacements`), and an event and a log line for each pair of robots that
-        has now displaced each other in turn twice or more (``traded_places``)."""
-        if self.judge.displacements > before:
-            for ep in self.judge.displaced:
-                if ep["from_step"] == k:
-                    why = f" for {ep['for']}" if ep["for"] else ""
-                    self.recorder.event(f"displaced: {ep['robot']}: left its goal{why}")
-        for pair, (_, n) in self.judge.turns.items():
-            if n >= 2 and n != turns.get(pair, ("", 0))[1]:
-                a, b = pair
-                said = f"{a} and {b} have displaced each other in turn {n} times"
+        :attr:`Judge.news`), and an event and a log line where that makes two robots that have
+        displaced each other in turn twice or more (``traded_places``)."""
+        for ep in self.judge.news:
+            r, by = ep["robot"], ep["for"]
+            self.recorder.event(f"displaced: {r}: left its goal" + (f" for {by}" if by else ""))
+            if ep["traded"]:
+                said = f"{min(r, by)} and {max(r, by)} have displaced each other in turn {ep['traded']} times"
                 self.recorder.event(f"traded_places: {said}", "WARN")
                 log(ROLE, f"step {k}: {said}")
 

@@ -490,10 +490,12 @@ def test_parked_robots_that_step_aside_are_named_and_a_pair_that_does_so_in_turn
     assert judge.displaced == [{"robot": "r1", "for": "r2", "from_step": 1, "to_step": None}]
     step(2, {"r1": R, "r2": P, "r3": P})
     step(3, {"r1": R, "r2": R, "r3": P})  # r2 for r1, the only robot that moves
+    assert judge.news == [{"robot": "r2", "for": "r1", "traded": 0}]  # said as an event, no trade yet
     step(4, {"r1": P, "r2": R, "r3": P})  # r1 home again
     assert [ep["to_step"] for ep in judge.displaced] == [4, None]
     assert judge.traded() == []  # each has stepped aside for the other once: not yet a cycle
     step(5, {"r1": R, "r2": R, "r3": P})  # r1 for r2 again: the pair is back where it was
+    assert judge.news == [{"robot": "r1", "for": "r2", "traded": 2}]
     s = judge.summary(True, 1.0)
     assert s["displacements"] == 3 and len(s["displaced"]) == 3
     assert s["traded_places"] == [{"robots": ["r1", "r2"], "turns": 2}]
