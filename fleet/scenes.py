@@ -307,6 +307,15 @@ def pocket(
     return _scene(name, team, duration, seed, obstacles=walls)
 
 
+def lane_crossing(duration: float = 120.0, seed: int = 0) -> dict[str, Any]:
+    """Two robots in a corridor 0.32 m wide, a single robot wide, across a 2 m arena, each bound
+    for a point 0.3 m past the middle on the other's way: each goal walls in the other's way, so
+    each must be home before the other parks, which no order does."""
+    walls = [_box(-1.0, 1.0, 0.16, 1.0), _box(-1.0, 1.0, -1.0, -0.16)]
+    robots = [_robot(0, (-0.85, 0.0), (0.3, 0.0)), _robot(1, (0.85, 0.0), (-0.3, 0.0))]
+    return _scene("lane_crossing", robots, duration, seed, obstacles=walls)
+
+
 def goals_by_obstacles(n: int, seed: int = 0, duration: float = 200.0) -> dict[str, Any]:
     """Three circular obstacles, each with goals packed around it 1 cm past the footprint
     (0.14 m from its edge); up to n ≤ 12 robots from starts on the left."""

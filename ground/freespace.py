@@ -94,28 +94,42 @@ class FreeSpace:
         dy = self.ys[None, j0:j1] - centre[1]
         return slice(i0, i1), slice(j0, j1), dx * dx + dy * dy < radius * radius
 
-    def splits(self, centre: np.ndarray, radius: float) -> np.ndarray | None:
+    def splits(self, centre: np.ndarray, radius: float, free: np.ndarray | None = None) -> np.ndarray | None:
         """The pieces (nx, ny) free space falls into once a disc of ``radius`` [m] about
         ``centre`` (2,) [m] stands in it too, labelled as :attr:`labels` are; None if the disc
-        splits no piece (the ring of free cells just around it is connected)."""
+        splits no piece (the ring of free cells just around it is connected).  ``free``: the
+        free cells (nx, ny) to split instead of :attr:`free` (with other discs standing in it,
+        :meth:`carve`)."""
         from scipy import ndimage
 
+        free = self.free if free is None else free
+        if self.ring_holds(centre, radius, free):
+            return None  # the free cells about the disc hold together: nothing is split
+        rows, cols, m = self.disc_cells(centre, radius)
+        free = free.copy()
+        free[rows, cols] &= ~m
+        out, _ = ndimage.label(free, structure=np.ones((3, 3), dtype=bool))
+        return np.asarray(out)
+
+    def ring_holds(self, centre: np.ndarray, radius: float, free: np.ndarray | None = None) -> bool:
+        """Whether the free cells just about a disc of ``radius`` [m] about ``centre`` (2,) [m]
+        (two cells deep) hold together, in :attr:`free` or the cells ``free`` (nx, ny).  If they
+        do, the disc splits no piece of free space, whatever lies beyond them: a way that
+        crossed the disc goes round it through them.  Looks at the disc's bounding box only."""
+        from scipy import ndimage
+
+        free = self.free if free is None else free
         rows, cols, m = self.disc_cells(centre, radius)
         r0, r1 = max(0, rows.start - 2), min(self.nx, rows.stop + 2)
         c0, c1 = max(0, cols.start - 2), min(self.ny, cols.stop + 2)
-        box = self.free[r0:r1, c0:c1].copy()
+        box = free[r0:r1, c0:c1].copy()
         inside = np.zeros_like(box)
         inside[rows.start - r0 : rows.stop - r0, cols.start - c0 : cols.stop - c0] = m
         box &= ~inside
         near = ndimage.binary_dilation(inside, structure=np.ones((3, 3), dtype=bool), iterations=2)
         ring = box & near
         lab, _ = ndimage.label(ring, structure=np.ones((3, 3), dtype=bool))
-        if len(np.unique(lab[ring])) <= 1:
-            return None  # the free cells about the disc hold together: nothing is split
-        free = self.free.copy()
-        free[rows, cols] &= ~m
-        out, _ = ndimage.label(free, structure=np.ones((3, 3), dtype=bool))
-        return np.asarray(out)
+        return len(np.unique(lab[ring])) <= 1
 
     def walled_in(self, a: np.ndarray, b: np.ndarray, discs: Sequence[tuple[np.ndarray, float]]) -> list[int]:
         """The discs (centre (2,) [m], radius [m]) that, standing in free space all at once,

@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from fleet.scenes import antipodal_swap, mirrored_grid, pocket, scene_to_toml
+from fleet.scenes import antipodal_swap, lane_crossing, mirrored_grid, pocket, scene_to_toml
 from ground.freespace import free_space_model
 from ground.geometry import controlled_point
 from ground.scenario import Scenario, forced_order, forced_order_lines, load_scenario
@@ -85,19 +86,7 @@ def test_a_swap_on_a_circle_is_well_formed(tmp_path) -> None:
 def test_two_robots_whose_goals_wall_each_others_way_are_named_as_a_cycle(tmp_path) -> None:
     """A corridor a single robot wide, each robot's goal on the other's way: each must be home
     before the other parks, which no order does."""
-    walls = [
-        {"polygon": [[-1.0, 0.16], [1.0, 0.16], [1.0, 1.0], [-1.0, 1.0]]},
-        {"polygon": [[-1.0, -1.0], [1.0, -1.0], [1.0, -0.16], [-1.0, -0.16]]},
-    ]
-    scene = pocket(0.30)  # for its shape: replaced below
-    scene.update(
-        name="single_file",
-        obstacles=walls,
-        robots=[
-            {"id": "r1", "start": [-0.9, 0.0, 0.0], "goal": [0.3, 0.0]},
-            {"id": "r2", "start": [0.9, 0.0, 3.141592653589793], "goal": [-0.3, 0.0]},
-        ],
-    )
+    scene = lane_crossing()
     forced = forced_order(_load(tmp_path, scene), FP)
     assert forced == {"r1": {"alone": ["r2"], "together": []}, "r2": {"alone": ["r1"], "together": []}}
     assert forced_order_lines(forced)[-1].startswith("r1, r2: each must be home before another of them parks")
@@ -113,6 +102,9 @@ def test_fleet_simulate_says_the_forced_order_and_the_summary_keeps_it(tmp_path)
     )  # fmt: skip
     assert "layout: 1 of 2 robots must be home before others park:" in res.stdout, res.stdout + res.stderr
     assert "  r1 must get past the goals of r2 before they park: each walls in its way" in res.stdout
+    assert re.search(
+        r"order of arrival:\n  r2 waits at \(-?[0-9.]+, -?[0-9.]+\) until r1 is past its goal", res.stdout
+    )
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["forced_order"] == {"r1": {"alone": ["r2"], "together": []}}
 
