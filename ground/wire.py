@@ -50,7 +50,7 @@ from numpy.typing import NDArray
 
 from ground.geometry import Cell, parse_cell
 
-SCHEMA_VERSION = 7
+SCHEMA_VERSION = 8
 """The version of every message's layout; a message of another version is rejected.
 
 2: :class:`Command` carries the shifted candidate and :class:`Tick` what the robot side applied;
@@ -61,10 +61,13 @@ and :class:`Script` lets a script hold the lockstep clock and end the run;
 6: :class:`Plan` carries its agent's count of places heard late (``late``);
 7: :class:`Plan` carries the discs its agent kept clear of (``discs``) and the robot whose stopped
 disc covers its goal (``blocked``), and :class:`Command` may ask the robot side to brake
-(``brake``)."""
-UNDER_WAY, RETURNING, PARKED = 0, 1, 2
+(``brake``);
+8: :class:`Plan` and :class:`Digest` may carry the phase :data:`WAITING`."""
+UNDER_WAY, RETURNING, PARKED, WAITING = 0, 1, 2, 3
 """A plan's precedence phase (:attr:`Plan.phase`): under way (its goal never reached), returning
-(reached once, now displaced), parked (at its goal).  Lower goes first (docs/method.md §7)."""
+(reached once, now displaced), parked (at its goal), waiting (at its wait point, before it first
+goes home, for robots whose way its goal would wall in: :mod:`ground.arrival`).  Lower goes
+first (docs/method.md §7)."""
 MAX_AGE = 2**31
 """Largest ``phase_age`` a plan carries [steps] (an agent's count stops there)."""
 MAX_PAYLOAD = 64 * 1024
@@ -373,7 +376,7 @@ class Plan(Message):
     priority: int
     rank: int
     phase: int
-    """Precedence phase (0 under way, 1 returning, 2 parked)."""
+    """Precedence phase (0 under way, 1 returning, 2 parked, 3 waiting)."""
     target: NDArray[np.float64] = field(compare=False)
     """Navigation waypoint (2,) [m]."""
     goal: NDArray[np.float64] = field(compare=False)
@@ -418,7 +421,7 @@ class Plan(Message):
             "footprint": fp,
             "priority": _int(d["priority"], "priority", -(2**31), 2**31),
             "rank": _int(d["rank"], "rank", 0, 2**31),
-            "phase": _int(d["phase"], "phase", 0, 2),
+            "phase": _int(d["phase"], "phase", 0, WAITING),
             "phase_age": _int(d["phase_age"], "phase_age", 0, MAX_AGE),
             "late": _int(d["late"], "late", 0, 2**31),
             "discs": _discs(d["discs"], d["robot"]),
@@ -773,7 +776,7 @@ class Digest(Message):
         step = _int(d["step"], "step")
         cols: dict[str, list[int]] = {}
         for name, lo, hi in (
-            ("steps", 0, step), ("priority", -(2**31), 2**31), ("rank", 0, 2**31), ("phase", 0, 2),
+            ("steps", 0, step), ("priority", -(2**31), 2**31), ("rank", 0, 2**31), ("phase", 0, WAITING),
             ("phase_age", 0, MAX_AGE),
         ):  # fmt: skip
             col = d[name]

@@ -121,6 +121,20 @@ def test_round_trip(name):
         assert all(np.array_equal(back.batch[r], g) for r, g in msg.batch.items())
 
 
+def test_every_phase_travels_and_none_beyond_waiting():
+    """The four precedence phases (under way, returning, parked, waiting) decode as sent; the
+    next value is rejected, naming the field."""
+    from dataclasses import replace
+
+    from ground.wire import PARKED, RETURNING, UNDER_WAY, WAITING
+
+    for phase in (UNDER_WAY, RETURNING, PARKED, WAITING):
+        assert decode(replace(_plan(), phase=phase).encode(), Plan).phase == phase
+    with pytest.raises(WireError) as e:
+        decode(replace(_plan(), phase=WAITING + 1).encode(), Plan)
+    assert e.value.reason.startswith("phase")
+
+
 def test_a_goal_alone_has_an_empty_batch_and_a_script_may_permit_no_step_yet():
     alone = decode(Goal(robot="r1", goal=np.array([0.3, 0.4])).encode(), Goal, robot="r1")
     assert alone.batch == {} and np.array_equal(alone.goal, [0.3, 0.4])
@@ -226,7 +240,7 @@ BAD = [
     ("digest: id twice", lambda: _mutate(SAMPLES["digest"], ids=["r1", "r2", "r1"]), Digest, "ids"),
     ("digest: bad id", lambda: _mutate(SAMPLES["digest"], ids=["r1", "r 2", "r3"]), Digest, "ids"),
     ("digest: short column", lambda: _mutate(SAMPLES["digest"], rank=[0, 1]), Digest, "rank"),
-    ("digest: bad phase", lambda: _mutate(SAMPLES["digest"], phase=[0, 3, 0]), Digest, "phase"),
+    ("digest: bad phase", lambda: _mutate(SAMPLES["digest"], phase=[0, 4, 0]), Digest, "phase"),
     ("digest: a plan newer than it", lambda: _mutate(SAMPLES["digest"], steps=[7, 8, 7]), Digest, "steps"),
     ("digest: rows and ids differ", lambda: _mutate(
         SAMPLES["digest"], committed=encode_array(np.zeros((2, 20, 2)))), Digest, "committed"),
