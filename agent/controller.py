@@ -28,7 +28,6 @@ from typing import Any
 import numpy as np
 
 from agent.coordination import (
-    PARKED_RADIUS,
     Hazard,
     NeighbourInfo,
     hazard_halfplanes,
@@ -41,9 +40,10 @@ from agent.navigator import Navigator
 from agent.qp import StepData, TubeQP
 from agent.sets import Array
 from agent.tube import TubeDesign
+from ground.arrival import Gate
 from ground.model import ancillary_law, brake_input
-from ground.scenario import AT_GOAL, GOAL_MARGIN
-from ground.wire import BLIND, LINK_DOWN, MAX_AGE, PARKED, RETURNING, UNDER_WAY
+from ground.scenario import AT_GOAL, GOAL_MARGIN, PARKED_RADIUS
+from ground.wire import BLIND, LINK_DOWN, MAX_AGE, PARKED, RETURNING, UNDER_WAY, WAITING
 
 TUBE_TOL = 2e-5
 """Tolerance of the tube check x − x̂ ∈ Z [m, m/s]: twice ProxSuite's eps_abs,
@@ -139,6 +139,7 @@ class TubeMPC:
         max_neighbour_rows: int = 12,
         seed: int = 0,
         solver_fault: Any = None,
+        gate: Gate | None = None,
     ):
         self.design = design
         p = self.params = design.params
@@ -155,6 +156,14 @@ class TubeMPC:
         )
         self.solver_fault = solver_fault
         """Optional callable(step) -> bool; True forces this step's solve to count as failed (tests)."""
+        self.gate = gate
+        """The order of arrival this robot keeps to (:func:`ground.arrival.arrival`): until every
+        robot it waits for has been seen parked, it steers to its wait point, not its goal; None
+        once that holds, or if it waits for nobody, or once it is given a goal at run time
+        (docs/method.md §7, "The order of arrival")."""
+        self.seen_past: set[str] = set()
+        """Of the robots this one waits for, those seen past its goal or parked, or stopped for
+        good, so far (ids)."""
         xmin, xmax, ymin, ymax = arena
         r = self.r
         self.y_box = np.array([xmin + r, xmax - r, ymin + r, ymax - r])
@@ -212,6 +221,10 @@ class TubeMPC:
         robot at its goal does, yielded to by nobody (docs/method.md §7)."""
         if self.parking is not None:
             return PARKED  # nobody waits on it, and it makes way for those that move
+        if self.gate is not None:
+            # At its wait point it has nowhere to be yet: it makes way for those that move.
+            off = float(np.linalg.norm(self.y_ref[-1] - self.gate.wait_point))
+            return WAITING if off < PARKED_RADIUS else UNDER_WAY
         d = float(np.linalg.norm(self.y_ref[-1] - self.goal))
         if not self.reached_once and d < AT_GOAL:
             self.reached_once = True
@@ -226,8 +239,10 @@ class TubeMPC:
         self._aged_phase = phase
 
     def set_goal(self, goal: Array) -> None:
-        """Accept a new goal (2,) [m] at run time."""
+        """Accept a new goal (2,) [m] at run time (the scenario's order of arrival no longer
+        applies: the gate goes)."""
         self.goal = np.asarray(goal, dtype=float)
+        self.gate = None
         self.reached_once = False
         self.nav.reset_goal()
         self._ahead = None
@@ -279,10 +294,39 @@ class TubeMPC:
         ``known`` are the other robots the navigator plans around and yields to.
         Shaping only: whatever it returns, the step's constraints are the same."""
         goal = self.goal if self.parking is None else self.parking
+        if self.gate is not None and self.parking is None and not self._gate_opens(known):
+            goal = self.gate.wait_point
         if not self.params.deadlock:
             return goal, "goal"
         self.nav.phase, self.nav.phase_age = self.phase, self.phase_age
         return self.nav.target(self.last_point, goal, known)
+
+    def _gate_opens(self, known: Sequence[NeighbourInfo]) -> bool:
+        """Whether every robot this one waits for (:attr:`gate`) has now been seen past its goal
+        (its committed point, in ``known``, past the goals that wall in its way, or parked), now
+        or before (:attr:`seen_past`); if so the gate goes for good, and the navigator plans
+        afresh, to the goal."""
+        gate = self.gate
+        assert gate is not None
+        self.gate_news(known)
+        if not self.seen_past.issuperset(gate.waits_for):
+            return False
+        self.gate = None
+        self.nav.reset_goal()
+        return True
+
+    def gate_news(self, heard: Sequence[NeighbourInfo]) -> None:
+        """Take what is heard of other robots (their newest plans) into :attr:`seen_past`: each
+        robot this one waits for whose committed point is past its goal (:meth:`Gate.past`), or
+        that is parked."""
+        gate = self.gate
+        if gate is None:
+            return
+        at = {nb.id: nb for nb in heard}
+        for k, rid in enumerate(gate.waits_for):
+            nb = at.get(rid)
+            if nb is not None and (nb.phase == PARKED or gate.past(k, nb.last_point)):
+                self.seen_past.add(rid)
 
     def steer_ahead(self, known: Sequence[NeighbourInfo]) -> None:
         """Choose the next step's target now, between steps.
@@ -436,6 +480,8 @@ class TubeMPC:
         robot stands there.  The navigator then steers to the nearest point it may park at, clear
         of them and as far from the other robots' goals as goals must be apart (:attr:`parking`)."""
         static = [(h.centre, self.r + h.radius) for h in hazards if h.static]
+        # A robot stopped for good goes nowhere: nobody need wait for it to park.
+        self.seen_past.update(h.id for h in hazards if h.static)
         self._discs_changed = self.nav.set_discs(static)
         for h in hazards:
             if h.static and math.hypot(*(self.goal - h.centre)) < self.r + h.radius:

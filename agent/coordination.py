@@ -34,11 +34,6 @@ from ground.wire import OFF_PLAN, RETURNING
 SQRT2 = math.sqrt(2.0)
 
 
-PARKED_RADIUS = 0.05
-"""A robot that has reached its goal counts as parked within this distance of it [m] (its
-committed end point's distance; farther, it is returning)."""
-
-
 class ConvexObstacle(Protocol):
     """A static convex obstacle: ``distance`` and ``closest_point`` in [m]."""
 

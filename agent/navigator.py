@@ -26,9 +26,10 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from agent.coordination import PARKED_RADIUS, UNCONTROLLED_PRIORITY, NeighbourInfo, precedence
+from agent.coordination import UNCONTROLLED_PRIORITY, NeighbourInfo, precedence
 from agent.sets import Array
 from ground.freespace import free_space_model
+from ground.scenario import PARKED_RADIUS
 from ground.wire import PARKED, RETURNING
 
 
@@ -439,7 +440,7 @@ class Navigator:
     """A parked robot does not yield to a returning one whose goal is within r_i + r_j + this of
     its own [m] (see :meth:`target`).  The returning robot's corridor ends at its goal, r_i + r_j
     + ``corridor_margin`` wide, and a parked robot stands anywhere within
-    :data:`~agent.coordination.PARKED_RADIUS` of its own: any closer pair of goals, and the end
+    :data:`~ground.scenario.PARKED_RADIUS` of its own: any closer pair of goals, and the end
     of the corridor can cover the parked robot (docs/method.md §7, "Close goals")."""
     close_goals_patience: int = 600
     """Steps a robot may return to its goal before the close-goals rule lapses for it [steps]:

@@ -53,6 +53,7 @@ from agent.coordination import PLACE_LAG, VIEW_CELLS, NeighbourInfo, navigator_v
 from agent.hazards import Guard, in_reach, loose, neighbour_of, starts_of
 from agent.messages import command_message, plan_message
 from agent.tube import validated_design
+from ground.arrival import arrival
 from ground.bus import Inbox, goal_reply, open_session, publisher, put, remember_steps
 from ground.geometry import (
     Cell,
@@ -135,10 +136,11 @@ class Agent:
         self.rank = rank = ids.index(me)
         spec = scn.robots[rank]
         p = self.p = design.params
+        gate = arrival(scn, design.footprint).gates.get(me) if p.deadlock else None
         self.ctrl = TubeMPC(
             design, controlled_point(spec.start, p.lookahead), np.array(spec.goal, dtype=float), scn.arena,
             obstacles=scn.obstacles, priority=spec.priority, rank=rank,
-            seed=scn.simulation.seed * 1000 + rank,
+            seed=scn.simulation.seed * 1000 + rank, gate=gate,
         )  # fmt: skip
         self.keys = Keys(args.fleet)
         self.dc = bool(args.delay_compensation)
@@ -584,7 +586,19 @@ class Agent:
             live = set(inbox.live)
             goal = inbox.get(Goal, me)
             self.links = {j: inbox.get(LinkState, j) for j in self.others}
+        if self.side is not None:
+            self._gate_news()
         return fresh, live, goal, self._reach(braked)
+
+    def _gate_news(self) -> None:
+        """Plans by place: tell the controller's gate what was heard of the robots it waits for,
+        whose plans the agent takes on their own keys while it waits, wherever they are
+        (:meth:`_Link.watch_plans`); with every plan, or the digest, the step hears them all."""
+        gate = self.ctrl.gate
+        self.link.watch_plans(() if gate is None else gate.waits_for)
+        if gate is not None:
+            heard = [self.last.get(j) for j in gate.waits_for]
+            self.ctrl.gate_news([neighbour_of(pl) for pl in heard if pl is not None])
 
     def _reach(self, braked: Collection[str], within: int = 1) -> list[str]:
         """The other robots that a step may need to know: every one, or with plans by place those
@@ -792,6 +806,8 @@ class _Link:
         self.place_token: Any = None
         self.poses: dict[str, Any] = {}
         """The subscriptions to other robots' camera poses, by robot (:meth:`watch_poses`)."""
+        self.plans: dict[str, Any] = {}
+        """Plans by place: the subscriptions to other robots' own plan keys (:meth:`watch_plans`)."""
         if side is not None:
             self.subs.append(inbox.watch_places(self.session, PLACE_LAG))
             assert start is not None
@@ -837,6 +853,16 @@ class _Link:
                 self.session, self.keys.near("*", cell_name(c)), Plan, keep=True, remote=True
             )
 
+    def watch_plans(self, robots: Collection[str]) -> None:
+        """Plans by place: take the plans of exactly ``robots`` on their own keys too, wherever
+        they are (those a gate waits for: :meth:`Agent._gate_news`)."""
+        for j in [j for j in self.plans if j not in robots]:
+            self.inbox.unsubscribe(self.plans.pop(j))
+        for j in robots:
+            if j not in self.plans:
+                key = self.keys.plan(j)
+                self.plans[j] = self.inbox.subscribe(self.session, key, Plan, keep=True, remote=True)
+
     def watch_poses(self, robots: Collection[str]) -> None:
         """Take the camera poses of exactly ``robots`` (the robots off their plans whose stand
         the guard waits for, :attr:`agent.hazards.Guard.watched`): declared when a robot comes,
@@ -862,7 +888,7 @@ class _Link:
         for token in (self.token, self.place_token):
             if token is not None:
                 token.undeclare()
-        for sub in [*self.subs, *self.block.values(), *self.poses.values()]:
+        for sub in [*self.subs, *self.block.values(), *self.poses.values(), *self.plans.values()]:
             sub.undeclare()
         self.session.close()
 

@@ -135,13 +135,18 @@ def cmd_design(args: argparse.Namespace) -> int:
 
 
 def _say_forced_order(scn: Scenario, footprint: float) -> None:
-    """Say, before a run, whose way home the others' goals wall in (ground.scenario.forced_order)."""
+    """Say, before a run, whose way home the others' goals wall in (ground.scenario.forced_order),
+    and the order of arrival the robots keep to (ground.arrival)."""
+    from ground.arrival import arrival
     from ground.scenario import forced_order, forced_order_lines
 
     forced = forced_order(scn, footprint)
     if forced:
         print(f"layout: {len(forced)} of {len(scn.robots)} robots must be home before others park:")
         print("\n".join(f"  {line}" for line in forced_order_lines(forced)))
+        if scn.controller.deadlock:
+            print("order of arrival:")
+            print("\n".join(f"  {line}" for line in arrival(scn, footprint).lines()))
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:

@@ -47,6 +47,7 @@ from agent.coordination import Hazard
 from agent.hazards import Guard, starts_of
 from agent.messages import plan_message
 from agent.tube import TubeDesign, require_admissible, synthesize
+from ground.arrival import arrival
 from ground.geometry import Array, controlled_point
 from ground.model import brake_input, chain_input
 from ground.scenario import Scenario, home, settle_samples
@@ -241,6 +242,7 @@ class Simulation:
         """Each robot's newest plan that its robot side executed."""
         self.braked: set[str] = set()
         """The robots braked by their robot side over the last step (the next tick would say so)."""
+        gates = arrival(scenario, design.footprint).gates if p.deadlock else {}
         for rank, rb in enumerate(scenario.robots):
             plant = make_plant(sim.plant, np.array(rb.start, dtype=float), p)
             start_pt = plant.state()[[0, 2]]
@@ -257,6 +259,7 @@ class Simulation:
                 rank=rank,
                 seed=seed * 1000 + rank,
                 solver_fault=fault,
+                gate=gates.get(rb.id),
             )
             self.plants[rb.id] = plant
             self.applied[rb.id] = (-1, None)

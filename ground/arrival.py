@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 
 from ground.freespace import FreeSpace, free_space_model
 from ground.geometry import controlled_point
-from ground.scenario import GOAL_MARGIN, Scenario, forced_order
+from ground.scenario import GOAL_MARGIN, PARKED_RADIUS, Scenario, forced_order
 
 WAIT_RING_STEP = 0.02
 """Radial step [m] of the rings about a goal on which its wait point is sought (the loader's
@@ -105,9 +105,10 @@ class Arrival:
         return out
 
 
-def arrival(scn: Scenario, footprint: float, slack: float = 0.0) -> Arrival:
+def arrival(scn: Scenario, footprint: float, slack: float = PARKED_RADIUS) -> Arrival:
     """The order of arrival of ``scn`` for a footprint radius [m] (module docstring), a robot
-    parked or waiting standing up to ``slack`` [m] off its goal or wait point.  Every agent works
+    parked or waiting standing up to ``slack`` [m] off its goal or wait point
+    (:data:`~ground.scenario.PARKED_RADIUS`).  Every agent works
     it out for itself from the scenario: the same inputs give the same gates."""
     ids = [r.id for r in scn.robots]
     at = {rid: k for k, rid in enumerate(ids)}

@@ -71,6 +71,10 @@ SETTLE_TIME = 1.0
 goal this long [s]: one pass through the goal is not an arrival."""
 AT_GOAL = 1e-3
 """A committed reference whose end point is within this distance of its goal ends there [m]."""
+PARKED_RADIUS = 0.05
+"""A robot that has reached its goal counts as parked within this distance of it [m] (its
+committed end point's distance; farther, it is returning); a robot counts as waiting within it
+of its wait point (:mod:`ground.arrival`)."""
 GOAL_MARGIN = 0.01
 """Two goals are at least the two footprints plus this apart [m]: the split rule then leaves
 both robots slack to settle side by side (docs/method.md §7, "Close goals")."""

@@ -29,11 +29,12 @@ from typing import Any
 
 import numpy as np
 
+from ground.arrival import Arrival, arrival
 from ground.bus import remember_steps
 from ground.geometry import Array, controlled_point, wrap_angle
 from ground.model import travel_floor
 from ground.scenario import GOAL_TOLERANCE, Scenario, forced_order, settled_since
-from ground.wire import BLIND, LINK_DOWN, PARKED, RETURNING, Plan
+from ground.wire import BLIND, LINK_DOWN, PARKED, RETURNING, WAITING, Plan
 
 SOLVED = "PROXQP_SOLVED"
 """The one solver status whose plan is a solution; every other status is a fallback."""
@@ -132,6 +133,8 @@ class Judge:
         self.extras: dict[str, dict[str, Any]] = {r: {} for r in self.ids}
         self._layout: tuple[float, dict[str, dict[str, list[str]]]] | None = None
         """(footprint [m], :meth:`layout` for it), once worked out."""
+        self._arrival: tuple[float, Arrival] | None = None
+        """(footprint [m], :meth:`arrival` for it), once worked out."""
         """Per robot, the figures only the in-process simulator measures (:meth:`simulated`)."""
         self.walled: dict[str, list[str]] = {}
         """Per robot whose way home parked robots wall in now, those robots (:meth:`_walls`)."""
@@ -300,7 +303,9 @@ class Judge:
                 continue
             here = pl.committed[-1]
             movers = [
-                j for j in self.ids if j != r and j in last and j not in self.off and last[j].phase != PARKED
+                j
+                for j in self.ids
+                if j != r and j in last and j not in self.off and last[j].phase not in (PARKED, WAITING)
             ]
             by = min(movers, key=lambda j: float(np.linalg.norm(last[j].committed[-1] - here)), default=None)
             self.robot[r]["displaced"] += 1
@@ -371,6 +376,17 @@ class Judge:
         if self._layout is None or self._layout[0] != self.footprint:
             self._layout = (self.footprint, forced_order(self.scn, self.footprint))
         return self._layout[1]
+
+    def arrival(self) -> Arrival | None:
+        """The order of arrival the agents keep to (:func:`~ground.arrival.arrival`: who waits for
+        whom, and where), once a plan has given the footprint (None before); worked out once, as
+        every agent works it out.  With the navigator off (``deadlock = false``) nobody waits."""
+        if self.footprint is None:
+            return None
+        if self._arrival is None or self._arrival[0] != self.footprint:
+            arr = arrival(self.scn, self.footprint) if self.scn.controller.deadlock else Arrival({})
+            self._arrival = (self.footprint, arr)
+        return self._arrival[1]
 
     def _regoal(self, a: str, k: int, goal: Array) -> None:
         """Robot ``a``'s plan of step k heads for a new ``goal`` (2,) [m]: the samples of steps
@@ -510,6 +526,8 @@ class Judge:
             "places_heard_late": sum(v["places_heard_late"] for v in robots.values()),
             # Whose way home the others' goals wall in (the scenario's goals): null before a plan.
             "forced_order": self.layout(),
+            # Who waits for whom, and where, before first going home: null before a plan.
+            "order_of_arrival": _arrival_summary(self.arrival()),
             # Whose way home parked robots walled in as the run went, and when (steps).
             "walled_in": [dict(ep) for ep in self.walled_episodes],
             # Parked robots that stepped aside, for whom, and until when (steps); the first
@@ -700,3 +718,20 @@ def _pair_distances(P: Array) -> Array:
     ``np.triu_indices(n, 1)`` order (n(n − 1)/2,)."""
     i, j = np.triu_indices(len(P), 1)
     return np.asarray(np.hypot(P[i, 0] - P[j, 0], P[i, 1] - P[j, 1]))
+
+
+def _arrival_summary(arr: Arrival | None) -> dict[str, Any] | None:
+    """The order of arrival as ``summary.json`` keeps it: per robot that waits, whom for and
+    where (``wait_point`` [m]); the robots in a cycle of waits, without a wait point, and those
+    the lemma does not cover (docs/method.md §7, "The order of arrival")."""
+    if arr is None:
+        return None
+    return {
+        "waits": {
+            rid: {"waits_for": list(g.waits_for), "wait_point": [float(v) for v in g.wait_point]}
+            for rid, g in arr.gates.items()
+        },
+        "unordered": list(arr.unordered),
+        "no_wait_point": list(arr.no_wait_point),
+        "unproven": list(arr.unproven),
+    }

@@ -220,6 +220,9 @@ class Monitor:
         the summary keeps the same (``forced_order``, worked out once by the judge)."""
         for line in forced_order_lines(self.judge.layout() or {}):
             self.recorder.event(f"layout: {line}", "WARN")
+        arr = self.judge.arrival()
+        for line in [] if arr is None else arr.lines():
+            self.recorder.event(f"order of arrival: {line}")
 
     def _blocked(self, k: int, before: dict[str, str]) -> None:
         """An event and a log line for each robot whose goal a stopped robot came to cover at

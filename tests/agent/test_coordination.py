@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from agent.coordination import (
-    PARKED_RADIUS,
     NeighbourInfo,
     obstacle_halfplanes,
     repair_point,
@@ -16,7 +15,7 @@ from agent.coordination import (
     split_halfplanes,
 )
 from agent.navigator import CORRIDOR_MARGIN, GridPlanner, Navigator
-from ground.scenario import Circle
+from ground.scenario import PARKED_RADIUS, Circle
 from ground.wire import MAX_AGE, PARKED, RETURNING, UNDER_WAY
 
 EPS = 0.0055

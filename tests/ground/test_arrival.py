@@ -13,13 +13,12 @@ from fleet.scenes import lane_crossing, mirrored_grid, pocket, random_scene, sce
 from ground.arrival import Arrival, arrival
 from ground.freespace import free_space_model
 from ground.geometry import controlled_point
-from ground.scenario import GOAL_MARGIN, Scenario, load_scenario
+from ground.scenario import GOAL_MARGIN, PARKED_RADIUS, Scenario, load_scenario
 
 FP = 0.13405
 """The epuck preset's footprint [m]."""
-SLACK = 0.05
-"""How far off its goal or wait point a robot parked or waiting may stand [m] (the agent's
-``agent.coordination.PARKED_RADIUS``)."""
+SLACK = PARKED_RADIUS
+"""How far off its goal or wait point a robot parked or waiting may stand [m]."""
 
 
 def _load(tmp_path: Path, scene: dict) -> Scenario:

@@ -107,6 +107,9 @@ def test_fleet_simulate_says_the_forced_order_and_the_summary_keeps_it(tmp_path)
     )
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["forced_order"] == {"r1": {"alone": ["r2"], "together": []}}
+    order = summary["order_of_arrival"]
+    assert order["waits"].keys() == {"r2"} and order["waits"]["r2"]["waits_for"] == ["r1"]
+    assert (order["unordered"], order["no_wait_point"], order["unproven"]) == ([], [], [])
 
 
 def test_fleet_run_says_the_forced_order_and_the_recording_holds_it(tmp_path) -> None:
@@ -127,5 +130,6 @@ def test_fleet_run_says_the_forced_order_and_the_recording_holds_it(tmp_path) ->
     events = [text for _, text in read_events(out / "recording.rrd")]
     want = "layout: r1 must get past the goals of r2 before they park: each walls in its way"
     assert want in events, events
+    assert any(e.startswith("order of arrival: r2 waits at (") for e in events), events
     summary = json.loads((out / "summary.json").read_text())
     assert summary["forced_order"] == {"r1": {"alone": ["r2"], "together": []}}
