@@ -699,7 +699,9 @@ class Navigator:
         P = c + self._ring * radius  # (48, 2)
         free = self._standable(P)
         if not np.any(free):
-            return c.copy()
+            # Nowhere to stand aside.  A parked robot keeps to its goal, where it blocks nobody's
+            # (goals are two footprints and a margin apart): off it, it may block a neighbour's.
+            return wp.copy() if self.phase == PARKED else c.copy()
         score = 0.5 * radius * self._ring_norm + 0.2 * np.hypot(wp[0] - P[:, 0], wp[1] - P[:, 1])
         for a, b, w in corridors:
             dseg = _points_segment_distance(P, a, b)

@@ -322,3 +322,40 @@ def test_robots_seen_beyond_the_neighbours_shape_the_target_and_add_no_constrain
     assert abs(seeing.target[0]) > 0.1  # out of the corridor, to one side
     # No split row against it: the smallest slack the rows saw is that of no neighbour at all.
     assert alone.status == seeing.status and alone.min_slack == seeing.min_slack == math.inf
+
+
+def test_a_parked_robot_with_nowhere_to_stand_aside_keeps_to_its_goal():
+    """In a cell walled in on every side, a hair wider than the footprint, no point around a
+    robot is free.  Asked to make way, a parked robot standing 2 cm off its goal steers back to
+    its goal (where, goals being two footprints and a margin apart, it blocks nobody's); a robot
+    under way stays where it is."""
+    from ground.scenario import parse_scenario
+
+    g, half = np.array([0.0, 0.0]), 0.15
+    box = [  # four walls about a square of side 2·half around g
+        [[-0.6, half], [0.6, half], [0.6, 0.6], [-0.6, 0.6]],
+        [[-0.6, -0.6], [0.6, -0.6], [0.6, -half], [-0.6, -half]],
+        [[-0.6, -half], [-half, -half], [-half, half], [-0.6, half]],
+        [[half, -half], [0.6, -half], [0.6, half], [half, half]],
+    ]
+    scn = parse_scenario(
+        {
+            "name": "walled_cell", "duration": 10.0, "arena": {"bounds": [-1.0, 1.0, -1.0, 1.0]},
+            "obstacles": [{"polygon": p} for p in box],
+            "robots": [{"id": "r1", "start": [-0.8, -0.8, 0.0], "goal": [-0.8, 0.8]}],
+        }
+    )  # fmt: skip
+    fp = 0.13405
+    c = g + np.array([0.02, 0.0])
+    first = NeighbourInfo(
+        "r0", np.array([0.0, 0.45]), fp, rank=0, target=np.array([0.0, -0.45]), goal=np.array([0.0, -0.45]),
+        phase=UNDER_WAY,
+    )  # fmt: skip
+    targets = {}
+    for phase in (PARKED, UNDER_WAY):
+        nav = Navigator(footprint=fp, arena=scn.arena, obstacles=scn.obstacles, rank=1)
+        nav.phase = phase
+        assert not nav._standable(c + nav._ring * 0.4).any()  # nowhere to stand aside
+        targets[phase] = nav.target(c, g, [first])
+    assert targets[PARKED][1] == targets[UNDER_WAY][1] == "yield"
+    assert np.allclose(targets[PARKED][0], g) and np.allclose(targets[UNDER_WAY][0], c)
