@@ -162,8 +162,8 @@ class TubeMPC:
         once that holds, or if it waits for nobody, or once it is given a goal at run time
         (docs/method.md §7, "The order of arrival")."""
         self.seen_past: set[str] = set()
-        """Of the robots this one waits for, those seen past its goal or parked, or stopped for
-        good, so far (ids)."""
+        """Of the robots this one waits for, those seen past its goal or parked, or whose agent is
+        gone, so far (ids)."""
         xmin, xmax, ymin, ymax = arena
         r = self.r
         self.y_box = np.array([xmin + r, xmax - r, ymin + r, ymax - r])
@@ -193,7 +193,10 @@ class TubeMPC:
     def reset(self, point: Array, x: Array | None = None) -> None:
         """(Re-)initialise at ``point`` (2,) [m]: the committed reference stays put there.  The
         nominal state starts at ``x`` (4,) [m, m/s], the measured state (so x − x̂ = 0 ∈ Z),
-        or at rest at ``point``."""
+        or at rest at ``point``.  A robot (re)joining at its goal drops its :attr:`gate`: a
+        restarted agent of a robot already home does not go back to wait."""
+        if self.gate is not None and float(np.linalg.norm(point - self.goal)) < PARKED_RADIUS:
+            self.gate = None  # (re)joining at its goal: the order of arrival is served
         E = self.design.E
         self.y_ref = np.tile(point, (self.N, 1))
         self.x_ref = np.tile(E @ point, (self.N, 1))
@@ -480,8 +483,9 @@ class TubeMPC:
         robot stands there.  The navigator then steers to the nearest point it may park at, clear
         of them and as far from the other robots' goals as goals must be apart (:attr:`parking`)."""
         static = [(h.centre, self.r + h.radius) for h in hazards if h.static]
-        # A robot stopped for good goes nowhere: nobody need wait for it to park.
-        self.seen_past.update(h.id for h in hazards if h.static)
+        # A robot whose agent is gone goes nowhere: nobody need wait for it to park.  (A braked
+        # or blind one starts again where it is: it is still waited for.)
+        self.seen_past.update(h.id for h in hazards if h.kind == "dead")
         self._discs_changed = self.nav.set_discs(static)
         for h in hazards:
             if h.static and math.hypot(*(self.goal - h.centre)) < self.r + h.radius:

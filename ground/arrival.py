@@ -216,9 +216,6 @@ def _together(
     return pa is not None and pa == pb
 
 
-_NO_GATE = Gate((), np.zeros(2))
-
-
 def _waiters(
     model: FreeSpace, i: int, together: list[str], at: dict[str, int], starts: list[NDArray[np.float64]],
     goals: list[NDArray[np.float64]], reach: float, walled: set[str],

@@ -60,13 +60,41 @@ def test_the_middle_robot_steers_to_its_wait_point_until_the_deepest_is_past() -
 
 
 def test_a_robot_seen_parked_opens_the_gate_and_one_unheard_of_does_not() -> None:
-    """The mouth's robot waits for both others: hearing only one of them past keeps it waiting;
-    the other seen parked (wherever its point) opens the gate."""
+    """The mouth's robot waits for both others: hearing only one of them keeps it waiting; the
+    other seen parked opens the gate, wherever its point (here outside the pocket, not past)."""
     scn, design, gates, starts, goals = _pocket()
     ctrl = _ctrl(scn, design, gates, starts, goals, "r3")
-    ctrl.steer([_info(design, "r1", goals["r1"], goals["r1"], PARKED)])
+    gate = gates["r3"]
+    assert not gate.past(0, starts["r1"]) and not gate.past(1, starts["r2"])
+    ctrl.steer([_info(design, "r1", starts["r1"], goals["r1"], PARKED)])
     assert ctrl.gate is not None
-    ctrl.steer([_info(design, "r2", goals["r2"], goals["r2"], PARKED)])
+    ctrl.steer([_info(design, "r2", starts["r2"], goals["r2"], UNDER_WAY)])
+    assert ctrl.gate is not None  # heard, but neither past nor parked
+    ctrl.steer([_info(design, "r2", starts["r2"], goals["r2"], PARKED)])
+    assert ctrl.gate is None
+
+
+def test_a_robot_whose_agent_is_gone_is_not_waited_for_and_a_braked_one_is() -> None:
+    """A dead robot's disc (its agent gone) counts as past; a braked robot's does not: it
+    starts again where it is."""
+    from agent.coordination import Hazard
+
+    scn, design, gates, starts, goals = _pocket()
+    for kind, opens in (("braked", False), ("dead", True)):
+        ctrl = _ctrl(scn, design, gates, starts, goals, "r2")
+        disc = Hazard("r1", starts["r1"], design.footprint, kind=kind)
+        ctrl.step(np.r_[starts["r2"][0], 0.0, starts["r2"][1], 0.0], [], [disc])
+        assert (ctrl.gate is None) == opens, kind
+
+
+def test_an_agent_joining_with_its_robot_at_its_goal_drops_the_gate() -> None:
+    """A restarted agent whose robot is already home does not go back to its wait point; one
+    whose robot is anywhere else keeps the gate."""
+    scn, design, gates, starts, goals = _pocket()
+    ctrl = _ctrl(scn, design, gates, starts, goals, "r2")
+    ctrl.reset(gates["r2"].wait_point)
+    assert ctrl.gate is not None
+    ctrl.reset(goals["r2"] + np.array([0.01, 0.0]))
     assert ctrl.gate is None
 
 

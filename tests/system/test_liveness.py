@@ -80,14 +80,14 @@ def test_every_robot_arrives_and_stays(name):
 def test_a_pocket_fills_from_the_bottom_and_nobody_is_walled_in(width):
     """Three goals down a dead-end pocket (ground.arrival): each robot but the deepest waits at
     its wait point until the robots whose way its goal walls in are past it, so the judge never
-    finds a way home walled in and nobody has to leave its goal.  The 0.341 m pocket is
-    the liveness bench's scene whose mouth robot parked first, before the order of arrival, and
-    walled the deepest robot out for good."""
+    finds a way home walled in and nobody has to leave its goal.  Without the gates, the 0.341 m
+    pocket left its middle robot out for good."""
     from fleet.scenes import pocket
 
     scn = parse_scenario(pocket(width, depth=3 * MIN_GOAL_SPACING + 0.2, robots=3, duration=300.0))
     s = run(scn).summary()
     assert s["collisions"] == 0
+    assert s["order_of_arrival"]["waits"].keys() == {"r2", "r3"}  # the gates were there
     robots = s["robots"]
     assert all(v["reached_goal"] for v in robots.values()), {r: v["final_error_m"] for r, v in robots.items()}
     assert s["walled_in"] == [] and s["displacements"] == 0
