@@ -168,15 +168,9 @@ class GridPlanner:
             ok[idx] = np.all(self.free_at(P.reshape(-1, 2)).reshape(idx.size, steps), axis=1)
         return ok
 
-    def _fine(self, P: Array) -> tuple[np.ndarray, np.ndarray]:
-        fs = self.space
-        ix = np.clip(((P[:, 0] - fs.x0) / fs.hx).astype(int), 0, fs.nx - 1)
-        iy = np.clip(((P[:, 1] - fs.y0) / fs.hy).astype(int), 0, fs.ny - 1)
-        return ix, iy
-
     def _clear_at(self, P: Array) -> Array:
         """Clearance [m] of the fine cell each point (k, 2) [m] lies in."""
-        ix, iy = self._fine(P)
+        ix, iy = self.space.cells(P)
         return np.asarray(self.space.clearance[ix, iy])
 
     def in_sight(self, a: Array, b: Array) -> bool:
@@ -190,7 +184,7 @@ class GridPlanner:
     def free_at(self, P: Array) -> np.ndarray:
         """Whether a disc of the footprint may stand at each point (k, 2) [m], as the loader's
         fine grid says of the cell it lies in (k,)."""
-        ix, iy = self._fine(np.asarray(P, dtype=float).reshape(-1, 2))
+        ix, iy = self.space.cells(P)
         return np.asarray(self.space.free[ix, iy])
 
     def add_discs(

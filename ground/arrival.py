@@ -61,11 +61,9 @@ class Gate:
     def past(self, k: int, point: NDArray[np.float64]) -> bool:
         """Whether ``point`` (2,) [m] lies past the goals that wall in the way of robot
         ``waits_for[k]``: in a cell of ``beyond[k]``."""
-        fs = self.space
-        assert fs is not None
-        ix = min(fs.nx - 1, max(0, int((point[0] - fs.x0) / fs.hx)))
-        iy = min(fs.ny - 1, max(0, int((point[1] - fs.y0) / fs.hy)))
-        return bool(self.beyond[k][ix, iy])
+        assert self.space is not None
+        ix, iy = self.space.cells(point)
+        return bool(self.beyond[k][ix[0], iy[0]])
 
 
 @dataclass(frozen=True)
@@ -286,8 +284,7 @@ def _wait_point(
             ok &= np.hypot(P[:, 0] - q[0], P[:, 1] - q[1]) >= spacing
         if not ok.any():
             continue
-        ix = np.clip(((P[:, 0] - model.x0) / model.hx).astype(int), 0, model.nx - 1)
-        iy = np.clip(((P[:, 1] - model.y0) / model.hy).astype(int), 0, model.ny - 1)
+        ix, iy = model.cells(P)
         ok &= model.free[ix, iy] & (lab[ix, iy] == home)
         for k in np.flatnonzero(ok):
             if tried >= WAIT_CANDIDATES:

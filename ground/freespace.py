@@ -72,6 +72,14 @@ class FreeSpace:
         self.reach = math.hypot(self.hx, self.hy)
         """A cell's diagonal [m]: how far from a point its free cell may be."""
 
+    def cells(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The indices (ix, iy) of the cells that points P (k, 2) [m] lie in, clipped to the
+        grid (each (k,))."""
+        P = np.asarray(P, dtype=float).reshape(-1, 2)
+        ix = np.clip(((P[:, 0] - self.x0) / self.hx).astype(int), 0, self.nx - 1)
+        iy = np.clip(((P[:, 1] - self.y0) / self.hy).astype(int), 0, self.ny - 1)
+        return ix, iy
+
     def piece(self, point: np.ndarray) -> int | None:
         """The piece of free space of a point (2,) [m]: that of the free cell nearest it within a
         cell diagonal; None if no free cell is that near."""
