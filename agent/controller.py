@@ -158,9 +158,10 @@ class TubeMPC:
         """Optional callable(step) -> bool; True forces this step's solve to count as failed (tests)."""
         self.gate = gate
         """The order of arrival this robot keeps to (:func:`ground.arrival.arrival`): until every
-        robot it waits for has been seen parked, it steers to its wait point, not its goal; None
-        once that holds, or if it waits for nobody, or once it is given a goal at run time
-        (docs/method.md §7, "The order of arrival")."""
+        robot it waits for has been seen past its goal or parked (:attr:`seen_past`), it steers
+        to its wait point, not its goal; None once that holds, or if it waits for nobody, or once
+        it is given a goal at run time or rejoins at its goal (docs/method.md §7, "The order of
+        arrival")."""
         self.seen_past: set[str] = set()
         """Of the robots this one waits for, those seen past its goal or parked, or whose agent is
         gone, so far (ids)."""
