@@ -317,3 +317,64 @@ def test_inbox_counts_news_of_a_place_that_came_later_than_the_lag_allows():
     mesh._accept(keys.plan("r2"), _plan("r2", 3, (0.0, 0.0)).encode(), Plan, True, 0.0)
     mesh._accept(keys.plan("r2"), _plan("r2", 4, (0.0, 0.0)).encode(), Plan, True, 0.0)
     assert mesh.late == {} and mesh.get(Plan, "r2").step == 4
+
+
+def _link_args(**net) -> SimpleNamespace:
+    return SimpleNamespace(
+        lease=None, mode=None, zenoh_config=None, faults=None, clock="lockstep", exchange="mesh",
+        delay_compensation=False, **net,
+    )  # fmt: skip
+
+
+def test_a_waiting_agent_takes_the_plans_of_the_robot_it_waits_for_from_anywhere_and_only_those():
+    """With plans by place an agent hears only the cells about its own; a robot it waits for
+    (its gate, docs/method.md §7) it hears on that robot's own key wherever it is, from the
+    moment it watches it until it stops (``_Link.watch_plans``).  Two real Zenoh sessions on
+    loopback; a marker put on the waited robot's own session, after its plan and into the
+    waiter's cells, says when that plan would have come."""
+    from agent.node import _Link
+    from ground.bus import put
+    from ground.net import free_port, loopback
+
+    keys = Keys("gate")
+    hub = loopback(free_port())
+    far, home = np.array([8.0 * SIDE, 8.0 * SIDE]), np.zeros(2)
+    waiter = _Link(_link_args(listen=[hub], connect=[]), keys, "r1", "agent r1", side=SIDE, start=far)
+    waited = _Link(_link_args(listen=[], connect=[hub]), keys, "r2", "agent r2", side=SIDE, start=home)
+    try:
+        marks = iter(range(1, 10_000))
+
+        def heard(robot: str, step: int) -> bool:
+            return waiter.inbox.get(Plan, robot, step) is not None
+
+        def sync() -> None:
+            """Put a marker plan into the waiter's cells on the waited robot's session until the
+            waiter has it: whatever that session put before has come by then, or never will."""
+            m = next(marks)
+            key = keys.near("r9", cell_name(group_of(cell_of(far, SIDE))))
+            for _ in range(400):  # bounded: 20 s
+                put(waited.session, key, _plan("r9", m, far).encode())
+                with waiter.inbox.cond:
+                    if waiter.inbox.cond.wait_for(lambda m=m: heard("r9", m), 0.05):
+                        return
+            raise AssertionError("the marker never came: the two sessions are not linked")
+
+        waited.put_plan(_plan("r2", 1, home))  # eight cells away: not in the waiter's cells
+        sync()
+        assert not heard("r2", 1) and waiter.plans == {}
+        waiter.watch_plans(["r2"])
+        for step in range(2, 402):  # bounded: until the subscription has reached the other peer
+            waited.put_plan(_plan("r2", step, home))
+            sync()
+            if heard("r2", step):
+                break
+        else:
+            raise AssertionError("the waited robot's plan never came on its own key")
+        waiter.watch_plans([])
+        assert waiter.plans == {}
+        waited.put_plan(_plan("r2", 1000, home))
+        sync()
+        assert not heard("r2", 1000)
+    finally:
+        waited.close()
+        waiter.close()
