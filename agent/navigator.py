@@ -28,8 +28,9 @@ from scipy.sparse.csgraph import dijkstra
 
 from agent.coordination import UNCONTROLLED_PRIORITY, NeighbourInfo, precedence
 from agent.sets import Array
+from ground.arrival import WAIT_RING_STEP
 from ground.freespace import free_space_model
-from ground.scenario import PARKED_RADIUS
+from ground.scenario import GOAL_MARGIN, PARKED_RADIUS
 from ground.wire import PARKED, RETURNING
 
 
@@ -378,16 +379,25 @@ def grid_planner(
 
 EXIT = -2
 """A window's predecessor (:meth:`GridPlanner.local_field`) where the path leaves it."""
-PARKING_REACH = 0.6
-"""How far from a goal a stopped robot covers the navigator looks for a point to park at [m]."""
+PARKING_STEP = WAIT_RING_STEP
+"""Radial step [m] of the rings about a covered goal on which a point to park is sought: as a
+wait point's (a point is placed to 2 cm)."""
+PARKING_CLEAR = GOAL_MARGIN
+"""How far [m] outside every static disc a point to park must be: the goal margin."""
 _ANGLES = np.linspace(0.0, 2.0 * math.pi, 36, endpoint=False)
-PARKING_RINGS = np.vstack(
-    [
-        rho * np.column_stack([np.cos(_ANGLES), np.sin(_ANGLES)])
-        for rho in np.arange(0.02, PARKING_REACH, 0.02)
-    ]
-)
-"""Offsets (k, 2) [m] the navigator tries about a covered goal, ring by ring outwards."""
+
+
+@functools.lru_cache(maxsize=16)
+def parking_rings(reach: float) -> np.ndarray:
+    """Offsets (k, 2) [m] the navigator tries about a covered goal, ring by ring outwards, every
+    :data:`PARKING_STEP` out to ``reach`` [m] (:meth:`Navigator.clear_goal`), 10° apart."""
+    return np.vstack(
+        [
+            rho * np.column_stack([np.cos(_ANGLES), np.sin(_ANGLES)])
+            for rho in np.arange(PARKING_STEP, reach + PARKING_STEP, PARKING_STEP)
+        ]
+    )
+
 
 WINDOW = 2.0
 """Half side [m] of the window in which a replan weighs the other robots
@@ -513,24 +523,31 @@ class Navigator:
 
     def clear_goal(self, goal: Array, goals: Sequence[tuple[Array, float]] = ()) -> Array:
         """``goal`` (2,) [m] itself if no static disc (:meth:`set_discs`) covers it; else the point
-        nearest it, on rings 2 cm apart up to :data:`PARKING_REACH`, where the robot may park:
-        clear of every disc by 1 cm, clear of the walls and obstacles (the loader's free space),
+        nearest it, on rings :data:`PARKING_STEP` apart, where the robot may park: clear of every
+        disc by :data:`PARKING_CLEAR`, clear of the walls and obstacles (the loader's free space),
         inside the walls by the footprint, and as far from every other robot's goal as goals must
         be apart (``goals``: (goal (2,) [m], the distance [m]), so that each can still park at its
         own).  The goal itself if there is none (shaping only: the constraints keep ȳ out of
-        the discs)."""
+        the discs).
+
+        The rings reach round the widest covering disc (every point just outside it, on any side,
+        lies within its diameter and :data:`PARKING_CLEAR` of a goal it covers) and across one
+        other goal's keep-out beyond that (its diameter): however wide the disc, a point beside
+        it that one other goal, a wall or an obstacle shuts off still has others the rings reach."""
         p = np.array(goal, dtype=float)
-        if not any(math.hypot(*(p - c)) < r for c, r in self._discs):
+        covering = [r for c, r in self._discs if math.hypot(*(p - c)) < r]
+        if not covering:
             return p
         g = self._grid
         assert g is not None
-        P = p + PARKING_RINGS
+        reach = 2.0 * max(covering) + PARKING_CLEAR + 2.0 * max((a for _, a in goals), default=0.0)
+        P = p + parking_rings(round(reach, 2))
         xmin, xmax, ymin, ymax = self.arena
         r = self.footprint
         ok = (P[:, 0] >= xmin + r) & (P[:, 0] <= xmax - r) & (P[:, 1] >= ymin + r) & (P[:, 1] <= ymax - r)
         ok &= g.free_at(P)
         for c, rad in self._discs:
-            ok &= np.hypot(P[:, 0] - c[0], P[:, 1] - c[1]) >= rad + 0.01
+            ok &= np.hypot(P[:, 0] - c[0], P[:, 1] - c[1]) >= rad + PARKING_CLEAR
         for q, apart in goals:
             ok &= np.hypot(P[:, 0] - q[0], P[:, 1] - q[1]) >= apart
         if not np.any(ok):

@@ -544,3 +544,35 @@ def test_the_heading_is_measured_over_the_fewest_steps_whose_noise_stays_within_
     assert end_error(W) <= p.epsilon + 1e-12
     if W > 1:
         assert end_error(W - 1) > p.epsilon
+
+
+@pytest.mark.parametrize("radius", [0.3, 0.55, 0.8])
+def test_a_goal_under_a_stopped_robots_disc_of_any_width_gets_the_nearest_point_beside_it(design, radius):
+    """A goal covered by a stopped robot's disc gives way to the nearest point clear of it by
+    PARKING_CLEAR and a goal spacing from another goal (``Navigator.clear_goal``), however wide the
+    disc: the rings the point is sought on reach round the disc and one goal's keep-out, where a
+    fixed reach of 0.6 m found nothing beside a disc of radius 0.8 m and kept the goal itself."""
+    from agent.navigator import PARKING_CLEAR, PARKING_STEP, Navigator
+
+    fp = design.footprint
+    nav = Navigator(footprint=fp, arena=(-2.0, 2.0, -2.0, 2.0))
+    goal, centre = np.array([0.0, 0.0]), np.array([0.1, 0.0])
+    nav.set_discs([(centre, radius)])
+    other, apart = np.array([-(radius - 0.1) - 0.2, 0.0]), 2 * fp + 0.01  # a goal on the near side
+    p = nav.clear_goal(goal, [(other, apart)])
+    assert np.linalg.norm(p - centre) >= radius + PARKING_CLEAR - 1e-9
+    assert np.linalg.norm(p - other) >= apart - 1e-9
+    # The nearest such point, to the rings' step: none of the free points of a fine scan is
+    # nearer by more than a ring and the angle between two points of a ring.
+    ang = np.linspace(0, 2 * np.pi, 720, endpoint=False)
+    best = np.inf
+    for rho in np.arange(0.001, 2 * radius + 1.0, 0.002):
+        Q = goal + rho * np.column_stack([np.cos(ang), np.sin(ang)])
+        ok = (np.linalg.norm(Q - centre, axis=1) >= radius + PARKING_CLEAR) & (
+            np.linalg.norm(Q - other, axis=1) >= apart
+        )
+        if ok.any():
+            best = rho
+            break
+    got = float(np.linalg.norm(p - goal))
+    assert got <= best + PARKING_STEP + best * np.radians(10.0), (got, best)
