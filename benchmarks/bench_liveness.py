@@ -20,6 +20,12 @@ prints a table per family and overall:
   in free space (``travel_floor_s``, :func:`ground.model.travel_floor`), p50 / p90;
 * well-formed: scenes whose layout forces no order of arrival (no robot's way home walled in
   by the others' goals: ``ground.scenario.forced_order``, docs/method.md §7).
+* where the path goes (a second table): per family, the share of the moved robots' paths up to
+  arrival spent going their own way (to the goal or the wait point), making way for a robot
+  that goes first, and escaping a stall, by the navigator's mode at each step (:data:`WAYS`):
+  what the gap between path efficiency and its floor is made of; and the length of the own way
+  over the same robots' shortest ways alone (``own / alone``: over 1, the own way itself went
+  round robots, or came back after making way).
 * ms/robot-step: the wall time of the scenes' runs (``fleet simulate``, one process each) over
   their steps times their robots: what a robot costs the simulator a step, at each size.
 
@@ -119,7 +125,9 @@ def one(
         return {"seed": seed, "name": data["name"], "family": family, "refused": design}
     extra: dict[str, Any] = {}
     if realtime is None:
-        s = run(scn, design=design, ahead=ahead).summary()
+        res = run(scn, design=design, ahead=ahead)
+        s = res.summary()
+        extra = {"ways": _ways(res, s)}
     else:
         where = realtime / data["name"]
         where.mkdir(parents=True, exist_ok=True)
@@ -139,6 +147,8 @@ def one(
     eff = [r["path_to_arrival_m"] / r["straight_line_m"] for r in moved.values()]
     slow = [r["time_to_goal_s"] / r["travel_floor_s"] for r in moved.values() if r["travel_floor_s"] > 0]
     alone = _alone(scn, design.footprint)
+    if "ways" in extra:  # the shortest ways alone of the same robots [m]
+        extra["ways"]["alone"] = sum(alone[k] * r["straight_line_m"] for k, r in moved.items() if k in alone)
     return {
         "seed": seed,
         "name": data["name"],
@@ -155,6 +165,55 @@ def one(
         "wall_s": time.perf_counter() - t0,
         **extra,
     }
+
+
+WAYS = {"goal": "own", "path": "own", "yield": "make way", "escape": "escape"}
+"""The navigator's modes (``agent.navigator.Navigator.target``) grouped by what a robot is doing:
+going its own way (to its goal, or to its wait point, along its path), making way for a robot
+that goes first, or escaping a stall (the watchdog); any other mode counts as "other"."""
+
+
+def _ways(res: Any, s: dict[str, Any]) -> dict[str, float]:
+    """Over the robots that moved and arrived, the length [m] of their paths up to arrival
+    (the controlled point's, sample to sample) by what each step's mode had them do (:data:`WAYS`)."""
+    out = dict.fromkeys(["own", "make way", "escape", "other"], 0.0)
+    Ts = res.design.params.Ts
+    for rid, r in s["robots"].items():
+        if not (r["straight_line_m"] > MOVES and r["reached_goal"]):
+            continue
+        tr = res.traces[rid]
+        k_end = min(len(tr.modes), round(r["time_to_goal_s"] / Ts))
+        P = np.asarray(tr.point[: k_end + 1])
+        d = np.hypot(*np.diff(P, axis=0).T) if len(P) > 1 else np.zeros(0)
+        for mode, m in zip(tr.modes[:k_end], d, strict=False):
+            out[WAYS.get(mode, "other")] += float(m)
+    return out
+
+
+def ways_table(rows: list[dict[str, Any]]) -> list[str]:
+    """Per family, where the path to arrival goes: the share of it spent going one's own way,
+    making way and escaping (:func:`_ways`)."""
+    ran = [r for r in rows if "ways" in r]
+    if not ran:
+        return []
+    out = [
+        f"{'family':<14} {'path [m]':>9} {'own way':>8} {'make way':>9} {'escape':>7} {'other':>6} "
+        f"{'own / alone':>11}"
+    ]
+    kinds = ("own", "make way", "escape", "other")
+    for fam in [*sorted({r["family"] for r in ran}), "all"]:
+        tot = dict.fromkeys([*kinds, "alone"], 0.0)
+        for r in ran:
+            if fam in ("all", r["family"]):
+                for k, v in r["ways"].items():
+                    tot[k] += v
+        path = sum(tot[k] for k in kinds)
+        share = [f"{100.0 * tot[k] / path:.0f} %" if path else "–" for k in kinds]
+        own = f"{tot['own'] / tot['alone']:.2f}" if tot["alone"] else "–"
+        out.append(
+            f"{fam:<14} {path:>9.1f} {share[0]:>8} {share[1]:>9} {share[2]:>7} {share[3]:>6} {own:>11}"
+        )
+    return out
 
 
 def _pct(values: list[float], q: float) -> str:
@@ -262,7 +321,7 @@ def run(args: argparse.Namespace) -> int:
             )  # fmt: skip
             print(f"  [{len(rows):>3}/{n}] {r['name']}: {what}", flush=True)
     rows.sort(key=lambda r: r["seed"])
-    lines = floor_table(rows) if floor_only else table(rows)
+    lines = floor_table(rows) if floor_only else [*table(rows), *ways_table(rows)]
     if realtime is not None:
         ran = [r for r in rows if "refused" not in r]
         lines.append(

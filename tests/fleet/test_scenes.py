@@ -123,6 +123,12 @@ def test_liveness_bench_runs_the_layout_families_and_refuses_an_unknown_one(tmp_
     row = json.loads((tmp_path / "liveness.json").read_text())["scenes"][0]
     assert row["family"] == "file" and row["name"].startswith("hard_3_file_")
     assert len(row["alone"]) == len(row["path_efficiency"]) and min(row["alone"]) >= 1.0 - 1e-9, row
+    # Where the path goes: its parts by the navigator's mode add up to at least the shortest
+    # ways alone of the same robots (no path is shorter, to the goal tolerance).
+    assert "make way" in out.stdout and "own / alone" in out.stdout, out.stdout
+    ways = row["ways"]
+    path = sum(ways[k] for k in ("own", "make way", "escape", "other"))
+    assert ways["alone"] > 0 and path >= 0.98 * ways["alone"], ways
     bad = subprocess.run(
         [sys.executable, "-m", "fleet.cli", "bench", "--liveness", "1", "--families", "hallway"],
         capture_output=True, text=True, timeout=120, cwd=ROOT, env=env,
