@@ -79,7 +79,7 @@ class StepOutput:
     target: Array
     """Target of the goal term this step (2,) [m]."""
     mode: str
-    """Navigator mode: goal, waypoint, yield or escape."""
+    """Navigator mode: goal, path, yield, aside or escape (:meth:`agent.navigator.Navigator.target`)."""
     iterations: int = 0
     x_next: Array = field(default_factory=lambda: np.zeros(4))
     """The shifted candidate for the next step: nominal state x̂_{t+1} (4,) [m, m/s]."""

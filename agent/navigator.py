@@ -477,6 +477,8 @@ class Navigator:
     _since_plan: int = 10**9
     _escape: Array | None = None
     _escape_left: int = 0
+    _escape_mode: str = "aside"
+    """What the point held is for: "aside" (made way to) or "escape" (the watchdog's)."""
     _rng: np.random.Generator | None = None
     _best_dist: float = math.inf
     _stall: int = 0
@@ -611,7 +613,9 @@ class Navigator:
         return self._grid.carrot(self._pred, c, goal, self.lookahead, self._block, then)
 
     def target(self, c: Array, goal: Array, neighbours: Sequence[NeighbourInfo]) -> tuple[Array, str]:
-        """Target of the goal term and the mode (``goal``, ``path``, ``yield``, ``escape``)."""
+        """Target of the goal term and the mode: ``goal`` or ``path`` (its own way), ``yield``
+        (making way: in the corridor of a robot that goes first), ``aside`` (holding the point it
+        made way to, for :attr:`hold_steps`) or ``escape`` (the progress watchdog's point)."""
         wp = self.waypoint(c, goal, neighbours)
         mode = "goal" if wp is goal else "path"
         me = self.precedence
@@ -651,7 +655,7 @@ class Navigator:
             held = self._escape
             if held is None or not (sweeps and self._clear_of(held, corridors)):
                 held = self._escape_point(c, wp, corridors, neighbours)
-            self._escape = held
+            self._escape, self._escape_mode = held, "aside"
             self._escape_left = self.hold_steps
             self._stall = 0
             return held, "yield"
@@ -662,7 +666,7 @@ class Navigator:
         if self._escape is not None and self._escape_left > 0:
             self._escape_left -= 1
             if np.linalg.norm(self._escape - c) > 0.02:
-                return self._escape, "escape"
+                return self._escape, self._escape_mode
         if self._escape is not None:
             self._escape = None
             self._best_dist = math.inf
@@ -675,7 +679,7 @@ class Navigator:
             self._stall += 1
         if self._stall > self.stall_steps:
             self._escape = self._escape_point(c, wp, corridors, neighbours, radius=0.5)
-            self._escape_left = 40
+            self._escape_left, self._escape_mode = 40, "escape"
             return self._escape, "escape"
         return wp, mode
 

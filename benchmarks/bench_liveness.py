@@ -22,7 +22,8 @@ prints a table per family and overall:
   by the others' goals: ``ground.scenario.forced_order``, docs/method.md §7).
 * where the path goes (a second table): per family, the share of the moved robots' paths up to
   arrival spent going their own way (to the goal or the wait point), making way for a robot
-  that goes first, and escaping a stall, by the navigator's mode at each step (:data:`WAYS`):
+  that goes first (and holding the point made way to), and escaping a stall (the watchdog), by
+  the navigator's mode at each step (:data:`WAYS`):
   what the gap between path efficiency and its floor is made of; and the length of the own way
   over the same robots' shortest ways alone (``own / alone``: over 1, the own way itself went
   round robots, or came back after making way).
@@ -167,10 +168,11 @@ def one(
     }
 
 
-WAYS = {"goal": "own", "path": "own", "yield": "make way", "escape": "escape"}
+WAYS = {"goal": "own", "path": "own", "yield": "make way", "aside": "make way", "escape": "escape"}
 """The navigator's modes (``agent.navigator.Navigator.target``) grouped by what a robot is doing:
 going its own way (to its goal, or to its wait point, along its path), making way for a robot
-that goes first, or escaping a stall (the watchdog); any other mode counts as "other"."""
+that goes first (in its corridor, then holding the point made way to), or escaping a stall (the
+watchdog); any other mode counts as "other"."""
 
 
 def _ways(res: Any, s: dict[str, Any]) -> dict[str, float]:

@@ -467,7 +467,7 @@ def test_a_target_chosen_ahead_is_the_one_the_step_would_choose():
         assert np.allclose(oa.target, ob.target, atol=1e-9) and oa.mode == ob.mode
         modes.add(oa.mode)
     assert b.counters.ahead == 60 and a.counters.ahead == 0
-    assert modes & {"path", "yield", "escape"}, modes  # the navigator had work to do
+    assert modes & {"path", "yield", "aside", "escape"}, modes  # the navigator had work to do
 
 
 def test_a_target_chosen_ahead_is_dropped_once_the_reference_changed():
