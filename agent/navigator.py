@@ -534,8 +534,7 @@ class Navigator:
 
         The rings reach round the widest covering disc (every point just outside it, on any side,
         lies within its diameter and :data:`PARKING_CLEAR` of a goal it covers) and across one
-        other goal's keep-out beyond that (its diameter): however wide the disc, a point beside
-        it that one other goal, a wall or an obstacle shuts off still has others the rings reach."""
+        other goal's keep-out beyond that (its diameter), however wide the disc."""
         p = np.array(goal, dtype=float)
         covering = [r for c, r in self._discs if math.hypot(*(p - c)) < r]
         if not covering:

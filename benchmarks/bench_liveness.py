@@ -23,8 +23,8 @@ prints a table per family and overall:
 * where the path goes (a second table): per family, the share of the moved robots' paths up to
   arrival spent going their own way (to the goal or the wait point), making way for a robot
   that goes first (and holding the point made way to), and escaping a stall (the watchdog), by
-  the navigator's mode at each step (:data:`WAYS`):
-  what the gap between path efficiency and its floor is made of; and the length of the own way
+  the navigator's mode at each step (:data:`WAYS`): what the gap between path efficiency and
+  its floor is made of; and the length of the own way
   over the same robots' shortest ways alone (``own / alone``: over 1, the own way itself went
   round robots, or came back after making way).
 * ms/robot-step: the wall time of the scenes' runs (``fleet simulate``, one process each) over
