@@ -413,6 +413,17 @@ CORRIDOR_MARGIN = 0.05
 """Extra half-width of the corridor of a robot that goes first, beyond r_i + r_j [m]."""
 
 
+LOOKAHEAD = 0.3
+"""Carrot distance along the planned path [m]."""
+
+CONFLICT_RANGE = LOOKAHEAD + CORRIDOR_MARGIN
+"""Extra distance beyond r_i + r_j within which a robot that goes first is yielded to [m].
+Derived: a robot on its way steers to a target at most :data:`LOOKAHEAD` from its point (its
+carrot, or its goal within that), so its corridor, that segment widened by r_i + r_j +
+:data:`CORRIDOR_MARGIN`, lies within r_i + r_j + this of it: the range drops no robot such a
+corridor holds, and takes none it cannot hold (docs/method.md §7)."""
+
+
 @dataclass
 class Navigator:
     """Chooses the target of the goal term (shaping only; see module docstring).
@@ -436,8 +447,9 @@ class Navigator:
     obstacles: Sequence[Any] = ()
     priority: int = 0
     rank: int = 0
-    conflict_range: float = 0.35
-    """Extra distance beyond r_i + r_j within which a higher robot is yielded to [m]."""
+    conflict_range: float = CONFLICT_RANGE
+    """Extra distance beyond r_i + r_j within which a higher robot is yielded to [m]
+    (:data:`CONFLICT_RANGE`; an agent with plans by place caps it at its view)."""
     corridor_margin: float = CORRIDOR_MARGIN
     """Extra corridor half-width beyond r_i + r_j [m]."""
     close_goals: float = CORRIDOR_MARGIN + PARKED_RADIUS
@@ -451,8 +463,8 @@ class Navigator:
     from then on, a parked robot at a close goal yields to it as to any robot that goes first.
     A goal enclosed by parked robots at close goals (the interior of a grid of goals spaced
     barely over R) is reachable no other way (docs/method.md §7, "Close goals")."""
-    lookahead: float = 0.3
-    """Carrot distance along the planned path [m]."""
+    lookahead: float = LOOKAHEAD
+    """Carrot distance along the planned path [m] (:data:`LOOKAHEAD`)."""
     window: float = WINDOW
     """Half side of the square about the robot in which each replan weighs the other robots [m]
     (:data:`WINDOW`)."""

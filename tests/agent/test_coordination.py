@@ -14,7 +14,7 @@ from agent.coordination import (
     shares,
     split_halfplanes,
 )
-from agent.navigator import CORRIDOR_MARGIN, GridPlanner, Navigator
+from agent.navigator import CORRIDOR_MARGIN, LOOKAHEAD, GridPlanner, Navigator, point_segment_distance
 from ground.scenario import PARKED_RADIUS, Circle
 from ground.wire import MAX_AGE, PARKED, RETURNING, UNDER_WAY
 
@@ -130,6 +130,27 @@ def test_lower_robot_in_the_corridor_yields_and_parked_robots_yield_to_all():
         "c", np.array([-0.35, 0.0]), 0.134, rank=9, phase=UNDER_WAY, target=np.array([0.3, 0.0])
     )
     assert nav3.target(me, me, [mover])[1] == "yield"
+
+
+def test_the_yield_range_holds_every_corridor_of_a_robot_on_its_way():
+    """The range within which a robot that goes first is yielded to is derived, not chosen: a
+    robot on its way steers to a target within the lookahead, so its corridor reaches r_i + r_j
+    + LOOKAHEAD + CORRIDOR_MARGIN from it, and a robot anywhere in that corridor, up to its far
+    rim, makes way; one just outside the corridor does not.  A range any shorter misses the
+    far rim."""
+    fp = 0.134
+    w = 2 * fp + CORRIDOR_MARGIN
+    rng = np.random.default_rng(7)
+    for k in range(24):
+        u = np.array([math.cos(k * math.pi / 12), math.sin(k * math.pi / 12)])
+        q = rng.uniform(-0.3, 0.3, 2)
+        first = NeighbourInfo("a", q, fp, rank=0, target=q + LOOKAHEAD * u, phase=UNDER_WAY)
+        far_rim = q + (LOOKAHEAD + w - 1e-3) * u  # inside the corridor, as far from q as it goes
+        side = q + 0.5 * LOOKAHEAD * u + (w + 1e-3) * np.array([-u[1], u[0]])  # just outside it
+        for c, inside in ((far_rim, True), (side, False)):
+            assert (point_segment_distance(c, q, first.target) < w) == inside
+            nav = Navigator(footprint=fp, arena=(-2.0, 2.0, -2.0, 2.0), rank=5)
+            assert (nav.target(c, c + 1.5 * u, [first])[1] == "yield") == inside, (k, inside)
 
 
 def test_a_robot_displaced_by_a_returning_one_keeps_yielding_to_it_until_it_has_parked():
