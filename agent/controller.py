@@ -90,6 +90,9 @@ class StepOutput:
     """The discs the step kept clear of (:class:`Hazard`)."""
     blocked: str = ""
     """The robot whose static disc covers the goal this step, or "" (:meth:`TubeMPC.blocker`)."""
+    no_room: str = ""
+    """The robot that goes first whose corridor this robot found no free point out of this step,
+    or "" (:attr:`agent.navigator.Navigator.no_room`)."""
 
 
 @dataclass
@@ -475,6 +478,7 @@ class TubeMPC:
             v_next=nxt[qp.iv].reshape(self.N, 2),
             hazards=tuple(hazards),
             blocked=blocked,
+            no_room=self.nav.no_room,
         )
 
     def _static(self, hazards: Sequence[Hazard], neighbours: Sequence[NeighbourInfo]) -> str:

@@ -22,7 +22,7 @@ def plan_message(robot: str, k: int, ctrl: TubeMPC, out: StepOutput, late: int =
     return Plan(
         robot=robot, step=k, t0=(k + 1) * Ts, Ts=Ts, committed=out.committed, nominal=out.plan,
         footprint=ctrl.r, priority=ctrl.priority, rank=ctrl.rank, phase=ctrl.phase, target=out.target,
-        phase_age=ctrl.phase_age, late=late, discs=discs, blocked=out.blocked,
+        phase_age=ctrl.phase_age, late=late, discs=discs, blocked=out.blocked, no_room=out.no_room,
         goal=ctrl.goal, status=out.status, solve_time=out.solve_time, tube_ok=out.tube_ok,
     )  # fmt: skip
 

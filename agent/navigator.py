@@ -412,7 +412,6 @@ that costs no more than a window would (docs/method.md §7)."""
 CORRIDOR_MARGIN = 0.05
 """Extra half-width of the corridor of a robot that goes first, beyond r_i + r_j [m]."""
 
-
 LOOKAHEAD = 0.3
 """Carrot distance along the planned path [m]."""
 
@@ -489,6 +488,9 @@ class Navigator:
     _since_plan: int = 10**9
     _escape: Array | None = None
     _escape_left: int = 0
+    no_room: str = ""
+    """The robot that goes first whose corridor this robot found no free point out of, at the
+    last :meth:`target`, or "": assumption (A) of docs/method.md §7 failing for it."""
     _escape_mode: str = "aside"
     """What the point held is for: "aside" (made way to) or "escape" (the watchdog's)."""
     _rng: np.random.Generator | None = None
@@ -630,7 +632,8 @@ class Navigator:
         wp = self.waypoint(c, goal, neighbours)
         mode = "goal" if wp is goal else "path"
         me = self.precedence
-        corridors = []
+        self.no_room = ""
+        corridors, owners = [], []
         sweeps = 0  # of those corridors, the sweeps of robots driving on uncontrolled
         for nb in neighbours:
             R = self.footprint + nb.footprint
@@ -655,6 +658,7 @@ class Navigator:
                 continue
             end = nb.target if nb.target is not None else nb.last_point
             corridors.append((nb.last_point, end, R + self.corridor_margin))
+            owners.append(nb.id)
             if nb.priority == UNCONTROLLED_PRIORITY:
                 sweeps += point_segment_distance(c, nb.last_point, end) < R + self.corridor_margin
         blocked = [cd for cd in corridors if point_segment_distance(c, cd[0], cd[1]) < cd[2]]
@@ -666,6 +670,16 @@ class Navigator:
             held = self._escape
             if held is None or not (sweeps and self._clear_of(held, corridors)):
                 held = self._escape_point(c, wp, corridors, neighbours)
+            # Assumption (A) of the progress argument, checked: is the point out of every
+            # corridor?  If not, name the robot whose corridor it could not leave.
+            self.no_room = next(
+                (
+                    j
+                    for j, (a, b, w) in zip(owners, corridors, strict=True)
+                    if point_segment_distance(held, a, b) < w
+                ),
+                "",
+            )
             self._escape, self._escape_mode = held, "aside"
             self._escape_left = self.hold_steps
             self._stall = 0

@@ -50,7 +50,7 @@ from numpy.typing import NDArray
 
 from ground.geometry import Cell, parse_cell
 
-SCHEMA_VERSION = 8
+SCHEMA_VERSION = 9
 """The version of every message's layout; a message of another version is rejected.
 
 2: :class:`Command` carries the shifted candidate and :class:`Tick` what the robot side applied;
@@ -62,7 +62,8 @@ and :class:`Script` lets a script hold the lockstep clock and end the run;
 7: :class:`Plan` carries the discs its agent kept clear of (``discs``) and the robot whose stopped
 disc covers its goal (``blocked``), and :class:`Command` may ask the robot side to brake
 (``brake``);
-8: :class:`Plan` and :class:`Digest` may carry the phase :data:`WAITING`."""
+8: :class:`Plan` and :class:`Digest` may carry the phase :data:`WAITING`;
+9: :class:`Plan` carries the robot whose corridor its robot found no room to leave (``no_room``)."""
 UNDER_WAY, RETURNING, PARKED, WAITING = 0, 1, 2, 3
 """A plan's precedence phase (:attr:`Plan.phase`): under way (its goal never reached), returning
 (reached once, now displaced), parked (at its goal), waiting (at its wait point, before it first
@@ -401,6 +402,10 @@ class Plan(Message):
     blocked: str = ""
     """The robot whose static disc (off its plans for good, :data:`OFF_PLAN`) covers this robot's
     goal this step, or "": the goal cannot be reached while it stands there."""
+    no_room: str = ""
+    """The robot that goes first whose corridor this robot, making way for it, found no free point
+    out of this step, or "": the room to step aside that progress assumes is missing here
+    (docs/method.md §7, assumption (A))."""
 
     @classmethod
     def _check(cls, d: dict[str, Any]) -> dict[str, Any]:
@@ -425,7 +430,8 @@ class Plan(Message):
             "phase_age": _int(d["phase_age"], "phase_age", 0, MAX_AGE),
             "late": _int(d["late"], "late", 0, 2**31),
             "discs": _discs(d["discs"], d["robot"]),
-            "blocked": _blocker(d["blocked"], d["robot"]),
+            "blocked": _other(d["blocked"], d["robot"], "blocked"),
+            "no_room": _other(d["no_room"], d["robot"], "no_room"),
             "target": decode_array(d["target"], "target", (2,)),
             "goal": decode_array(d["goal"], "goal", (2,)),
             "status": _str(d["status"], "status"),
@@ -648,13 +654,14 @@ class Outcome(_Executed, Message):
         }
 
 
-def _blocker(v: Any, me: Any) -> str:
-    """A plan's ``blocked``: "" or another robot's id."""
+def _other(v: Any, me: Any, name: str) -> str:
+    """A plan's field ``name`` that names another robot (``blocked``, ``no_room``): "" or
+    another robot's id."""
     if v == "":
         return ""
-    rid = _str(v, "blocked", ROBOT_ID)
+    rid = _str(v, name, ROBOT_ID)
     if rid == me:
-        raise WireError("blocked: names the plan's own robot")
+        raise WireError(f"{name}: names the plan's own robot")
     return rid
 
 
@@ -756,7 +763,7 @@ class Digest(Message):
                 Plan, robot=rid, step=k, t0=(k + 1) * Ts, Ts=Ts, committed=self.committed[i], nominal=empty,
                 footprint=fp[i], priority=self.priority[i], rank=self.rank[i], phase=self.phase[i],
                 phase_age=self.phase_age[i], target=self.target[i], goal=self.goal[i], status="relayed",
-                solve_time=0.0, tube_ok=True, late=0, discs={}, blocked="",
+                solve_time=0.0, tube_ok=True, late=0, discs={}, blocked="", no_room="",
             )  # fmt: skip
             out.append(plan)
         return out

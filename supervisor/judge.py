@@ -112,7 +112,7 @@ class Judge:
             r: {"solves": 0, "failures": 0, "tube_exits": 0, "status": {}, "solve_ms": [], "candidate": 0,
                 "braked": 0, "breaks": 0, "blind": 0, "link_losses": 0, "late": 0, "arena": 0,
                 "uncontrolled": 0, "held_link_down": 0, "escapes": 0, "largest": 0.0, "displaced": 0,
-                "as": dict.fromkeys(KEPT_CLEAR_AS.values(), 0)}
+                "no_room": 0, "as": dict.fromkeys(KEPT_CLEAR_AS.values(), 0)}
             for r in self.ids
         }  # fmt: skip
         self.off: set[str] = set()
@@ -120,6 +120,14 @@ class Judge:
         since their last executed plan, or holding (blind, link down).  Their references are left
         out of the separation check: their robot is kept clear of by its disc instead."""
         self.blocked: dict[str, str] = dict.fromkeys(self.ids, "")
+        self.no_room: dict[str, str] = dict.fromkeys(self.ids, "")
+        """Per robot, the robot that goes first whose corridor it found no room to leave at its
+        latest plan (:attr:`~ground.wire.Plan.no_room`), or "" (assumption (A) of
+        docs/method.md §7 failing as the run goes)."""
+        self.no_room_episodes: list[dict[str, Any]] = []
+        """Each time a robot found no room to make way: ``robot``, ``for`` (the robot that goes
+        first), ``from_step`` and ``to_step`` (the plan it had room again at; None while it has
+        none).  The first :data:`MAX_EPISODES`; each robot's steps are all counted."""
         """Per robot, the robot whose stopped disc covered its goal in its latest plan, or ""."""
         self.claims: dict[int, list[tuple[str, Array, float]]] = {}
         """Per step, the discs that claim to hold a robot's true body (robot, centre (2,) [m],
@@ -280,6 +288,7 @@ class Judge:
             if not np.array_equal(made.goal, self.goals[a]):
                 self._regoal(a, k, made.goal)
             self.blocked[a] = made.blocked
+            self._no_room(a, k, made.no_room)
             # The executed reference for the next sample ("stay put" past its end).
             at = min(max(k - pa.step, 0), len(pa.committed) - 1)
             self.refs[a].append(pa.committed[at].copy())
@@ -362,6 +371,20 @@ class Judge:
         for r in set(self.walled) - set(now):
             self._end_wall(r, k)
         self.walled = now
+
+    def _no_room(self, r: str, k: int, by: str) -> None:
+        """Robot r's plan of step k found no room to make way for ``by`` ("" if it had room, or
+        was not making way): starts and ends an episode of :attr:`no_room_episodes`."""
+        before = self.no_room[r]
+        self.no_room[r] = by
+        self.robot[r]["no_room"] += by != ""
+        if by == before:
+            return
+        for ep in self.no_room_episodes:
+            if ep["robot"] == r and ep["to_step"] is None:
+                ep["to_step"] = k
+        if by and len(self.no_room_episodes) < MAX_EPISODES:
+            self.no_room_episodes.append({"robot": r, "for": by, "from_step": k, "to_step": None})
 
     def _end_wall(self, r: str, k: int) -> None:
         for ep in self.walled_episodes:
@@ -530,6 +553,9 @@ class Judge:
             "order_of_arrival": _arrival_summary(self.arrival()),
             # Whose way home parked robots walled in as the run went, and when (steps).
             "walled_in": [dict(ep) for ep in self.walled_episodes],
+            # Robots that found no room to step aside for a robot that goes first, and when
+            # (steps): the first MAX_EPISODES of them.
+            "no_room": [dict(ep) for ep in self.no_room_episodes],
             # Parked robots that stepped aside, for whom, and until when (steps); the first
             # MAX_EPISODES of them, and all of them counted.
             "displacements": self.displacements,
@@ -575,6 +601,8 @@ class Judge:
             "arena_violations": st["arena"],
             "goal_blocked_by": self.blocked[r] or None,
             "walled_in_by": self.walled.get(r),
+            "no_room_steps": st["no_room"],
+            "no_room_for": self.no_room[r] or None,
             "displaced": st["displaced"],
             "traded_places_with": [j for p in traded if r in p["robots"] for j in p["robots"] if j != r],
             "kept_clear_as": {**st["as"], "largest_disc_m": st["largest"] or None},
@@ -640,6 +668,7 @@ def verdict(summary: Mapping[str, Any]) -> str | None:
         r
         + (f" (goal blocked by {v['goal_blocked_by']})" if v.get("goal_blocked_by") else "")
         + (f" (way home walled in by {', '.join(v['walled_in_by'])})" if v.get("walled_in_by") else "")
+        + (f" (no room to make way for {v['no_room_for']})" if v.get("no_room_for") else "")
         + (
             f" (traded places with {', '.join(v['traded_places_with'])})"
             if v.get("traded_places_with")

@@ -196,9 +196,11 @@ class Monitor:
             self.k_truth += 1
         for plans, skipped, braked in plan_steps:
             blocked, walled = dict(self.judge.blocked), dict(self.judge.walled)
+            no_room = dict(self.judge.no_room)
             self.judge.plans(plans, skipped, braked)
             self.recorder.plans(self.k_plan, self.Ts, plans)
             self._blocked(self.k_plan, blocked)
+            self._no_room(self.k_plan, no_room)
             self._walled(self.k_plan, walled)
             self._displaced(self.k_plan)
             self.k_plan += 1
@@ -238,6 +240,20 @@ class Monitor:
             else:
                 self.recorder.event(f"{rid}: its goal is clear again")
                 log(ROLE, f"step {k}: {rid}: goal clear again")
+
+    def _no_room(self, k: int, before: dict[str, str]) -> None:
+        """An event and a log line for each robot that found no room to make way for a robot
+        that goes first at step k (``no_room``: assumption (A) of docs/method.md §7 failing), or
+        has room again."""
+        for rid, by in self.judge.no_room.items():
+            if by == before.get(rid, ""):
+                continue
+            if by:
+                self.recorder.event(f"no_room: {rid}: no room to make way for {by}", "WARN")
+                log(ROLE, f"step {k}: {rid}: no room to make way for {by}")
+            elif before.get(rid):
+                self.recorder.event(f"{rid}: room to make way again")
+                log(ROLE, f"step {k}: {rid}: room to make way again")
 
     def _walled(self, k: int, before: dict[str, list[str]]) -> None:
         """An event and a log line for each robot whose way home the parked robots came to wall

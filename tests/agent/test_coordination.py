@@ -116,7 +116,7 @@ def test_lower_robot_in_the_corridor_yields_and_parked_robots_yield_to_all():
     goal = np.array([0.0, 0.8])
     first = NeighbourInfo("a", np.array([-0.35, 0.0]), 0.134, rank=0, target=np.array([0.3, 0.0]))
     tgt, mode = nav.target(me, goal, [first])
-    assert mode == "yield"
+    assert mode == "yield" and nav.no_room == ""  # room to make way, in open space
     # The escape point is out of the corridor of the robot that goes first.
     assert abs(tgt[1]) > 0.134 * 2
     # A robot that goes after this one is not yielded to.
@@ -378,5 +378,6 @@ def test_a_parked_robot_with_nowhere_to_stand_aside_keeps_to_its_goal():
         nav.phase = phase
         assert not nav._standable(c + nav._ring * 0.4).any()  # nowhere to stand aside
         targets[phase] = nav.target(c, g, [first])
+        assert nav.no_room == "r0"  # assumption (A) fails here, and the navigator says so
     assert targets[PARKED][1] == targets[UNDER_WAY][1] == "yield"
     assert np.allclose(targets[PARKED][0], g) and np.allclose(targets[UNDER_WAY][0], c)

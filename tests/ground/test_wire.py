@@ -55,7 +55,7 @@ def _plan(robot="r1", n=20):
         priority=1, rank=2, phase=0, target=np.array([0.1, 0.2]), goal=np.array([0.5, -0.5]),
         status="PROXQP_SOLVED", solve_time=2.5e-4, tube_ok=True, late=3,
         discs={"r8": ("dead", True, 0.4, -0.1, 0.1344), "r9": ("stale", False, -0.2, 0.3, 0.2)},
-        blocked="r8",
+        blocked="r8", no_room="r9",
     )  # fmt: skip
 
 
@@ -116,6 +116,7 @@ def test_round_trip(name):
             assert np.array_equal(getattr(back, f), getattr(msg, f))
     if isinstance(msg, Plan):
         assert back.discs == msg.discs and back.blocked == msg.blocked == "r8"
+        assert back.no_room == msg.no_room == "r9"
     if isinstance(msg, Goal):
         assert back.batch.keys() == msg.batch.keys() and len(msg.batch) == 2
         assert all(np.array_equal(back.batch[r], g) for r, g in msg.batch.items())
@@ -208,6 +209,8 @@ BAD = [
      Plan, "discs"),
     ("plan: blocked by a bad id", lambda: _mutate(SAMPLES["plan"], blocked="r 2"), Plan, "blocked"),
     ("plan: blocked by itself", lambda: _mutate(SAMPLES["plan"], blocked="r1"), Plan, "blocked"),
+    ("plan: no room for itself", lambda: _mutate(SAMPLES["plan"], no_room="r1"), Plan, "no_room"),
+    ("plan: no room for a bad id", lambda: _mutate(SAMPLES["plan"], no_room="r 2"), Plan, "no_room"),
     ("plan: a stale disc at rest", lambda: _disc("r2", "stale", True, 0, 0, 1), Plan, "discs"),
     ("cmd: brake not a boolean", lambda: _mutate(SAMPLES["cmd"], brake=1), Command, "brake"),
     ("plan: blocked by a number", lambda: _mutate(SAMPLES["plan"], blocked=2), Plan, "blocked"),

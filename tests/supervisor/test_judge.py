@@ -284,11 +284,13 @@ def _judge_and_plan():
 
     scn = load_scenario(Path(__file__).resolve().parents[2] / "scenarios" / "paper_two_robots.toml")
 
-    def plan(robot: str, step: int, end=(0.0, 0.0), status="PROXQP_SOLVED", discs=None, blocked=""):
+    def plan(
+        robot: str, step: int, end=(0.0, 0.0), status="PROXQP_SOLVED", discs=None, blocked="", no_room=""
+    ):
         pl = _plan(robot, step)
         return Plan(**{
             **pl.__dict__, "committed": np.tile(end, (20, 1)), "status": status, "discs": discs or {},
-            "blocked": blocked,
+            "blocked": blocked, "no_room": no_room,
         })  # fmt: skip
 
     return Judge(scn), plan, scn.controller
@@ -415,6 +417,70 @@ def test_the_verdict_and_the_faults_line_name_what_faults_did() -> None:
     note = fault_note(judge.summary(True, 1.0))
     assert note is not None and "links lost: r2 1×" in note
     assert "r2 (uncontrolled 1 steps; largest disc 0.300 m)" in note and "goals blocked: r1 by r2" in note
+
+
+def test_a_robot_with_no_room_to_make_way_is_named_while_it_has_none() -> None:
+    """Assumption (A) failing as the run goes: each time a robot's plan says it found no room to
+    make way for a robot that goes first, an episode opens, naming both, and it closes at the
+    first plan with room again; the steps are counted, and a robot that ends the run without
+    room and away from its goal is named so in the verdict."""
+    from supervisor.judge import verdict
+
+    judge, plan, _ = _judge_and_plan()
+    says = ["", "r2", "r2", "", "r2", "r2"]
+    for k, by in enumerate(says):
+        judge.truth({"r1": (-0.5, 0.0, 0.0), "r2": (0.5, 0.0, 0.0)})
+        judge.plans({"r1": plan("r1", k, (-0.5, 0.0), no_room=by), "r2": plan("r2", k, (0.5, 0.0))})
+    s = judge.summary(True, 1.0)
+    assert s["no_room"] == [
+        {"robot": "r1", "for": "r2", "from_step": 1, "to_step": 3},
+        {"robot": "r1", "for": "r2", "from_step": 4, "to_step": None},
+    ]
+    assert s["robots"]["r1"]["no_room_steps"] == 4 and s["robots"]["r1"]["no_room_for"] == "r2"
+    assert s["robots"]["r2"]["no_room_steps"] == 0 and s["robots"]["r2"]["no_room_for"] is None
+    why = verdict(s)
+    assert why is not None and "r1 (no room to make way for r2)" in why
+
+
+def test_the_supervisor_says_when_a_robot_has_no_room_to_make_way_and_when_it_has_again() -> None:
+    """The same, seen in Rerun: the supervisor's events (its recorder's ``event``) carry a
+    warning naming both robots when a plan says it found no room, and a line when it has room
+    again."""
+    from ground.wire import Pose, Truth
+    from supervisor.monitor import Monitor
+
+    class Events:
+        def __init__(self) -> None:
+            self.said: list[tuple[str, str]] = []
+
+        def event(self, text: str, level: str = "INFO") -> None:
+            self.said.append((text, level))
+
+        def __getattr__(self, name: str):
+            return lambda *a, **k: None
+
+    judge, plan, _ = _judge_and_plan()
+    inbox = Inbox(Keys("lab"), "test")
+    inbox.live = set(IDS)
+    says = ["", "r2", "r2", ""]
+    inbox._store(
+        Tick.TYPE, Tick(robot="tracker", step=len(says), t=0.1 * len(says), stop=True, misses=0), False
+    )
+    for k, by in enumerate(says):
+        for i, r in enumerate(IDS):
+            for typ in (Truth, Pose):
+                inbox._store(typ.TYPE, typ(robot=r, seq=k, t=0.1 * k, x=0.5 * i, y=0.0, theta=0.0), True)
+        inbox._store(Plan.TYPE, plan("r1", k, no_room=by), True)
+        inbox._store(Plan.TYPE, plan("r2", k, (0.5, 0.0)), True)
+    events = Events()
+    watch = Monitor(judge.scn, inbox, events)  # type: ignore[arg-type]
+    watch.ids = list(IDS)
+    watch.take()
+    said = [e for e in events.said if "room" in e[0]]
+    assert said == [
+        ("no_room: r1: no room to make way for r2", "WARN"),
+        ("r1: room to make way again", "INFO"),
+    ]
 
 
 def test_parked_robots_that_wall_in_a_way_home_are_named_while_they_do() -> None:
