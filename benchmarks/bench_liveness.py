@@ -26,7 +26,10 @@ prints a table per family and overall:
   the navigator's mode at each step (:data:`WAYS`): what the gap between path efficiency and
   its floor is made of; and the length of the own way
   over the same robots' shortest ways alone (``own / alone``: over 1, the own way itself went
-  round robots, or came back after making way).
+  round robots, or came back after making way); and ``no room``, of the steps robots spent in
+  the corridor of a robot that goes first (mode ``yield``, every robot, the whole run), the
+  share in which the point they chose was still in a corridor (``no_room_steps``: assumption
+  (A) of docs/method.md §7 failing).
 * ms/robot-step: the wall time of the scenes' runs (``fleet simulate``, one process each) over
   their steps times their robots: what a robot costs the simulator a step, at each size.
 
@@ -129,6 +132,9 @@ def one(
         res = run(scn, design=design, ahead=ahead)
         s = res.summary()
         extra = {"ways": _ways(res, s)}
+        # Steps making way (in a corridor), and of them those with no point out of it: (A) failing.
+        extra["making_way"] = sum(tr.modes.count("yield") for tr in res.traces.values())
+        extra["no_room"] = sum(r["no_room_steps"] for r in s["robots"].values())
     else:
         where = realtime / data["name"]
         where.mkdir(parents=True, exist_ok=True)
@@ -200,7 +206,7 @@ def ways_table(rows: list[dict[str, Any]]) -> list[str]:
         return []
     out = [
         f"{'family':<14} {'path [m]':>9} {'own way':>8} {'make way':>9} {'escape':>7} {'other':>6} "
-        f"{'own / alone':>11}"
+        f"{'own / alone':>11} {'no room':>8}"
     ]
     kinds = ("own", "make way", "escape", "other")
     for fam in [*sorted({r["family"] for r in ran}), "all"]:
@@ -212,8 +218,12 @@ def ways_table(rows: list[dict[str, Any]]) -> list[str]:
         path = sum(tot[k] for k in kinds)
         share = [f"{100.0 * tot[k] / path:.0f} %" if path else "–" for k in kinds]
         own = f"{tot['own'] / tot['alone']:.2f}" if tot["alone"] else "–"
+        yielding = sum(r.get("making_way", 0) for r in ran if fam in ("all", r["family"]))
+        cornered = sum(r.get("no_room", 0) for r in ran if fam in ("all", r["family"]))
+        room = f"{100.0 * cornered / yielding:.1f} %" if yielding else "–"
         out.append(
-            f"{fam:<14} {path:>9.1f} {share[0]:>8} {share[1]:>9} {share[2]:>7} {share[3]:>6} {own:>11}"
+            f"{fam:<14} {path:>9.1f} {share[0]:>8} {share[1]:>9} {share[2]:>7} {share[3]:>6} {own:>11} "
+            f"{room:>8}"
         )
     return out
 

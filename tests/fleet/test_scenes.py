@@ -129,6 +129,8 @@ def test_liveness_bench_runs_the_layout_families_and_refuses_an_unknown_one(tmp_
     ways = row["ways"]
     path = sum(ways[k] for k in ("own", "make way", "escape", "other"))
     assert ways["alone"] > 0 and path >= 0.98 * ways["alone"], ways
+    # Steps without room to make way are steps making way: never more of them.
+    assert "no room" in out.stdout and 0 <= row["no_room"] <= row["making_way"], row
     bad = subprocess.run(
         [sys.executable, "-m", "fleet.cli", "bench", "--liveness", "1", "--families", "hallway"],
         capture_output=True, text=True, timeout=120, cwd=ROOT, env=env,
