@@ -331,9 +331,12 @@ class GridPlanner:
         self, pred: Array, start: Array, goal: Array, lookahead: float,
         block: tuple[int, int, int, int] | None = None, then: Array | None = None,
     ) -> Array:  # fmt: skip
-        """Point ``lookahead`` [m] along the path from ``start`` towards ``goal``: along ``pred``
-        (the whole grid's, or with ``block`` a window's, :meth:`local_field`), and from where
-        it leaves the window along ``then`` (the whole grid's)."""
+        """Point ``lookahead`` [m] along the path from ``start`` towards ``goal`` (so no farther
+        from ``start`` than that), or ``goal`` if the path is shorter: along ``pred`` (the whole
+        grid's, or with ``block`` a window's, :meth:`local_field`), and from where it leaves the
+        window along ``then`` (the whole grid's).  The path runs from ``start`` to its cell's
+        successor's waypoint, then waypoint to waypoint; the point lies on the hop that reaches
+        the lookahead."""
         c = self.cell(start)
         gcell = self.cell(goal)
         travelled = 0.0
@@ -356,11 +359,12 @@ class GridPlanner:
             if nxt < 0:
                 return goal
             p = self.points[nxt]
-            travelled += math.hypot(p[0] - prev[0], p[1] - prev[1])
+            hop = math.hypot(p[0] - prev[0], p[1] - prev[1])
+            if travelled + hop >= lookahead:  # the point exactly ``lookahead`` along the path
+                return prev + (lookahead - travelled) / hop * (p - prev)
+            travelled += hop
             prev = p
             c = nxt
-            if travelled >= lookahead:
-                return p.copy()
         return goal
 
 
@@ -418,7 +422,8 @@ LOOKAHEAD = 0.3
 CONFLICT_RANGE = LOOKAHEAD + CORRIDOR_MARGIN
 """Extra distance beyond r_i + r_j within which a robot that goes first is yielded to [m].
 Derived: a robot on its way steers to a target at most :data:`LOOKAHEAD` from its point (its
-carrot, or its goal within that), so its corridor, that segment widened by r_i + r_j +
+carrot, that far along its path and so no farther in a straight line (:meth:`GridPlanner.carrot`),
+or its goal within that), so its corridor, that segment widened by r_i + r_j +
 :data:`CORRIDOR_MARGIN`, lies within r_i + r_j + this of it: the range drops no robot such a
 corridor holds, and takes none it cannot hold (docs/method.md §7)."""
 
@@ -448,7 +453,8 @@ class Navigator:
     rank: int = 0
     conflict_range: float = CONFLICT_RANGE
     """Extra distance beyond r_i + r_j within which a higher robot is yielded to [m]
-    (:data:`CONFLICT_RANGE`; an agent with plans by place caps it at its view)."""
+    (:data:`CONFLICT_RANGE`, derived from the default ``lookahead`` and ``corridor_margin``:
+    change them together; an agent with plans by place caps it at its view)."""
     corridor_margin: float = CORRIDOR_MARGIN
     """Extra corridor half-width beyond r_i + r_j [m]."""
     close_goals: float = CORRIDOR_MARGIN + PARKED_RADIUS

@@ -55,9 +55,10 @@ Pose3 = Sequence[float] | Array
 
 
 MAX_EPISODES = 1000
-"""Displacements kept one by one in ``summary.json`` (``displaced``) [episodes]: the first so
-many; each robot's count (``displaced``) and each pair's turns (``traded_places``) are exact.
-It bounds the summary's size over a run of any length."""
+"""Displacements, and episodes without room to make way, kept one by one in ``summary.json``
+(``displaced``, ``no_room``) [episodes]: the first so many of each; each robot's counts
+(``displaced``, ``no_room_steps``) and each pair's turns (``traded_places``) are exact.  It
+bounds the summary's size over a run of any length."""
 
 WALL_CHECK_STEPS = 10
 """How often the judge asks whose way home the parked robots wall in [steps] (1 s at Ts = 0.1 s):
@@ -120,15 +121,16 @@ class Judge:
         since their last executed plan, or holding (blind, link down).  Their references are left
         out of the separation check: their robot is kept clear of by its disc instead."""
         self.blocked: dict[str, str] = dict.fromkeys(self.ids, "")
+        """Per robot, the robot whose stopped disc covered its goal in its latest plan, or ""."""
         self.no_room: dict[str, str] = dict.fromkeys(self.ids, "")
         """Per robot, the robot that goes first whose corridor it found no room to leave at its
         latest plan (:attr:`~ground.wire.Plan.no_room`), or "" (assumption (A) of
         docs/method.md §7 failing as the run goes)."""
         self.no_room_episodes: list[dict[str, Any]] = []
         """Each time a robot found no room to make way: ``robot``, ``for`` (the robot that goes
-        first), ``from_step`` and ``to_step`` (the plan it had room again at; None while it has
-        none).  The first :data:`MAX_EPISODES`; each robot's steps are all counted."""
-        """Per robot, the robot whose stopped disc covered its goal in its latest plan, or ""."""
+        first), ``from_step`` and ``to_step`` (its first plan after that without the lack: with
+        room, or no longer making way; None while it lasts).  The first :data:`MAX_EPISODES`;
+        each robot's steps are all counted."""
         self.claims: dict[int, list[tuple[str, Array, float]]] = {}
         """Per step, the discs that claim to hold a robot's true body (robot, centre (2,) [m],
         radius [m]), judged against the sample of that step (:meth:`_judge_claims`)."""

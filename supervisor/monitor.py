@@ -244,7 +244,7 @@ class Monitor:
     def _no_room(self, k: int, before: dict[str, str]) -> None:
         """An event and a log line for each robot that found no room to make way for a robot
         that goes first at step k (``no_room``: assumption (A) of docs/method.md §7 failing), or
-        has room again."""
+        no longer lacks it (it has room, or no longer makes way)."""
         for rid, by in self.judge.no_room.items():
             if by == before.get(rid, ""):
                 continue
@@ -252,8 +252,8 @@ class Monitor:
                 self.recorder.event(f"no_room: {rid}: no room to make way for {by}", "WARN")
                 log(ROLE, f"step {k}: {rid}: no room to make way for {by}")
             elif before.get(rid):
-                self.recorder.event(f"{rid}: room to make way again")
-                log(ROLE, f"step {k}: {rid}: room to make way again")
+                self.recorder.event(f"{rid}: no longer without room to make way")
+                log(ROLE, f"step {k}: {rid}: no longer without room to make way")
 
     def _walled(self, k: int, before: dict[str, list[str]]) -> None:
         """An event and a log line for each robot whose way home the parked robots came to wall

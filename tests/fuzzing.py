@@ -125,7 +125,7 @@ LISTS: dict[str, dict[str, tuple[int, int] | None]] = {
 """List fields, one entry per relayed robot: robot ids (None), or integers in a closed range
 (``steps``: 0 … the digest's step, written −1)."""
 STRINGS: dict[str, dict[str, int]] = {"plan": {"status": 64, "blocked": 32, "no_room": 32}}
-"""Free-text fields and their longest accepted length (``blocked``: a robot id or "")."""
+"""Free-text fields and their longest accepted length (``blocked``, ``no_room``: a robot id or "")."""
 DISC_MAPS: dict[str, tuple[str, ...]] = {"plan": ("discs",)}
 """Maps robot id (never the message's own robot) → [kind, at rest, x, y, radius] (a plan's discs)."""
 MAPS: dict[str, dict[str, int]] = {
@@ -268,6 +268,7 @@ def realistic(name: str, robot: str, rng: np.random.Generator) -> Message:
             for kind in [str(rng.choice(["stale", "dead", "braked", "loose"]))]
         },
         blocked=str(rng.choice(["", "r7"])),
+        no_room=str(rng.choice(["", "r8"])),
     )  # fmt: skip
 
 

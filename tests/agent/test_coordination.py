@@ -134,23 +134,36 @@ def test_lower_robot_in_the_corridor_yields_and_parked_robots_yield_to_all():
 
 def test_the_yield_range_holds_every_corridor_of_a_robot_on_its_way():
     """The range within which a robot that goes first is yielded to is derived, not chosen: a
-    robot on its way steers to a target within the lookahead, so its corridor reaches r_i + r_j
-    + LOOKAHEAD + CORRIDOR_MARGIN from it, and a robot anywhere in that corridor, up to its far
-    rim, makes way; one just outside the corridor does not.  A range any shorter misses the
-    far rim."""
+    robot on its way steers to a carrot at most the lookahead from it along its path (so no
+    farther in a straight line, whatever the path's turns and the obstacles), and its corridor
+    reaches r_i + r_j + LOOKAHEAD + CORRIDOR_MARGIN from it.  A robot anywhere in that
+    corridor, up to its far rim, makes way; one just outside the corridor does not.  A range
+    any shorter misses the far rim."""
     fp = 0.134
     w = 2 * fp + CORRIDOR_MARGIN
+    arena = (-3.0, 3.0, -3.0, 3.0)
+    obstacles = [Circle(center=(0.9, 0.4), radius=0.3), Circle(center=(-1.0, -0.8), radius=0.4)]
     rng = np.random.default_rng(7)
-    for k in range(24):
-        u = np.array([math.cos(k * math.pi / 12), math.sin(k * math.pi / 12)])
-        q = rng.uniform(-0.3, 0.3, 2)
-        first = NeighbourInfo("a", q, fp, rank=0, target=q + LOOKAHEAD * u, phase=UNDER_WAY)
-        far_rim = q + (LOOKAHEAD + w - 1e-3) * u  # inside the corridor, as far from q as it goes
-        side = q + 0.5 * LOOKAHEAD * u + (w + 1e-3) * np.array([-u[1], u[0]])  # just outside it
+    furthest = 0.0
+    for k in range(40):
+        q = rng.uniform(-2.0, 2.0, 2)
+        goal = rng.uniform(-2.5, 2.5, 2)
+        if min(np.hypot(*(q - o.center)) for o in obstacles) < 0.6 or np.hypot(*(goal - q)) < 0.5:
+            continue
+        ahead = Navigator(footprint=fp, arena=arena, obstacles=obstacles, rank=0)
+        target = ahead.waypoint(q, goal)
+        reach = float(np.hypot(*(target - q)))
+        assert reach <= LOOKAHEAD + 1e-9, (k, reach)
+        furthest = max(furthest, reach)
+        first = NeighbourInfo("a", q, fp, rank=0, target=target, phase=UNDER_WAY)
+        u = (target - q) / reach
+        far_rim = q + (reach + w - 1e-3) * u  # inside the corridor, as far from q as it goes
+        side = q + 0.5 * reach * u + (w + 1e-3) * np.array([-u[1], u[0]])  # just outside it
         for c, inside in ((far_rim, True), (side, False)):
-            assert (point_segment_distance(c, q, first.target) < w) == inside
-            nav = Navigator(footprint=fp, arena=(-2.0, 2.0, -2.0, 2.0), rank=5)
-            assert (nav.target(c, c + 1.5 * u, [first])[1] == "yield") == inside, (k, inside)
+            assert (point_segment_distance(c, q, target) < w) == inside
+            nav = Navigator(footprint=fp, arena=arena, rank=5)
+            assert (nav.target(c, c - 0.5 * u, [first])[1] == "yield") == inside, (k, inside)
+    assert furthest > LOOKAHEAD - 0.01  # the carrots reached the lookahead: the far rim was tested
 
 
 def test_a_robot_displaced_by_a_returning_one_keeps_yielding_to_it_until_it_has_parked():

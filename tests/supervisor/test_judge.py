@@ -442,10 +442,10 @@ def test_a_robot_with_no_room_to_make_way_is_named_while_it_has_none() -> None:
     assert why is not None and "r1 (no room to make way for r2)" in why
 
 
-def test_the_supervisor_says_when_a_robot_has_no_room_to_make_way_and_when_it_has_again() -> None:
+def test_the_supervisor_says_when_a_robot_has_no_room_to_make_way_and_when_that_ends() -> None:
     """The same, seen in Rerun: the supervisor's events (its recorder's ``event``) carry a
-    warning naming both robots when a plan says it found no room, and a line when it has room
-    again."""
+    warning naming both robots when a plan says it found no room, and a line when a plan no
+    longer says so."""
     from ground.wire import Pose, Truth
     from supervisor.monitor import Monitor
 
@@ -479,7 +479,7 @@ def test_the_supervisor_says_when_a_robot_has_no_room_to_make_way_and_when_it_ha
     said = [e for e in events.said if "room" in e[0]]
     assert said == [
         ("no_room: r1: no room to make way for r2", "WARN"),
-        ("r1: room to make way again", "INFO"),
+        ("r1: no longer without room to make way", "INFO"),
     ]
 
 

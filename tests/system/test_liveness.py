@@ -105,3 +105,25 @@ def test_closest_goals_are_the_footprints_plus_the_margin():
         validated_design(parse_scenario(d))
     assert e.value.field == "robots[1].goal" and "'r1'" in e.value.reason and "'r2'" in e.value.reason
     assert f"+ {GOAL_MARGIN:g}" in e.value.reason
+
+
+def test_a_train_that_must_back_into_a_lane_is_named_as_having_no_room():
+    """Assumption (A) failing, seen from outside: two trains meet in a single-file lane, and the
+    robot that meets the one going first has no point out of its corridor.  The summary names
+    it, and the robot it could not make way for, and counts its steps without room, each a step
+    its navigator had it make way (mode ``yield``); the robot that goes first never lacks room."""
+    from fleet.scenes import LAYOUT_FAMILIES
+
+    data = hard_scene(36, LAYOUT_FAMILIES)
+    assert data["name"] == "hard_36_file_trains_3"
+    data["duration"] = 40.0
+    res = run(parse_scenario(data))
+    s = res.summary()
+    ids = {r["id"] for r in data["robots"]}
+    assert s["no_room"], "no episode of no room"
+    for ep in s["no_room"]:
+        assert ep["robot"] in ids and ep["for"] in ids - {ep["robot"]}, ep
+    for rid, v in s["robots"].items():
+        assert v["no_room_steps"] <= res.traces[rid].modes.count("yield"), rid
+    assert max(v["no_room_steps"] for v in s["robots"].values()) > 0
+    assert s["robots"]["r1"]["no_room_steps"] == 0  # the first in precedence makes way for nobody
