@@ -131,6 +131,8 @@ class Judge:
         first), ``from_step`` and ``to_step`` (its first plan after that without the lack: with
         room, or no longer making way; None while it lasts).  The first :data:`MAX_EPISODES`;
         each robot's steps are all counted."""
+        self._no_room_open: dict[str, dict[str, Any]] = {}
+        """Per robot without room now, its episode of :attr:`no_room_episodes` (if kept)."""
         self.claims: dict[int, list[tuple[str, Array, float]]] = {}
         """Per step, the discs that claim to hold a robot's true body (robot, centre (2,) [m],
         radius [m]), judged against the sample of that step (:meth:`_judge_claims`)."""
@@ -382,11 +384,12 @@ class Judge:
         self.robot[r]["no_room"] += by != ""
         if by == before:
             return
-        for ep in self.no_room_episodes:
-            if ep["robot"] == r and ep["to_step"] is None:
-                ep["to_step"] = k
+        ended = self._no_room_open.pop(r, None)
+        if ended is not None:
+            ended["to_step"] = k
         if by and len(self.no_room_episodes) < MAX_EPISODES:
-            self.no_room_episodes.append({"robot": r, "for": by, "from_step": k, "to_step": None})
+            self._no_room_open[r] = {"robot": r, "for": by, "from_step": k, "to_step": None}
+            self.no_room_episodes.append(self._no_room_open[r])
 
     def _end_wall(self, r: str, k: int) -> None:
         for ep in self.walled_episodes:
