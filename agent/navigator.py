@@ -417,7 +417,11 @@ CORRIDOR_MARGIN = 0.05
 """Extra half-width of the corridor of a robot that goes first, beyond r_i + r_j [m]."""
 
 LOOKAHEAD = 0.3
-"""Carrot distance along the planned path [m]."""
+"""Carrot distance along the planned path [m].  Tuned, not derived (docs/method.md §7, the
+constants' table).  The design bounds it below only: that a robot on a corridor's axis,
+leaving it sideways at full speed from the moment it enters, never slows the robot that goes
+first asks lookahead ≥ √2·(r_i + r_j) − (r_i + r_j + :data:`CORRIDOR_MARGIN`), 0.06 m with the
+epuck preset; the 0.3 m above that was chosen on the liveness bench."""
 
 CONFLICT_RANGE = LOOKAHEAD + CORRIDOR_MARGIN
 """Extra distance beyond r_i + r_j within which a robot that goes first is yielded to [m].
