@@ -335,15 +335,16 @@ class GridPlanner:
         from ``start`` than that), or ``goal`` if the path is shorter: along ``pred`` (the whole
         grid's, or with ``block`` a window's, :meth:`local_field`), and from where it leaves the
         window along ``then`` (the whole grid's).  The path runs from ``start`` to its cell's
-        successor's waypoint, then waypoint to waypoint; the point lies on the hop that reaches
-        the lookahead."""
+        successor's waypoint, then waypoint to waypoint, and from the goal's cell (or the last
+        cell with a way on, if the goal's is cut off) straight to the goal; the point lies on the
+        hop that reaches the lookahead."""
         c = self.cell(start)
         gcell = self.cell(goal)
         travelled = 0.0
         prev = start
         for _ in range(self.nx * self.ny):
             if c == gcell:
-                return goal
+                break
             nxt = -1
             if block is not None:
                 i0, i1, j0, j1 = block
@@ -357,7 +358,7 @@ class GridPlanner:
             if block is None:
                 nxt = int(pred[c])
             if nxt < 0:
-                return goal
+                break  # no way on (the goal's cell is cut off): straight towards the goal
             p = self.points[nxt]
             hop = math.hypot(p[0] - prev[0], p[1] - prev[1])
             if travelled + hop >= lookahead:  # the point exactly ``lookahead`` along the path
@@ -365,7 +366,12 @@ class GridPlanner:
             travelled += hop
             prev = p
             c = nxt
-        return goal
+        # The last hop, to the goal itself: the goal if it lies within the lookahead, else the
+        # point that far along the hop (the carrot is never farther than that from ``start``).
+        hop = math.hypot(goal[0] - prev[0], goal[1] - prev[1])
+        if travelled + hop <= lookahead:
+            return goal
+        return prev + (lookahead - travelled) / hop * (goal - prev)
 
 
 @functools.lru_cache(maxsize=8)
@@ -455,10 +461,10 @@ class Navigator:
     obstacles: Sequence[Any] = ()
     priority: int = 0
     rank: int = 0
-    conflict_range: float = CONFLICT_RANGE
-    """Extra distance beyond r_i + r_j within which a higher robot is yielded to [m]
-    (:data:`CONFLICT_RANGE`, derived from the default ``lookahead`` and ``corridor_margin``:
-    change them together; an agent with plans by place caps it at its view)."""
+    view: float = math.inf
+    """The farthest beyond r_i + r_j [m] this robot is sure to see the others (an agent with plans
+    by place sets it from its view, :func:`agent.coordination.navigator_view`); it caps
+    :attr:`conflict_range`."""
     corridor_margin: float = CORRIDOR_MARGIN
     """Extra corridor half-width beyond r_i + r_j [m]."""
     close_goals: float = CORRIDOR_MARGIN + PARKED_RADIUS
@@ -520,6 +526,13 @@ class Navigator:
         self._ring = np.vstack([0.5 * unit, unit])
         self._ring_norm = np.linalg.norm(self._ring, axis=1)
         self._rng = np.random.default_rng(self.seed)
+
+    @property
+    def conflict_range(self) -> float:
+        """Extra distance beyond r_i + r_j within which a robot that goes first is yielded to
+        [m]: ``lookahead`` + ``corridor_margin`` (as :data:`CONFLICT_RANGE`, derived there), so it
+        follows them whatever they are set to, capped by :attr:`view`."""
+        return min(self.lookahead + self.corridor_margin, self.view)
 
     @property
     def precedence(self) -> tuple[int, int, int, int]:

@@ -172,10 +172,7 @@ class Agent:
         )
         self.inbox = self.link.inbox
         if self.side is not None:  # the navigator acts only on robots it is sure to see
-            nav = self.ctrl.nav
-            nav.conflict_range = min(
-                nav.conflict_range, navigator_view(self.side, p.epsilon) - 2 * design.footprint
-            )
+            self.ctrl.nav.view = navigator_view(self.side, p.epsilon) - 2 * design.footprint
         self.others = [r for r in ids if r != me]
         self.starts = starts_of(scn.robots, p.lookahead, design.footprint)
         self.guard = Guard(me, p, partial(log, self.role), side=self.side)

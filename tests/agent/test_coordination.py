@@ -166,6 +166,41 @@ def test_the_yield_range_holds_every_corridor_of_a_robot_on_its_way():
     assert furthest > LOOKAHEAD - 0.01  # the carrots reached the lookahead: the far rim was tested
 
 
+def test_the_carrot_stays_within_the_lookahead_near_the_goal():
+    """The derived yield range assumes every carrot lies within the lookahead.  Near the goal
+    the path ends at the goal's cell and the goal lies up to half a cell beyond it: a goal a
+    little beyond the lookahead gets the point the lookahead along the last hop, not the goal
+    itself (which lay up to 0.32 m away)."""
+    rng = np.random.default_rng(1)
+    farthest = 0.0
+    for _ in range(600):
+        nav = Navigator(footprint=0.134, arena=(-2.0, 2.0, -2.0, 2.0), rank=0)
+        q = rng.uniform(-1.0, 1.0, 2)
+        angle = rng.uniform(0.0, 2.0 * math.pi)
+        goal = q + rng.uniform(0.28, 0.36) * np.array([math.cos(angle), math.sin(angle)])
+        reach = float(np.hypot(*(nav.waypoint(q, goal) - q)))
+        assert reach <= LOOKAHEAD + 1e-9, (q, goal, reach)
+        farthest = max(farthest, reach)
+    assert farthest > LOOKAHEAD - 1e-3  # goals beyond the lookahead were met
+
+
+def test_the_yield_range_follows_the_lookahead_it_is_derived_from():
+    """A navigator built with a longer lookahead yields over the longer range its corridors
+    reach (lookahead + margin beyond r_i + r_j), not over the default's; the view caps it."""
+    fp, look = 0.134, 0.5
+    w = 2 * fp + CORRIDOR_MARGIN
+    q, target = np.array([0.0, 0.0]), np.array([look, 0.0])
+    first = NeighbourInfo("a", q, fp, rank=0, target=target, phase=UNDER_WAY)
+    c = np.array([look + w - 1e-3, 0.0])  # the corridor's far rim, beyond the default range
+    assert float(np.hypot(*(c - q))) > 2 * fp + LOOKAHEAD + CORRIDOR_MARGIN
+    nav = Navigator(footprint=fp, arena=(-2.0, 2.0, -2.0, 2.0), rank=5, lookahead=look)
+    assert nav.conflict_range == pytest.approx(look + CORRIDOR_MARGIN)
+    assert nav.target(c, c + np.array([0.5, 0.0]), [first])[1] == "yield"
+    capped = Navigator(footprint=fp, arena=(-2.0, 2.0, -2.0, 2.0), rank=5, lookahead=look, view=0.4)
+    assert capped.conflict_range == pytest.approx(0.4)
+    assert capped.target(c, c + np.array([0.5, 0.0]), [first])[1] != "yield"
+
+
 def test_a_robot_displaced_by_a_returning_one_keeps_yielding_to_it_until_it_has_parked():
     """The cycle that stalled goals packed around obstacles: a parked robot a (rank 0) steps
     aside for a returning robot b (rank 5), becomes returning itself, and used to outrank b

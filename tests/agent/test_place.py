@@ -137,7 +137,7 @@ def test_the_navigator_sees_every_robot_its_yielding_rule_acts_on(scenario):
     them, by a plan up to PLACE_LAG steps old (both robots moving towards each other since);
     the agent caps its yield range r_i + r_j + conflict_range there (compact designs, whose
     cells are small), and the epuck design's full range fits uncapped."""
-    from agent.navigator import Navigator
+    from agent.navigator import CONFLICT_RANGE
 
     design = validated_design(
         load_scenario(Path(__file__).resolve().parents[2] / "scenarios" / f"{scenario}.toml")
@@ -160,7 +160,7 @@ def test_the_navigator_sees_every_robot_its_yielding_rule_acts_on(scenario):
     # it may be just over two sides from c_i: the view is two sides less the lag.
     far = {"j": _plan("j", 5, (3.0 * side + 1e-6, 0.5 * side))}
     assert in_reach(["j"], (0, 0), side, far, {}, _starts({"j": (9.0, 9.0)}), {"j"}, within=VIEW_CELLS) == []
-    full = 2 * r + Navigator.conflict_range
+    full = 2 * r + CONFLICT_RANGE
     assert (full <= view) == (scenario == "swap_8"), (full, view)
 
 
