@@ -26,8 +26,9 @@ Goals at run time come on ``fleet/F/goal/ID``: published (``fleet goal``), or as
 script), which the agent answers with a msgpack map, ``{"ok": true}`` or ``{"ok": false,
 "reason": "<one line>"}`` (a payload that is not a valid Goal for this robot is counted with the
 rejected payloads and answered as an error, ``reply_err``, with the same map).  Either way the
-goal is checked against the walls, the obstacles and the other robots' goals (those of the goal's
-``batch`` in place of theirs), and an accepted one is taken by the first plan the agent makes
+goal is checked by the one goal rule (:func:`ground.scenario.goal_problem`): against the walls,
+the obstacles, a passage from the robot's committed point and the other robots' goals (those of
+the goal's ``batch`` in place of theirs), and an accepted one is taken by the first plan the agent makes
 after it (planning ahead, the plan of the step after next: :attr:`Agent.pending`).
 ``--scripted``: a script may hold the clock for as long as it likes; no tick for ``--timeout``
 then ends the agent only once the tracker is gone too (its liveliness token).
@@ -690,11 +691,13 @@ class Agent:
             log(self.role, f"new goal {goal.round(3).tolist()} at step {k}")
 
     def _goal_problem(self, goal: Goal) -> str | None:
-        """Why ``goal`` cannot be taken, or None (inbox.cond held): the walls, the obstacles and
-        the other robots' goals, each the one in ``goal.batch`` if it names the robot, else the
-        one its latest plan carries."""
+        """Why ``goal`` cannot be taken, or None (inbox.cond held), by the one goal rule
+        (:func:`~ground.scenario.goal_problem`): the walls, the obstacles, a passage from this
+        robot's committed point, and the other robots' goals, each the one in ``goal.batch`` if
+        it names the robot, else the one its latest plan carries."""
         plans = [pl for j in self.others if (pl := self.inbox.get(Plan, j)) is not None]
-        return goal_problem(self.scn, self.design.footprint, goal.goal, plans, goal.batch)
+        at = self.ctrl.last_point
+        return goal_problem(self.scn, self.design.footprint, goal.goal, plans, goal.batch, at=at)
 
     def _answer_goal(self, query: Any) -> None:
         """A goal sent as a query on this robot's goal key (a Zenoh thread): decoded strictly

@@ -48,7 +48,7 @@ import numpy as np
 
 from fleet.backend import Backend, Event, Sample
 from ground.geometry import Array, controlled_point
-from ground.scenario import GOAL_TOLERANCE, Scenario, free_space, goal_problem, load_scenario, settled_since
+from ground.scenario import GOAL_TOLERANCE, Scenario, goal_problem, load_scenario, settled_since
 
 CLOCKS = ("lockstep", "realtime")
 """The fleet's clocks: lockstep steps when every agent has answered; realtime steps at Ts."""
@@ -108,8 +108,6 @@ class Fleet:
         self.Ts = self.scenario.controller.Ts
         """The sampling period [s]."""
         self._lookahead = self.scenario.controller.lookahead
-        self._joined = free_space(self.scenario, backend.footprint)
-        """Whether the footprint can go from one point to another past walls and obstacles."""
         self._queue: list[Event] = []
         self.events_dropped = 0
         """Events dropped unread: beyond :data:`MAX_EVENTS` waiting, the oldest go."""
@@ -380,12 +378,10 @@ class Fleet:
         here = self.points()
         for rid, arr in batch.items():
             near = [pl for pl in now if pl.robot != rid]
-            problem = goal_problem(self.scenario, fp, arr, near, {r: q for r, q in given.items() if r != rid})
-            if problem is None and rid in here and not self._joined(np.array(here[rid]), arr):
-                problem = (
-                    f"goal ({arr[0]:.2f}, {arr[1]:.2f}) cannot be reached from where it is: the walls and "
-                    f"obstacles leave no passage for its footprint of radius {fp:.3f} m"
-                )
+            at = np.array(here[rid]) if rid in here else None
+            problem = goal_problem(
+                self.scenario, fp, arr, near, {r: q for r, q in given.items() if r != rid}, at=at
+            )
             if problem is not None:
                 if quiet:
                     raise GoalRefused(rid, problem)

@@ -1,9 +1,10 @@
 """``fleet goal``: give a running agent a new goal and wait until it takes it.
 
 The operator's session connects to the fleet's hub (``fleet run --listen``), waits for the
-robot's liveliness token (the readiness signal) and for the robots' plans, checks the goal
-against the scenario's walls and obstacles with the footprint the robot's plan carries and
-against the neighbours' current goals (the agent checks it again), then publishes it on
+robot's liveliness token (the readiness signal) and for the robots' plans, checks the goal by
+the one goal rule (:func:`ground.scenario.goal_problem`): against the scenario's walls and
+obstacles with the footprint the robot's plan carries, for a passage from the robot's committed
+point and against the neighbours' current goals (the agent checks it again), then publishes it on
 ``fleet/<fleet>/goal/<id>`` until a plan of that robot carries it.  A goal outside the arena or
 inside an obstacle is refused before anything is opened.
 """
@@ -17,7 +18,7 @@ import numpy as np
 
 from ground.bus import Inbox
 from ground.net import NetConfig, SecureConfigError, load_config
-from ground.scenario import ConfigError, check_point, goal_problem, load_scenario
+from ground.scenario import ConfigError, goal_problem, load_scenario
 from ground.wire import Goal, Keys, Plan
 
 RESEND = 0.5
@@ -45,7 +46,9 @@ def send_goal(
     if robot not in ids:
         raise ConfigError("--robot", f"{robot!r} is not in the scenario (robots: {', '.join(ids)})")
     target = np.array(goal, dtype=float)
-    check_point(scn, target, 0.0, "goal")  # finite, in the arena, outside every obstacle
+    problem = goal_problem(scn, 0.0, target, [])  # a point: finite, in the arena, outside every obstacle
+    if problem is not None:  # refused before anything is opened
+        raise ConfigError("goal", problem)
     keys = Keys(fleet)
     if zenoh_config is not None:
         try:
@@ -82,7 +85,7 @@ def send_goal(
         problem = goal_problem(scn, own.footprint, target, [])
         if problem is not None:  # the walls and obstacles, with the robot's own footprint
             raise ConfigError("goal", problem)
-        problem = goal_problem(scn, own.footprint, target, plans)
+        problem = goal_problem(scn, own.footprint, target, plans, at=own.committed[-1])
         if problem is not None:
             return 1, f"goal rejected: {problem}"
         pub = session.declare_publisher(keys.goal(robot))

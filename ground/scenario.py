@@ -1278,12 +1278,15 @@ def home(end: np.ndarray, point: np.ndarray, goal: np.ndarray) -> bool:
 
 def goal_problem(
     scn: Scenario, footprint: float, goal: np.ndarray, plans: Sequence[Any],
-    batch: Mapping[str, np.ndarray] | None = None,
+    batch: Mapping[str, np.ndarray] | None = None, at: np.ndarray | None = None,
 ) -> str | None:  # fmt: skip
-    """Why a goal (2,) [m] given at run time cannot be accepted, or None.
+    """Why a goal (2,) [m] given at run time cannot be accepted, or None: the one goal rule,
+    which the agent (the authority), ``fleet goal``, the experiment API and the ROS face apply.
 
-    It must clear the walls and obstacles by the footprint radius [m] and park at least the two
-    footprints and :data:`GOAL_MARGIN` away from every other robot's current goal: ``plans`` are their latest
+    It must be finite, in the arena and clear the walls and obstacles by the footprint radius [m];
+    if ``at`` (2,) [m], where the robot is now, is given, the walls and obstacles must leave a
+    passage to it from there; and it must park at least the two footprints and
+    :data:`GOAL_MARGIN` away from every other robot's current goal: ``plans`` are their latest
     :class:`~ground.wire.Plan` (``robot``, ``goal`` (2,) [m], ``footprint`` [m]).  ``batch`` are
     the goals given to other robots together with this one (robot id → (2,) [m], not the robot
     itself): each replaces that robot's current goal, so that robots may trade goals in one batch;
@@ -1292,6 +1295,11 @@ def goal_problem(
         check_point(scn, goal, footprint, "goal")
     except ConfigError as e:
         return e.reason
+    if at is not None and not free_space(scn, footprint)(np.asarray(at, dtype=float), goal):
+        return (
+            f"goal {_xy(goal)} cannot be reached from where it is: the walls and obstacles leave "
+            f"no passage for its footprint of radius {footprint:.3f} m"
+        )
     given = dict(batch or {})
     others = [(pl.robot, given.pop(pl.robot, pl.goal), pl.footprint) for pl in plans]
     others += [(rid, g, footprint) for rid, g in given.items()]

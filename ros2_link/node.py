@@ -5,10 +5,10 @@ conventions (:mod:`ros2_link.graph`), a ROS 2 node ``fleet_<fleet>`` with, for e
 ``<id>``, the publishers ``/<id>/pose``, ``/<id>/plan`` and ``/<id>/reference``, the subscription
 ``/<id>/goal_pose``, and the publisher ``/fleet/footprints`` (:mod:`ros2_link.types`).  It
 republishes each measured pose, each plan and, once per tick, the footprints.  A ``goal_pose``
-(RViz's "2D Goal Pose") is checked as ``fleet goal`` checks a goal: in the arena and outside
-every obstacle here, then by the robot's agent (walls, obstacles and the neighbours' goals, with
-its footprint), to which it goes as a goal query; a refused goal is logged with its reason and
-changes nothing.  It ends with the run (the tracker's stop tick), or on SIGTERM or SIGINT.
+(RViz's "2D Goal Pose") is checked by the one goal rule (:func:`ground.scenario.goal_problem`)
+here, with the footprint, place and neighbours' goals its plans have told, then by the robot's
+agent, to which it goes as a goal query; a refused goal is logged with its reason and changes
+nothing.  It ends with the run (the tracker's stop tick), or on SIGTERM or SIGINT.
 
 It observes only: it takes no part in any step, and no agent waits for it.
 """
@@ -28,7 +28,7 @@ import numpy as np
 
 from ground.bus import Inbox, ask_goal, open_session
 from ground.process import add_common_args, announce, domain_arg, log
-from ground.scenario import ROS_DOMAIN_MAX, ConfigError, Scenario, check_point, load_scenario, ros2_problem
+from ground.scenario import ROS_DOMAIN_MAX, ConfigError, Scenario, goal_problem, load_scenario, ros2_problem
 from ground.wire import MAX_PAYLOAD, Goal, Keys, Plan, Pose, Tick, WireError
 from ros2_link import graph
 
@@ -186,10 +186,19 @@ class RosFace:
                 ROLE, f"goal_pose {shown} for {robot} refused: frame {gp.frame!r} is not {self.types.FRAME!r}"
             )
             return
-        try:
-            check_point(self.scn, target, 0.0, "goal")  # finite, in the arena, outside every obstacle
-        except ConfigError as e:
-            log(ROLE, f"goal_pose {shown} for {robot} refused: {e}")
+        with self.inbox.cond:
+            own = self.inbox.get(Plan, robot)
+            plans = [pl for r in self.ids if r != robot and (pl := self.inbox.get(Plan, r)) is not None]
+        # The one goal rule, with what this face has heard: the robot's footprint and where it is
+        # come with its plan (without one, a point: finite, in the arena, outside every obstacle);
+        # its agent applies the rule again, with what it knows, and has the last word.
+        problem = (
+            goal_problem(self.scn, 0.0, target, [])
+            if own is None
+            else goal_problem(self.scn, own.footprint, target, plans, at=own.committed[-1])
+        )
+        if problem is not None:
+            log(ROLE, f"goal_pose {shown} for {robot} refused: {problem}")
             return
         ok, reason = ask_goal(self.session, self.keys, Goal(robot=robot, goal=target))
         if ok:

@@ -527,6 +527,22 @@ def test_goals_given_together_are_checked_in_place_of_the_ones_they_replace() ->
     assert "obstacles[0]" in str(goal_problem(scn, fp, np.array([0.0, 0.6]), [], {"r1": g2}))
 
 
+def test_a_run_time_goal_needs_a_passage_from_where_the_robot_is() -> None:
+    """The one goal rule checks a passage when it is told where the robot is: a wall across the
+    arena, no gap, refuses a goal beyond it from one side and takes it from the other."""
+    data = base()
+    data["obstacles"] = [{"polygon": [[0.3, -1.0], [0.4, -1.0], [0.4, 1.0], [0.3, 1.0]]}]
+    data["robots"][0]["goal"] = [-0.6, 0.3]  # the loader's own goals stay on the start's side
+    scn = parse_scenario(data)
+    fp, goal = 0.134, np.array([0.7, 0.0])
+    assert goal_problem(scn, fp, goal, [], at=np.array([-0.6, 0.0])) == (
+        "goal (0.70, 0.00) cannot be reached from where it is: the walls and obstacles leave no "
+        "passage for its footprint of radius 0.134 m"
+    )
+    assert goal_problem(scn, fp, goal, [], at=np.array([0.7, 0.5])) is None
+    assert goal_problem(scn, fp, goal, []) is None  # where the robot is not told: not checked
+
+
 def test_a_goal_in_a_pocket_of_obstacles_is_refused() -> None:
     """Four discs ring the goal of r2, each gap between them narrower than its footprint allows:
     r2's goal is refused; r1's goal, outside the ring, is not the one named."""
