@@ -55,7 +55,7 @@ from agent.hazards import Guard, in_reach, loose, neighbour_of, starts_of
 from agent.messages import command_message, plan_message
 from agent.tube import validated_design
 from ground.arrival import arrival
-from ground.bus import Inbox, goal_reply, open_session, publisher, put, remember_steps
+from ground.bus import Inbox, goal_reply, open_session, publisher, put
 from ground.geometry import (
     Cell,
     Whereabouts,
@@ -82,6 +82,7 @@ from ground.wire import (
     Tick,
     WireError,
     decode,
+    remember_steps,
 )
 
 REJOIN_GAP = 5

@@ -12,10 +12,9 @@ import math
 
 import numpy as np
 
-from ground.bus import remember_steps
 from ground.model import chain_input, double_integrator
 from ground.params import ControllerParams
-from ground.wire import Applied, Command
+from ground.wire import Applied, Command, remember_steps
 
 COMMAND, CANDIDATE, HELD, BRAKED = "command", "candidate", "held", "braked"
 

@@ -12,7 +12,7 @@ import argparse
 import sys
 import threading
 import time
-from collections.abc import Callable, Container, Iterable
+from collections.abc import Callable, Container
 from typing import Any, TypeVar
 
 from ground.faults import DELIVER, FaultPlan
@@ -28,26 +28,6 @@ DRAIN_CAPACITY = 4096
 """Samples a drained subscription queues between two drains (Zenoh blocks the sender beyond)."""
 DRAIN_POLL = 0.001
 """How often :meth:`Inbox.drain_until` looks for a sample not yet in [s]."""
-
-
-STEPS_KEPT = 64
-"""How far back [steps] the processes remember which steps' commands were not applied."""
-
-
-def remember_steps(steps: set[int], new: Iterable[int], now: int, kept: int = STEPS_KEPT) -> None:
-    """Add ``new`` to ``steps``, the recent steps a fact holds for (e.g. "its command was not
-    applied"), and forget those before ``now − kept`` once there are twice ``kept``: the
-    set stays bounded without a scan each step.  An old entry is still true, only not needed.
-
-    A ``range`` (the steps a tick says were never executed, resent at every tick of a long
-    episode: up to ``kept`` steps for each of 32 robots) is added without a Python loop,
-    half the time of a generator over it."""
-    if isinstance(new, range) and new.step == 1:
-        steps.update(range(max(new.start, now - kept), new.stop))
-    else:
-        steps.update(s for s in new if s >= now - kept)
-    if len(steps) > 2 * kept:
-        steps.difference_update([s for s in steps if s < now - kept])
 
 
 def _step_of(msg: Any) -> int | None:

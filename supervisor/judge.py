@@ -30,11 +30,10 @@ from typing import Any
 import numpy as np
 
 from ground.arrival import Arrival, arrival
-from ground.bus import remember_steps
 from ground.geometry import Array, controlled_point, wrap_angle
 from ground.model import travel_floor
 from ground.scenario import GOAL_TOLERANCE, Scenario, forced_order, settled_since
-from ground.wire import BLIND, LINK_DOWN, PARKED, RETURNING, WAITING, Plan
+from ground.wire import BLIND, LINK_DOWN, PARKED, RETURNING, WAITING, Plan, remember_steps
 
 SOLVED = "PROXQP_SOLVED"
 """The one solver status whose plan is a solution; every other status is a fallback."""

@@ -136,6 +136,31 @@ def test_the_math_imports_no_transport_logging_or_plotting(module):
     assert not bad, f"{module} imports {bad}"
 
 
+DECISIONS = ("supervisor.judge", "epuck_link.robot_side")
+"""Logic that a process runs on what it hears, with no need of the bus itself."""
+TRANSPORT = ("zenoh", "ground.bus", "ground.net", "ground.process")
+
+
+@pytest.mark.parametrize("module", DECISIONS)
+def test_the_judge_and_the_robot_sides_decisions_load_no_transport(module):
+    """Not directly, and not through anything they import: they can be run, tested and reused
+    without a session."""
+    seen, todo = set(), [module]
+    while todo:
+        m = todo.pop()
+        if m in seen or m not in MODULES:
+            continue
+        seen.add(m)
+        todo.extend(GRAPH[m])
+    bad = sorted(
+        f"{m} → {i}"
+        for m in seen
+        for i in _imports(MODULES[m])
+        if any(i == x or i.startswith(x + ".") for x in TRANSPORT)
+    )
+    assert not bad, f"{module} loads {bad}"
+
+
 BLOCKER = """
 import runpy, sys
 class _Refuse:

@@ -52,7 +52,7 @@ from typing import Any
 import numpy as np
 
 from epuck_link.robot_side import BRAKED, CANDIDATE, RobotSide
-from ground.bus import Inbox, open_session, publisher, remember_steps
+from ground.bus import Inbox, open_session, publisher
 from ground.geometry import measured_state
 from ground.model import brake_input
 from ground.process import DEADLINE, add_common_args, announce, fault_plan, log, seed_arg
@@ -71,6 +71,7 @@ from ground.wire import (
     Script,
     Tick,
     Truth,
+    remember_steps,
 )
 from tracker.reports import OUTCOME_WAIT, REPORT_WAIT, Reports
 from tracker.world import Disturbance, EmulatedWorld, PoseNoise, SimulatedWorld

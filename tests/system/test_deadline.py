@@ -232,7 +232,7 @@ def test_the_robot_side_follows_the_candidate_then_brakes():
 def test_remembered_steps_stay_bounded_and_keep_the_recent_ones():
     """The processes' sets of unapplied steps: every step of the last STEPS_KEPT is kept, the
     set never holds more than twice that, and a step too old on arrival is not added."""
-    from ground.bus import STEPS_KEPT, remember_steps
+    from ground.wire import STEPS_KEPT, remember_steps
 
     steps: set[int] = set()
     for k in range(1000):
