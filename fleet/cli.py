@@ -32,7 +32,7 @@ from typing import Any
 from fleet.launch import STARTS, TOPOLOGIES
 from fleet.report import strict_json
 from ground.params import PRESETS, preset
-from ground.process import EXCHANGES, domain_arg, lease_arg, seed_arg
+from ground.process import add_delay_compensation_arg, add_exchange_arg, domain_arg, lease_arg, seed_arg
 from ground.scenario import ConfigError, Scenario, load_scenario
 
 DEFAULT_ARENA = (-1.0, 1.0, -1.0, 1.0)
@@ -460,12 +460,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("scenario", help="scenario TOML file")
     s.add_argument("--out", help="output directory (default out/<scenario name>)")
     s.add_argument("--seed", type=seed_arg, help="override the scenario's [simulation] seed")
-    s.add_argument(
-        "--delay-compensation", action=argparse.BooleanOptionalAction, default=True,
-        help="make each plan a step ahead, from the predicted state, and apply it to the measurement "
-        "at once (the default, as fleet run's); --no-delay-compensation plans each step from its "
-        "measurement (docs/method.md §5)",
-    )  # fmt: skip
+    add_delay_compensation_arg(s)
     s.add_argument(
         "--faults", metavar="JSON",
         help="fault plan (JSON text or file; see ground/faults.py): its kills end robots' agents at "
@@ -490,13 +485,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--faults", metavar="JSON",
         help="fault plan for every process (JSON text or file; see ground/faults.py): drop or delay messages",
     )  # fmt: skip
-    r.add_argument(
-        "--exchange", choices=["auto", *EXCHANGES], default="auto",
-        help="how plans travel: mesh (every agent to every agent), place (agent to agent, each taking "
-        "only the plans of the cells about its own: a few a step whatever the fleet's size) or relay "
-        "(one digest a step from the tracker); auto (default): place on the realtime clock, mesh on "
-        "lockstep, where it keeps fleet run equal to fleet simulate",
-    )  # fmt: skip
+    add_exchange_arg(r)
     r.add_argument(
         "--lease", metavar="SECONDS", type=lease_arg,
         help="Zenoh transport lease of every process [s] (default 10 in the mesh, 1 in the star): how "
@@ -509,13 +498,7 @@ def build_parser() -> argparse.ArgumentParser:
         "router, the others its clients: one link each, and a 1 s lease; with --exchange relay, the "
         "lightest for large realtime fleets; docs/design.md, \"Topology\")",
     )  # fmt: skip
-    r.add_argument(
-        "--delay-compensation", action=argparse.BooleanOptionalAction, default=True,
-        help="plan a step ahead (the default): each agent makes its plan of the next step during this "
-        "one, and at the tick only applies it to its measurement, so no solve lies between a pose "
-        "and its command; --no-delay-compensation solves each step's plan after its tick "
-        "(docs/design.md, \"Delay compensation\")",
-    )  # fmt: skip
+    add_delay_compensation_arg(r)
     r.add_argument(
         "--start-agents", choices=STARTS, default=STARTS[0],
         help="fork (Linux only, and its default): fork every agent from one process that imported the "

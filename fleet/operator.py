@@ -16,8 +16,7 @@ from functools import partial
 
 import numpy as np
 
-from ground.bus import Inbox
-from ground.net import NetConfig, SecureConfigError, load_config
+from ground.bus import Inbox, join_session
 from ground.scenario import ConfigError, goal_problem, load_scenario
 from ground.wire import Goal, Keys, Plan
 
@@ -39,7 +38,6 @@ def send_goal(
     not take the goal within ``timeout`` [s], a neighbour parks too close, or a live
     neighbour sent no plan (its goal travels in it) within ``timeout``: nothing is sent
     then, since the goal could not be checked against that neighbour's."""
-    import zenoh
 
     scn = load_scenario(scenario)
     ids = [r.id for r in scn.robots]
@@ -50,20 +48,8 @@ def send_goal(
     if problem is not None:  # refused before anything is opened
         raise ConfigError("goal", problem)
     keys = Keys(fleet)
-    if zenoh_config is not None:
-        try:
-            conf = load_config(zenoh_config)
-        except SecureConfigError as e:
-            raise ConfigError("--zenoh-config", str(e)) from None
-        where = zenoh_config
-    else:
-        conf, where = NetConfig(connect=connect).zenoh(), ", ".join(connect)
-    try:
-        session = zenoh.open(conf)
-    except zenoh.ZError as e:
-        raise ConfigError(
-            "--zenoh-config" if zenoh_config else "--connect", f"cannot open a session: {e}"
-        ) from None
+    session = join_session(connect, zenoh_config)
+    where = zenoh_config or ", ".join(connect)
     inbox = Inbox(keys, "operator")
     subs = [inbox.subscribe(session, keys.plan(), Plan), inbox.watch_liveliness(session)]
     try:

@@ -26,9 +26,8 @@ from typing import Any
 import numpy as np
 
 from fleet.backend import Event, Sample
-from ground.bus import GOAL_REPLY_TIMEOUT, Inbox, ask_goal
+from ground.bus import GOAL_REPLY_TIMEOUT, Inbox, ask_goal, join_session
 from ground.geometry import Array
-from ground.net import NetConfig, SecureConfigError, load_config
 from ground.scenario import ConfigError, Scenario
 from ground.wire import MAX_BATCH, SCRIPT, Goal, Keys, Plan, Pose, Script, Tick, Truth
 from supervisor.judge import SOLVED
@@ -119,11 +118,9 @@ class ProcessFleet:
         except LaunchError as e:
             log.close()
             raise ConfigError("processes", f"the fleet did not start: {e} (see {run_dir / LOG})") from None
-        import zenoh
-
         mode = "client" if options.get("topology") == "star" else "peer"  # the star's hub routes
         try:
-            session = zenoh.open(NetConfig(connect=[launched.hub], mode=mode).zenoh())
+            session = join_session([launched.hub], mode=mode, names=("processes", "zenoh_config"))
         except BaseException:
             launched.stop()
             log.close()
@@ -142,23 +139,9 @@ class ProcessFleet:
     @classmethod
     def attach(cls, scn: Scenario, connect: list[str], zenoh_config: str | None, fleet: str) -> ProcessFleet:
         """Join a fleet that is running, by its hub's endpoints or a Zenoh configuration file."""
-        import zenoh
-
         from agent.tube import validated_design
 
-        if zenoh_config is not None:
-            try:
-                conf = load_config(zenoh_config)
-            except SecureConfigError as e:
-                raise ConfigError("zenoh_config", str(e)) from None
-        elif connect:
-            conf = NetConfig(connect=connect).zenoh()
-        else:
-            raise ConfigError("connect", "give the hub's endpoint (e.g. tcp/127.0.0.1:7447) or zenoh_config")
-        try:
-            session = zenoh.open(conf)
-        except zenoh.ZError as e:
-            raise ConfigError("connect", f"cannot open a session: {e}") from None
+        session = join_session(connect, zenoh_config, names=("connect", "zenoh_config"))
         me = cls(scn, session, Keys(fleet))
         me.footprint = float(validated_design(scn).footprint)
         try:

@@ -12,13 +12,14 @@ import argparse
 import sys
 import threading
 import time
-from collections.abc import Callable, Container
+from collections.abc import Callable, Container, Sequence
 from typing import Any, TypeVar
 
 from ground.faults import DELIVER, FaultPlan
 from ground.geometry import Whereabouts
-from ground.net import NetConfig, load_config, loopback, size_runtime
+from ground.net import NetConfig, SecureConfigError, load_config, loopback, size_runtime
 from ground.process import log, wait_owning
+from ground.scenario import ConfigError
 from ground.wire import Digest, Goal, Keys, Message, Plan, RejectCounter, Tick, WireError, decode
 
 M = TypeVar("M", bound=Message)
@@ -89,6 +90,34 @@ def open_session(args: argparse.Namespace) -> Any:
         where = ", ".join(args.connect) or getattr(args, "zenoh_config", None) or "loopback"
         print(f"error: --connect: cannot open a Zenoh session to {where}: {e}", file=sys.stderr)
         raise SystemExit(1) from None
+
+
+def join_session(
+    connect: Sequence[str], zenoh_config: str | None = None, mode: str = "peer",
+    names: tuple[str, str] = ("--connect", "--zenoh-config"),
+) -> Any:  # fmt: skip
+    """A session that joins a running fleet from outside it (``fleet goal``, a script): by its
+    hub's endpoints ``connect`` (a Zenoh ``mode`` session, scouting off) or by a Zenoh
+    configuration file ``zenoh_config``.  Whatever is wrong, neither given or a session Zenoh
+    cannot open, is a :class:`~ground.scenario.ConfigError` naming the argument, as the caller
+    calls them (``names``: the endpoints', the file's)."""
+    import zenoh
+
+    if zenoh_config is not None:
+        try:
+            conf = load_config(zenoh_config)
+        except SecureConfigError as e:
+            raise ConfigError(names[1], str(e)) from None
+    elif connect:
+        conf = NetConfig(connect=list(connect), mode=mode).zenoh()
+    else:
+        raise ConfigError(
+            names[0], "give the hub's endpoint (e.g. tcp/127.0.0.1:7447) or a Zenoh configuration"
+        )
+    try:
+        return zenoh.open(conf)
+    except zenoh.ZError as e:
+        raise ConfigError(names[1] if zenoh_config else names[0], f"cannot open a session: {e}") from None
 
 
 def publisher(session: Any, key: str, express: bool = True) -> Any:

@@ -101,19 +101,31 @@ def add_common_args(ap: argparse.ArgumentParser) -> None:
         "--clock", choices=["lockstep", "realtime"], default="lockstep",
         help="lockstep: step when every agent answered; realtime: wall-clock steps at Ts",
     )  # fmt: skip
+    add_exchange_arg(ap)
+    add_delay_compensation_arg(ap)
+
+
+def add_exchange_arg(ap: argparse.ArgumentParser) -> None:
+    """``--exchange``: how the agents' plans travel, for ``fleet run`` and every process of it."""
     ap.add_argument(
         "--exchange", choices=["auto", *EXCHANGES], default="auto",
-        help="plans: auto (default), place on the realtime clock and mesh on lockstep, as fleet run "
-        "picks; mesh, every agent subscribes to every plan; place, each agent to the plans of "
-        "the cells about its own (docs/design.md, \"Plans by place\"); relay, the tracker sends each "
-        "agent one digest of a step's plans (docs/design.md, \"Relayed plans\")",
+        help="how plans travel: mesh (every agent to every agent), place (agent to agent, each taking "
+        "only the plans of the cells about its own: a few a step whatever the fleet's size; "
+        "docs/design.md, \"Plans by place\") or relay (one digest a step from the tracker; "
+        "docs/design.md, \"Relayed plans\"); auto (default): place on the realtime clock, mesh on "
+        "lockstep, where it keeps fleet run equal to fleet simulate",
     )  # fmt: skip
+
+
+def add_delay_compensation_arg(ap: argparse.ArgumentParser) -> None:
+    """``--delay-compensation``: plans made a step ahead, for ``fleet run``, ``fleet simulate``
+    and every process of a fleet."""
     ap.add_argument(
         "--delay-compensation", action=argparse.BooleanOptionalAction, default=True,
         help="plan a step ahead (the default): each agent makes its plan of step k + 1 during step k, "
-        "from the prediction, and at tick k + 1 only applies the ancillary law to its measurement; "
-        "--no-delay-compensation solves each step's plan after its tick (docs/design.md, \"Delay "
-        "compensation\")",
+        "from the prediction, and at tick k + 1 only applies the ancillary law to its measurement, "
+        "so no solve lies between a pose and its command; --no-delay-compensation solves each "
+        "step's plan after its tick (docs/design.md, \"Delay compensation\")",
     )  # fmt: skip
 
 

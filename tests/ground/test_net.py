@@ -128,3 +128,24 @@ def test_every_process_sizes_zenohs_runtime_down_and_a_users_sizes_win():
     assert not {"rx", "acc", "net"} & set(sized), sized
     own = _zenoh_threads({**env, "ZENOH_RUNTIME": "()"})["threads"]
     assert "rx" in own and "acc" in own, own
+
+
+def test_a_session_joining_from_outside_names_the_argument_that_is_wrong(tmp_path):
+    """``join_session`` (``fleet goal``, a script): neither endpoints nor a file, a file that is
+    not a configuration, and a client whose router is not there are each a ConfigError naming
+    the argument as the caller calls it; nothing hangs."""
+    from ground.bus import join_session
+    from ground.scenario import ConfigError
+
+    with pytest.raises(ConfigError) as none:
+        join_session([], None)
+    assert none.value.field == "--connect" and "hub's endpoint" in none.value.reason
+    bad = tmp_path / "bad.json5"
+    bad.write_text("{ not json5")
+    with pytest.raises(ConfigError) as file:
+        join_session([], str(bad), names=("connect", "zenoh_config"))
+    assert file.value.field == "zenoh_config"
+    nobody = net.loopback(net.free_port())  # a client does not wait for its router
+    with pytest.raises(ConfigError) as closed:
+        join_session([nobody], mode="client")
+    assert closed.value.field == "--connect" and "cannot open a session" in closed.value.reason
