@@ -145,15 +145,15 @@ class Agent:
             seed=scn.simulation.seed * 1000 + rank, gate=gate,
         )  # fmt: skip
         self.keys = Keys(args.fleet)
-        self.dc = bool(args.delay_compensation)
+        self.plans_ahead = bool(args.delay_compensation)
         """Plan a step ahead (delay compensation; docs/design.md, "Delay compensation")."""
-        self.ready: _Ready | None = None
+        self.ready: _PlannedAhead | None = None
         """The plan made ahead, for Zenoh's callback to answer its tick with (under inbox.cond)."""
         self.answered: tuple[int, np.ndarray] | None = None
         """The step the callback answered and the acceleration (2,) [m/s²] it sent (under inbox.cond)."""
         self.on_arrival = 0
         """Commands made ahead and put as soon as their step's tick, pose and odometry were in
-        (:meth:`_answer`): by a Zenoh callback, or by the main thread when the tick came before
+        (:meth:`_command_on_arrival`): by a Zenoh callback, or by the main thread when the tick came before
         the plan was made, or while it drained the pose and odometry itself."""
         self.by_callback = 0
         """Of those, the commands put by a Zenoh callback."""
@@ -167,7 +167,7 @@ class Agent:
             self.keys,
             me,
             self.role,
-            self._answer if self.dc else None,
+            self._command_on_arrival if self.plans_ahead else None,
             tracked=spec.link == "sim",
             side=self.side,
             start=controlled_point(spec.start, p.lookahead),
@@ -209,7 +209,7 @@ class Agent:
         self.behind = ""
         """What the robot side did instead of this agent's last commands: "" (applied them),
         "candidate" or "braked"; each episode is logged once."""
-        self.ahead: _Ready | None = None
+        self.ahead: _PlannedAhead | None = None
         """The plan made ahead for the next step (the main thread's; ``ready`` is the callback's)."""
         self.reported = -1
         """The newest step whose outcome (what the robot sides did) has been taken."""
@@ -228,7 +228,7 @@ class Agent:
         """One step: wait for the tick, measure, plan, publish.  None to go on; the exit code
         once the run has stopped (0) or no tick came for ``--timeout`` (1)."""
         args, inbox, k = self.args, self.inbox, self.k
-        if not inbox.wait(partial(self._woken, k), 1.0):
+        if not inbox.wait(partial(self._step_may_go, k), 1.0):
             with inbox.cond:
                 now = time.monotonic()
                 seen = {f"{t}/{r}": round(now - at, 1) for (t, r), at in inbox.arrived.items()}
@@ -274,7 +274,7 @@ class Agent:
             # The plan of step k, made during step k − 1: apply it to x, the ancillary law,
             # unless Zenoh's callback did so already, on the same pose and odometry.
             assert x is not None
-            a = answered[1] if answered is not None and answered[0] == k else self._put(ahead, x)
+            a = answered[1] if answered is not None and answered[0] == k else self._put_command(ahead, x)
             self.x_est, self.a_prev, self.sent[k] = x, a, ahead.out
             inbox.prune(k - 2)
             self._plan_ahead(k, x, a)
@@ -314,7 +314,7 @@ class Agent:
         self.link.pub_cmd.put(command.encode())
         self.link.put_plan(plan_message(self.me, k, ctrl, out, self.inbox.heard_late))
         inbox.prune(k - 2)
-        if self.dc and not cut:
+        if self.plans_ahead and not cut:
             self.sent[k] = out
             self._plan_ahead(k, x, out.a)
         elif self.link.drained and not (
@@ -336,7 +336,7 @@ class Agent:
         it too (:meth:`_take_report`), and the robot's input was the ancillary law on it."""
         args, inbox, me, ctrl, design = self.args, self.inbox, self.me, self.ctrl, self.design
         limit = args.timeout if self.lockstep else self.p.Ts
-        inbox.wait(partial(self._told, k), limit)
+        inbox.wait(partial(self._outcome_known, k), limit)
         with inbox.cond:
             outcome = inbox.get(Outcome, TRACKER)
         if outcome is None or outcome.step != k:
@@ -364,13 +364,13 @@ class Agent:
         nbs, hazards = self._classify(k + 1, reach, fresh, live, outcome.braked)
         out = ctrl.step(x_next, nbs, hazards, predicted=True, seen=self._seen(reach, outcome.braked))
         self.ran.append(k + 1)
-        self.ahead = ready = _Ready(
+        self.ahead = ready = _PlannedAhead(
             k + 1, ctrl.xi[0:4].copy(), ctrl.xi[4:6].copy(), design.K,
             command_message(me, k + 1, ctrl, out, a=np.zeros(2)), out,
         )  # fmt: skip
         with inbox.cond:  # ready before the plan goes out
             self.ready = ready
-            self._answer(None)  # tick k + 1 may be in already (it does not wait for this plan)
+            self._command_on_arrival(None)  # tick k + 1 may be in already (it does not wait for this plan)
         self.link.put_plan(
             replace(plan_message(me, k + 1, ctrl, out, self.inbox.heard_late), tube_ok=tube_ok)
         )
@@ -422,7 +422,7 @@ class Agent:
             self.cut_since = None
         return cut
 
-    def _told(self, k: int) -> bool:
+    def _outcome_known(self, k: int) -> bool:
         """The outcome of step k is in, or lost (fault plan); on the realtime clock, or the next
         tick came first (it says the same).  In lockstep the tracker always sends the outcome,
         but the next tick may come first (another publisher), and which way the agent plans
@@ -431,17 +431,17 @@ class Agent:
         late = not self.lockstep and _tick_at_least(self.inbox, k + 1)
         return lost or late or _outcome_at_least(self.inbox, k)
 
-    def _woken(self, k: int) -> bool:
+    def _step_may_go(self, k: int) -> bool:
         """What the main loop waits for at step k (inbox.cond held): tick k, or the stop.  If
-        Zenoh's callback put the command of step k (:meth:`_answer`), there is nothing to do
-        until the step's outcome (:meth:`_told`): the main threads of a fleet then stay asleep
+        Zenoh's callback put the command of step k (:meth:`_command_on_arrival`), there is nothing to do
+        until the step's outcome (:meth:`_outcome_known`): the main threads of a fleet then stay asleep
         while its commands are on their way."""
         answered = self.answered
         if answered is None or answered[0] != k:
             return _tick_at_least(self.inbox, k)
-        return self._told(k) or _tick_at_least(self.inbox, k + 1)
+        return self._outcome_known(k) or _tick_at_least(self.inbox, k + 1)
 
-    def _answer(self, _: Any) -> None:
+    def _command_on_arrival(self, _: Any) -> None:
         """Delay compensation, called by the inbox as a tick, pose or odometry is stored (a Zenoh
         thread, inbox.cond held): once those of the step planned ahead are all in, put its
         command, the ancillary law applied to that pose and odometry, here and now.  The main
@@ -461,13 +461,13 @@ class Agent:
         if pose is None or odom is None:
             return
         x = measured_state((pose.x, pose.y, pose.theta), (odom.vx, odom.vy), self.p.lookahead)
-        a = self._put(ready, x)
+        a = self._put_command(ready, x)
         self.ready, self.answered = None, (ready.step, a)  # (if the put failed, the main thread answers)
         self.on_arrival += 1
         if threading.current_thread() is not threading.main_thread():
             self.by_callback += 1
 
-    def _put(self, ready: _Ready, x: np.ndarray) -> np.ndarray:
+    def _put_command(self, ready: _PlannedAhead, x: np.ndarray) -> np.ndarray:
         """Put the command of the plan made ahead, ``ready``, for the state ``x`` (4,) [m, m/s]
         of its step; returns the acceleration u = v̂ + K(x − x̂) (2,) [m/s²] it carries."""
         a = ancillary_law(x, ready.x_hat, ready.v_hat, ready.K)
@@ -532,7 +532,7 @@ class Agent:
     def _measure(self, k: int) -> tuple[np.ndarray | None, tuple[int, np.ndarray] | None]:
         """Own measurement of step k: the state x (4,) [m, m/s] to plan from (the prediction
         while poses are missing), None if there is none yet (:meth:`_state`); and what Zenoh's
-        callback answered (:meth:`_answer`): from here on the main thread answers, and if the
+        callback answered (:meth:`_command_on_arrival`): from here on the main thread answers, and if the
         callback did, it did on the pose and odometry taken here.
 
         Realtime: the wait may not hold up this step's deadline; a withheld message (fault plan)
@@ -720,7 +720,7 @@ class Agent:
                 problem = self._goal_problem(goal)
                 if problem is None:
                     tick = inbox.get(Tick, TRACKER)
-                    due = (-1 if tick is None else tick.step) + 1 + self.dc
+                    due = (-1 if tick is None else tick.step) + 1 + self.plans_ahead
                     if self.pending and self.pending[-1][0] == due:
                         self.pending.pop()  # the newer goal for the same step replaces it
                     self.pending.append((due, goal))
@@ -971,7 +971,7 @@ def _steer_ahead(
 
 
 @dataclass(frozen=True)
-class _Ready:
+class _PlannedAhead:
     """A plan made a step ahead, waiting for its tick: what its command needs."""
 
     step: int

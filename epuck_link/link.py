@@ -217,7 +217,7 @@ class Link:
         geom = p.wheel
         self.drive = Drive(make_inner_loop(p.lookahead, p.v_min), geom, np.array(spec.start, dtype=float))
         self.watchdog = Watchdog(args.watchdog)
-        self.judge = LinkDeadline(me, p, args.watchdog, args.deadline * p.Ts)
+        self.deadline = LinkDeadline(me, p, args.watchdog, args.deadline * p.Ts)
         self.inbox = inbox = Inbox(keys, role, fault_plan(args))
         self.subs = [
             inbox.subscribe(session, keys.cmd(me), Command),
@@ -322,7 +322,7 @@ class Link:
 
     def run_once(self, stopping: threading.Event) -> None:
         """Wait for news or the next inner-loop tick, take what came, drive one inner-loop step."""
-        inbox, me, drive, judge = self.inbox, self.me, self.drive, self.judge
+        inbox, me, drive, deadline = self.inbox, self.me, self.drive, self.deadline
         poses = (Pose.TYPE, me)
 
         def news() -> bool:
@@ -333,7 +333,7 @@ class Link:
                 or bool(inbox.history.get(poses))
             )
 
-        inbox.wait(news, max(0.0, min(self.due, judge.wake_at) - self.clock()))
+        inbox.wait(news, max(0.0, min(self.due, deadline.wake_at) - self.clock()))
         now = self.clock()
         late = now - self.due > LATE
         if late and self.wheels != (0, 0):  # first of all: the robot is driving on at stale speeds
@@ -349,7 +349,7 @@ class Link:
         if self.relinked.is_set():
             self.relinked.clear()
             log(self.role, "link back after an outage: robot stopped; braked until its agent starts again")
-            back = judge.relinked()
+            back = deadline.relinked()
             drive.halt()
             self.braked = True
             # The port sent zero since the re-open; the speeds asked during the outage are stale.
@@ -370,7 +370,7 @@ class Link:
             # uses it, so that an agent planning a step ahead predicts the input applied.
             x = measured_state((pose.x, pose.y, pose.theta), (vx, vy), self.p.lookahead)
             self.measured[pose.seq] = x
-            judge.measured(pose.seq, x)
+            deadline.measured(pose.seq, x)
         while len(self.measured) > MEASURED_KEPT:
             del self.measured[next(iter(self.measured))]  # the oldest
         decisions = []
@@ -385,15 +385,15 @@ class Link:
                 x_k = self.measured.get(tick.step)
                 if x_k is None:
                     x_k = measured_state(drive.pose, drive.velocity(), self.p.lookahead)
-                decisions += judge.tick(tick.step, tick_at, x_k, cmd, live)
+                decisions += deadline.tick(tick.step, tick_at, x_k, cmd, live)
                 self._hold_extended()
         if cmd is not self.seen_cmd and cmd is not None:
             self.seen_cmd, self.last_cmd_at = cmd, cmd_at
-            if judge.step is None:  # no clock yet: applied as it comes
+            if deadline.step is None:  # no clock yet: applied as it comes
                 self.a, self.braked = np.array([cmd.ax, cmd.ay]), False
-            elif (taken := judge.command(cmd, cmd_at, live)) is not None:
+            elif (taken := deadline.command(cmd, cmd_at, live)) is not None:
                 decisions.append(taken)
-        if (expired := judge.expire(now, cmd, live)) is not None:
+        if (expired := deadline.expire(now, cmd, live)) is not None:
             decisions.append(expired)
         for what, acc, report in decisions:
             self._decided(now, what, acc, report)
@@ -425,11 +425,11 @@ class Link:
         """Before the agent has started again after an outage, a missed tick can lengthen the
         deadline rule's hold: the agent then starts again later, and its plans up to then are
         still of a robot that was not following them.  Move ``back`` with it."""
-        judge = self.judge
+        deadline = self.deadline
         with self.link_lock:
-            if 0 <= self.link_back and judge.step is not None and judge.step < self.link_back:
-                if judge.hold_until + 1 > self.link_back:
-                    self.link_back = judge.hold_until + 1
+            if 0 <= self.link_back and deadline.step is not None and deadline.step < self.link_back:
+                if deadline.hold_until + 1 > self.link_back:
+                    self.link_back = deadline.hold_until + 1
                     self._announce_link()
 
     def _announce_link(self) -> None:
@@ -480,14 +480,14 @@ class Link:
         """One inner-loop step: the watchdog, then the wheel speeds to the robot."""
         # With the clock, a decision every step keeps the watchdog quiet (the deadline's rule
         # brakes for a silent agent, and says so); without ticks, a command does.
-        if self.judge.step is None:
+        if self.deadline.step is None:
             ok, event = self.watchdog.check(now, self.last_cmd_at, live)
         else:
             ok, event = self.watchdog.check(now, self.decided_at, live, "tick")
         if event is not None:
             log(self.role, event)
             if not ok:
-                self.judge.side.brake()  # nothing is followed after a stop
+                self.deadline.side.brake()  # nothing is followed after a stop
         dt = min(now - self.last, MAX_DT)
         self.last = now
         if ok and not self.braked:
