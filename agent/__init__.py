@@ -10,6 +10,8 @@ The math, which imports no transport, logging or plotting (docs/method.md maps e
 * :mod:`agent.hazards` — which neighbours are coordinated with and which are kept clear of;
 * :mod:`agent.controller` — one step: QP, shifted-candidate fallback, ancillary law, commit.
 
-The process: :mod:`agent.messages` (the plan and command of a step) and :mod:`agent.node`
-(``python -m agent``).
+The step protocol, which both the process and ``fleet simulate`` drive: :mod:`agent.protocol`
+(the plan and command of a step, the plan made a step ahead, the candidate followed).
+
+The process: :mod:`agent.node` (``python -m agent``).
 """

@@ -7,7 +7,7 @@ plans that the live neighbours committed at step k − 1 (liveliness says who is
 is bounded).  The plans come on the neighbours' keys (``--exchange mesh``), on the keys of the
 cells about this robot's (``place``: only the neighbours in reach, :meth:`Agent._reach`) or
 together in the tracker's digest of step k − 1 (``relay``).  It then steps the controller and publishes its
-command and its plan for step k (:mod:`agent.messages`).  A neighbour whose plan of step k − 1
+command and its plan for step k (:mod:`agent.protocol`).  A neighbour whose plan of step k − 1
 does not arrive in time is kept clear of as a growing disc (:class:`agent.hazards.Guard`).  When
 the tick says the robot side did not apply the agent's last commands, the agent takes the plan
 the robot executed (:meth:`TubeMPC.rewind`) or, if the robot braked, starts again where it is
@@ -43,16 +43,22 @@ import sys
 import threading
 import time
 from collections.abc import Collection
-from dataclasses import dataclass, replace
 from functools import partial
 from typing import Any
 
 import numpy as np
 
-from agent.controller import SNAPSHOTS, TUBE_TOL, StepOutput, TubeMPC
+from agent.controller import SNAPSHOTS, StepOutput, TubeMPC
 from agent.coordination import PLACE_LAG, VIEW_CELLS, NeighbourInfo, navigator_view, place_side
 from agent.hazards import Guard, in_reach, loose, neighbour_of, starts_of
-from agent.messages import command_message, plan_message
+from agent.protocol import (
+    PlannedAhead,
+    candidate_input,
+    command_message,
+    plan_ahead,
+    plan_ahead_message,
+    plan_message,
+)
 from agent.tube import validated_design
 from ground.arrival import arrival
 from ground.bus import Inbox, goal_reply, open_session, publisher, put
@@ -65,7 +71,6 @@ from ground.geometry import (
     controlled_point,
     measured_state,
 )
-from ground.model import ancillary_law, chain_input
 from ground.process import add_common_args, announce, exchange_for, fault_plan, log
 from ground.scenario import ConfigError, Scenario, goal_problem, load_scenario
 from ground.wire import (
@@ -147,7 +152,7 @@ class Agent:
         self.keys = Keys(args.fleet)
         self.plans_ahead = bool(args.delay_compensation)
         """Plan a step ahead (delay compensation; docs/design.md, "Delay compensation")."""
-        self.ready: _PlannedAhead | None = None
+        self.ready: PlannedAhead | None = None
         """The plan made ahead, for Zenoh's callback to answer its tick with (under inbox.cond)."""
         self.answered: tuple[int, np.ndarray] | None = None
         """The step the callback answered and the acceleration (2,) [m/s²] it sent (under inbox.cond)."""
@@ -209,7 +214,7 @@ class Agent:
         self.behind = ""
         """What the robot side did instead of this agent's last commands: "" (applied them),
         "candidate" or "braked"; each episode is logged once."""
-        self.ahead: _PlannedAhead | None = None
+        self.ahead: PlannedAhead | None = None
         """The plan made ahead for the next step (the main thread's; ``ready`` is the callback's)."""
         self.reported = -1
         """The newest step whose outcome (what the robot sides did) has been taken."""
@@ -334,7 +339,7 @@ class Agent:
         the robot braked (it starts again where it is), or after ``--blind-steps`` steps without
         poses.  If the robot side followed the candidate instead, the agent takes
         it too (:meth:`_take_report`), and the robot's input was the ancillary law on it."""
-        args, inbox, me, ctrl, design = self.args, self.inbox, self.me, self.ctrl, self.design
+        args, inbox, me, ctrl = self.args, self.inbox, self.me, self.ctrl
         limit = args.timeout if self.lockstep else self.p.Ts
         inbox.wait(partial(self._outcome_known, k), limit)
         with inbox.cond:
@@ -351,29 +356,19 @@ class Agent:
             return
         j = outcome.executed(me)
         if j is not None:  # the robot side followed the candidate of its command of step j
-            applied = self.sent.get(j)
-            a_j = None if applied is None else chain_input(
-                applied.x_next, applied.v_next, k - j - 1, x, design.A, design.B, design.K
-            )  # fmt: skip
+            a_j = candidate_input(ctrl, self.sent.get(j), j, k, x)
             a = self.a_prev = ctrl.ancillary(x) if a_j is None else a_j  # (the same, to rounding)
-        # What the plan can tell of the tube: whether it held at x, the measurement it follows.
-        tube_ok = design.contains_error(x - ctrl.xi[0:4], TUBE_TOL)
+        x_hat = ctrl.xi[0:4]  # the plan the command was applied about (replaced, never changed)
         fresh, live, goal, reach = self._neighbours(k + 1, outcome.braked)
         self._goals(goal, k + 1)
-        x_next = np.asarray(design.A @ x + design.B @ a)
         nbs, hazards = self._classify(k + 1, reach, fresh, live, outcome.braked)
-        out = ctrl.step(x_next, nbs, hazards, predicted=True, seen=self._seen(reach, outcome.braked))
+        out, tube_ok = plan_ahead(ctrl, x, a, x_hat, nbs, hazards, seen=self._seen(reach, outcome.braked))
         self.ran.append(k + 1)
-        self.ahead = ready = _PlannedAhead(
-            k + 1, ctrl.xi[0:4].copy(), ctrl.xi[4:6].copy(), design.K,
-            command_message(me, k + 1, ctrl, out, a=np.zeros(2)), out,
-        )  # fmt: skip
+        self.ahead = ready = PlannedAhead.of(me, k + 1, ctrl, out)
         with inbox.cond:  # ready before the plan goes out
             self.ready = ready
             self._command_on_arrival(None)  # tick k + 1 may be in already (it does not wait for this plan)
-        self.link.put_plan(
-            replace(plan_message(me, k + 1, ctrl, out, self.inbox.heard_late), tube_ok=tube_ok)
-        )
+        self.link.put_plan(plan_ahead_message(me, k + 1, ctrl, out, tube_ok, self.inbox.heard_late))
 
     def _classify(
         self, k: int, reach: list[str], fresh: dict[str, Plan | None], live: set[str], braked: Collection[str]
@@ -467,11 +462,11 @@ class Agent:
         if threading.current_thread() is not threading.main_thread():
             self.by_callback += 1
 
-    def _put_command(self, ready: _PlannedAhead, x: np.ndarray) -> np.ndarray:
+    def _put_command(self, ready: PlannedAhead, x: np.ndarray) -> np.ndarray:
         """Put the command of the plan made ahead, ``ready``, for the state ``x`` (4,) [m, m/s]
         of its step; returns the acceleration u = v̂ + K(x − x̂) (2,) [m/s²] it carries."""
-        a = ancillary_law(x, ready.x_hat, ready.v_hat, ready.K)
-        self.link.pub_cmd.put(replace(ready.command, ax=float(a[0]), ay=float(a[1])).encode())
+        command, a = ready.command_for(x)
+        self.link.pub_cmd.put(command.encode())
         return a
 
     def _follow_clock(self, tick: Tick) -> None:
@@ -968,23 +963,6 @@ def _steer_ahead(
     known = {j: pl or last.get(j) for j, pl in plans.items()}
     ctrl.steer_ahead([starts[j] if pl is None else neighbour_of(pl) for j, pl in known.items()])
     return True
-
-
-@dataclass(frozen=True)
-class _PlannedAhead:
-    """A plan made a step ahead, waiting for its tick: what its command needs."""
-
-    step: int
-    x_hat: np.ndarray
-    """The plan's nominal state x̂ of ``step`` (4,) [m, m/s], world frame."""
-    v_hat: np.ndarray
-    """Its nominal input v̂ of ``step`` (2,) [m/s²]."""
-    K: np.ndarray
-    """The ancillary gain (2, 4) [1/s², 1/s]."""
-    command: Command
-    """The command of ``step``, its acceleration still to fill in."""
-    out: StepOutput
-    """The controller's output the plan came from."""
 
 
 def _tick_is(inbox: Inbox, k: int) -> bool:

@@ -79,7 +79,7 @@ def _agent(scenario: str, rank: int, hub: str, order: str, ready: Any, stop: Any
 
     from agent.controller import TubeMPC
     from agent.hazards import neighbour_of
-    from agent.messages import command_message, plan_message
+    from agent.protocol import command_message, plan_message
     from agent.tube import validated_design
     from ground.bus import Inbox, publisher
     from ground.geometry import controlled_point, measured_state

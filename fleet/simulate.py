@@ -36,7 +36,7 @@ import json
 import math
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -45,11 +45,11 @@ import numpy as np
 from agent.controller import TUBE_TOL, StepOutput, TubeMPC
 from agent.coordination import Hazard
 from agent.hazards import Guard, starts_of
-from agent.messages import plan_message
+from agent.protocol import candidate_input, plan_ahead, plan_ahead_message, plan_message
 from agent.tube import TubeDesign, require_admissible, synthesize
 from ground.arrival import arrival
 from ground.geometry import Array, controlled_point
-from ground.model import brake_input, chain_input
+from ground.model import brake_input
 from ground.scenario import Scenario, home, settle_samples
 from ground.wire import Plan
 from supervisor.judge import Judge
@@ -161,11 +161,7 @@ def _unapplied(
     if policy == "hold":
         return a_prev, ctrl.xi[0:4].copy(), "held"
     j, out = applied
-    a = (
-        None
-        if out is None
-        else chain_input(out.x_next, out.v_next, k - j - 1, x, design.A, design.B, design.K)
-    )
+    a = candidate_input(ctrl, out, j, k, x)
     if a is None or not ctrl.rewind(1):
         ctrl.reset(x[[0, 2]])  # nothing to follow: braked; the agent starts again where it is
         p = design.params
@@ -444,17 +440,14 @@ class Simulation:
             ctrl, x = ctrls[rid], self.meas[rid]
             (a, x_hat), (out, plan) = applied[rid], self.in_force[rid]
             ref_next, end = ctrl.y_ref[0].copy(), ctrl.y_ref[-1].copy()
-            tube_ok = design.contains_error(x - x_hat, TUBE_TOL)
             plans[rid] = plan
             self.outputs[rid] = out
             self.last_a[rid] = a
             nbs = [infos[j] for j in ids if j != rid and j not in gone]
             self.braked = braked  # (what the outcome of step k says, before the plans of k + 1)
             hazards = self._discs(rid, k + 1, gone, poses)
-            nxt = ctrl.step(design.A @ x + design.B @ a, nbs, hazards, predicted=True)
-            # Its tube_ok says whether the tube held at the measurement it was made after, x_k:
-            # all a plan made ahead can tell (the agent process publishes it before x_{k+1}).
-            self.in_force[rid] = (nxt, replace(plan_message(rid, k + 1, ctrl, nxt), tube_ok=tube_ok))
+            nxt, tube_ok = plan_ahead(ctrl, x, a, x_hat, nbs, hazards)
+            self.in_force[rid] = (nxt, plan_ahead_message(rid, k + 1, ctrl, nxt, tube_ok))
             self._move(rid, x, a, x_hat, braked=rid in braked)
             self._record(rid, x, a, out, ref_next, end, tube_ok)
         self.judge.plans(plans, unexecuted, braked)

@@ -39,7 +39,7 @@ ALLOWED = {
 """The packages each package may import besides itself."""
 OURS = set(LAYERS) | {"benchmarks", "tests"}
 MATH = ("agent.sets", "agent.tube", "agent.qp", "agent.coordination", "agent.navigator", "agent.hazards",
-        "agent.controller")  # fmt: skip
+        "agent.controller", "agent.protocol")  # fmt: skip
 """The math of one robot: no transport, no logging, no plotting."""
 IO = ("zenoh", "rerun", "matplotlib", "ground.bus", "ground.process", "ground.net", "cv2")
 """What the math must not import."""

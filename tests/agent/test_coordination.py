@@ -289,7 +289,7 @@ def test_the_phase_age_counts_the_steps_in_a_phase_and_starts_again_when_displac
     """What the plan says of the age (``TubeMPC.phase_age`` → ``Plan.phase_age``): steps in the
     current phase, counted after each step, 0 at the step the phase changes."""
     from agent.controller import TubeMPC
-    from agent.messages import plan_message
+    from agent.protocol import plan_message
     from agent.tube import require_admissible, synthesize
     from ground.params import preset
 
