@@ -13,7 +13,7 @@
   running agent a new goal.
 * ``fleet report DIR`` writes the figures of a run.
 * ``fleet bench``, ``fleet markers``, ``fleet calibrate``: :mod:`fleet.bench`,
-  :mod:`tracker.markers`, :mod:`tracker.calibrate`.
+  :mod:`camera_tools.markers`, :mod:`camera_tools.calibrate`.
 
 Bad input gets one line naming the field and the reason, and exit code 2.
 """
@@ -393,7 +393,7 @@ def _interrupt(signum: int, frame: Any) -> None:
 
 
 def _calibrate_arguments(ap: argparse.ArgumentParser) -> None:
-    from tracker.calibrate import add_arguments
+    from camera_tools.calibrate import add_arguments
 
     add_arguments(ap)
 
@@ -411,19 +411,19 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _markers_arguments(ap: argparse.ArgumentParser) -> None:
-    from tracker.markers import add_arguments
+    from camera_tools.markers import add_arguments
 
     add_arguments(ap)
 
 
 def cmd_markers(args: argparse.Namespace) -> int:
-    from tracker.markers import run
+    from camera_tools.markers import run
 
     return int(run(args))
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
-    from tracker.calibrate import run
+    from camera_tools.calibrate import run
 
     return int(run(args))
 

@@ -6,6 +6,7 @@ The packages stand in layers, the contract at the bottom:
     agent, epuck_link                   the math of one robot; the robot side
     tracker, supervisor, ros2_link      the world and its camera; the judge and the recording;
                                         the fleet as ROS 2 sees it
+    camera_tools                        the camera's offline tools: markers, calibration, synth
     fleet                               the command line, the launcher, simulate, bench
 
 A module imports only from its own package and from the packages :data:`ALLOWED` lists for it,
@@ -26,7 +27,10 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-LAYERS = {"ground": 0, "agent": 1, "epuck_link": 1, "tracker": 2, "supervisor": 2, "ros2_link": 2, "fleet": 3}
+LAYERS = {
+    "ground": 0, "agent": 1, "epuck_link": 1, "tracker": 2, "supervisor": 2, "ros2_link": 2,
+    "camera_tools": 3, "fleet": 4,
+}  # fmt: skip
 ALLOWED = {
     "ground": set(),
     "agent": {"ground"},
@@ -34,7 +38,8 @@ ALLOWED = {
     "tracker": {"ground", "epuck_link"},
     "supervisor": {"ground"},
     "ros2_link": {"ground"},
-    "fleet": {"ground", "agent", "epuck_link", "tracker", "supervisor", "ros2_link"},
+    "camera_tools": {"ground", "tracker"},
+    "fleet": {"ground", "agent", "epuck_link", "tracker", "camera_tools", "supervisor", "ros2_link"},
 }
 """The packages each package may import besides itself."""
 OURS = set(LAYERS) | {"benchmarks", "tests"}

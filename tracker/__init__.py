@@ -5,6 +5,8 @@
 * :mod:`tracker.reports` — what ``epuck_link`` processes applied, told in the next tick;
 * :mod:`tracker.vision` — ArUco detection and the floor homography;
 * :mod:`tracker.camera` — the camera tracker process (``python -m tracker --source camera``);
-* :mod:`tracker.calibrate`, :mod:`tracker.markers` — ``fleet calibrate`` and ``fleet markers``;
-* :mod:`tracker.synth` — a synthetic camera for tests and rehearsals.
+* :mod:`tracker.intrinsics` — the lens model and its ChArUco calibration.
+
+The camera's offline tools (``fleet markers``, ``fleet calibrate``, the synthetic camera) are the
+package :mod:`camera_tools`: the tracker process loads none of them.
 """

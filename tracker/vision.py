@@ -28,7 +28,7 @@ position error ≤ 0.4 mm, heading ≤ 0.7°.
 :class:`Tracker` turns one frame into poses, and counts what it could not use: a missing marker
 (a *gap*), an unknown id, an unreadable frame, an id seen twice, a detection whose size or
 handedness on the plane is implausible.  The camera process (:mod:`tracker.camera`) and
-``fleet calibrate`` (:mod:`tracker.calibrate`) use it.
+``fleet calibrate`` (:mod:`camera_tools.calibrate`) use it.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
-"""The ArUco camera tracker (tracker/camera.py), its synthetic images (tracker/synth.py),
-``fleet calibrate`` (tracker/calibrate.py) and the ``[camera]`` scenario schema.
+"""The ArUco camera tracker (tracker/camera.py), its synthetic images (camera_tools/synth.py),
+``fleet calibrate`` (camera_tools/calibrate.py) and the ``[camera]`` scenario schema.
 
-Ground truth comes from :mod:`tracker.synth`: markers drawn in world coordinates and
+Ground truth comes from :mod:`camera_tools.synth`: markers drawn in world coordinates and
 warped into a 30°-oblique pinhole camera (1600×1200 px, 5 cm markers ≈ 18–28 px),
 then blurred (σ 0.8 px) and noised (σ 2 grey levels).  All randomness is seeded.
 """
@@ -29,10 +29,8 @@ cv2 = pytest.importorskip("cv2")
 
 from camera_layout import FIDUCIALS, OFFSET, SIZE  # noqa: E402
 
-from tracker import camera as C  # noqa: E402
-from tracker import vision as V  # noqa: E402
-from tracker.calibrate import main as calibrate_main  # noqa: E402
-from tracker.synth import (  # noqa: E402
+from camera_tools.calibrate import main as calibrate_main  # noqa: E402
+from camera_tools.synth import (  # noqa: E402
     PinholeCamera,
     Renderer,
     circling,
@@ -41,6 +39,8 @@ from tracker.synth import (  # noqa: E402
     random_poses,
     write_video,
 )  # fmt: skip
+from tracker import camera as C  # noqa: E402
+from tracker import vision as V  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONIOENCODING": "utf-8"}

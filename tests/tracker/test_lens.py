@@ -1,4 +1,4 @@
-"""Lens distortion: the synthetic lens (tracker/synth.py), the intrinsics and their ChArUco
+"""Lens distortion: the synthetic lens (camera_tools/synth.py), the intrinsics and their ChArUco
 calibration (tracker/intrinsics.py), undistorted tracking (tracker/vision.py), ``fleet
 calibrate --intrinsics`` and ``fleet markers --charuco``.
 
@@ -27,12 +27,10 @@ cv2 = pytest.importorskip("cv2")
 
 from camera_layout import FIDUCIALS, OFFSET, SIZE  # noqa: E402
 
-from tracker import intrinsics as I  # noqa: E402
-from tracker import vision as V  # noqa: E402
-from tracker.calibrate import main as calibrate_main  # noqa: E402
-from tracker.markers import charuco_figure  # noqa: E402
-from tracker.markers import main as markers_main  # noqa: E402
-from tracker.synth import (  # noqa: E402
+from camera_tools.calibrate import main as calibrate_main  # noqa: E402
+from camera_tools.markers import charuco_figure  # noqa: E402
+from camera_tools.markers import main as markers_main  # noqa: E402
+from camera_tools.synth import (  # noqa: E402
     PinholeCamera,
     Renderer,
     board_poses,
@@ -44,6 +42,8 @@ from tracker.synth import (  # noqa: E402
     random_poses,
     write_video,
 )
+from tracker import intrinsics as I  # noqa: E402
+from tracker import vision as V  # noqa: E402
 
 LENS = (-0.3, 0.1, 0.0, 0.0, 0.0)
 """(k₁, k₂, p₁, p₂, k₃) of the test lens."""

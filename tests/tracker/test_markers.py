@@ -1,4 +1,4 @@
-"""``fleet markers`` (tracker/markers.py): printable ArUco markers at their true size.
+"""``fleet markers`` (camera_tools/markers.py): printable ArUco markers at their true size.
 
 Three independent reads of the output:
 
@@ -27,7 +27,7 @@ from ground.scenario import load_scenario
 
 cv2 = pytest.importorskip("cv2")
 
-from tracker import markers as M  # noqa: E402
+from camera_tools import markers as M  # noqa: E402
 from tracker.vision import make_detector  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -170,7 +170,7 @@ def test_pdf_pages_hold_every_marker_at_its_printed_size(tmp_path, scn, paper, c
 
 def render(pdf: Path, scn, paper: str, dpi: int) -> tuple[str, list[np.ndarray]]:
     """Grey page images (H, W) uint8 at ``dpi``: the PDF through pdftoppm when it is
-    installed, else the same figures (:func:`tracker.markers.page_figure`) on Agg."""
+    installed, else the same figures (:func:`camera_tools.markers.page_figure`) on Agg."""
     exe = shutil.which("pdftoppm")
     if exe is not None:
         subprocess.run([exe, "-r", str(dpi), "-gray", "-png", str(pdf), str(pdf.with_suffix(""))], check=True)

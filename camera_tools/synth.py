@@ -17,7 +17,7 @@ through ``cv2.remap`` (bilinear), before the blur and the noise.
 :func:`board_view` renders a ChArUco board at any pose in front of the camera
 the same way, for intrinsic calibration.
 
-``python -m tracker.synth --scenario S (--video OUT.avi | --image OUT.png)
+``python -m camera_tools.synth --scenario S (--video OUT.avi | --image OUT.png)
 [--duration T] [--fps F] [--seed N]`` renders a scenario with a ``[camera]``
 table and robot ``marker`` ids: each robot drives in a straight line from its
 start to its goal; the video plays through ``python -m tracker --source
@@ -612,7 +612,7 @@ def scene_renderer(scn: Any, **camera: Any) -> Renderer:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m tracker.synth", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(prog="python -m camera_tools.synth", description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", required=True, help="scenario TOML with a [camera] table and robot markers")
     out = ap.add_mutually_exclusive_group(required=True)
     out.add_argument("--video", help="write an MJPG .avi of the robots driving start → goal")
