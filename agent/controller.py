@@ -97,6 +97,12 @@ class StepOutput:
 
 @dataclass
 class Counters:
+    """What a :class:`TubeMPC` has counted over its steps (the agent's closing log line).
+
+    ``solves``: QPs solved, counted by solver status in ``status_counts``; ``failures`` and ``fallbacks``:
+    solves without a usable solution, whose step took the shifted candidate instead; ``tube_exits``:
+    steps whose error x − x̂ was not in Z."""
+
     solves: int = 0
     failures: int = 0
     fallbacks: int = 0

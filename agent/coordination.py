@@ -37,9 +37,13 @@ SQRT2 = math.sqrt(2.0)
 class ConvexObstacle(Protocol):
     """A static convex obstacle: ``distance`` and ``closest_point`` in [m]."""
 
-    def distance(self, point: Any) -> float: ...
+    def distance(self, point: Any) -> float:
+        """Distance [m] from ``point`` (x, y) to the obstacle; 0 inside."""
+        ...
 
-    def closest_point(self, point: Any) -> Array: ...
+    def closest_point(self, point: Any) -> Array:
+        """The point (2,) [m] of the obstacle's boundary nearest to ``point``."""
+        ...
 
 
 @dataclass

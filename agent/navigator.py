@@ -210,6 +210,8 @@ class GridPlanner:
             grid[i0 - I0 : i1 - I0, j0 - J0 : j1 - J0] += extra * (dx * dx + dy * dy < r * r)
 
     def cell(self, p: Array) -> int:
+        """Index ``i·ny + j`` of the grid cell holding point ``p`` (2,) [m, world frame]; a
+        point off the grid counts as in the nearest cell along each axis."""
         i = min(self.nx - 1, max(0, int((p[0] - self.x0) / self.hx)))
         j = min(self.ny - 1, max(0, int((p[1] - self.y0) / self.hy)))
         return i * self.ny + j

@@ -99,6 +99,9 @@ UNMEASURED_SAY = 50
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``python -m agent``: run one robot's agent until the run ends (see the module docstring);
+    returns the exit code (0 once the run has stopped, 1 if no tick came for ``--timeout``, 2 bad
+    input)."""
     ap = argparse.ArgumentParser(prog="python -m agent", description=__doc__.splitlines()[0])
     add_common_args(ap)
     ap.add_argument("--robot", required=True, help="robot id from the scenario")
@@ -726,6 +729,9 @@ class Agent:
             query.drop()
 
     def close(self) -> None:
+        """Log the agent's closing counts (steps, solves, fallbacks, held steps, plans taken,
+        injected faults, rejected payloads …), then undeclare its tokens and subscribers and close its
+        Zenoh session."""
         c, guard = self.ctrl.counters, self.guard
         late = f"{self.inbox.heard_late} places heard over {PLACE_LAG} steps late, " if self.place else ""
         log(

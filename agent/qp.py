@@ -92,6 +92,9 @@ class StepData:
 
 @dataclass
 class SolveResult:
+    """What one :meth:`TubeQP.solve` gives: ``ok`` only for a ``PROXQP_SOLVED`` status with
+    a finite solution found within the time budget; ``iterations`` are the solver's."""
+
     status: str
     """Solver status name, e.g. ``PROXQP_SOLVED``; ``TIME_BUDGET_EXCEEDED`` if discarded for time."""
     ok: bool
@@ -267,6 +270,7 @@ class TubeQP:
 
     @staticmethod
     def objective(prob: dict[str, Array], xi: Array) -> float:
+        """The QP's cost ½ ξᵀHξ + gᵀξ of ``prob`` at ``xi`` (n,)."""
         return float(0.5 * xi @ prob["H"] @ xi + prob["g"] @ xi)
 
     # ----------------------------------------------------------------- solve

@@ -44,6 +44,7 @@ class Zonotope:
 
     @property
     def dim(self) -> int:
+        """Dimension n of the space (the size of ``c``)."""
         return int(self.c.size)
 
     def support(self, d: Array) -> Array:
@@ -68,6 +69,7 @@ class Zonotope:
         return Zonotope(self.c + other.c, np.hstack([self.G, other.G]))
 
     def scale(self, factor: float) -> Zonotope:
+        """The image ``factor · Z``: centre and generators scaled (about the origin, not the centre)."""
         return Zonotope(self.c * factor, self.G * factor)
 
     def halfspaces(self, tol: float = 1e-12) -> tuple[Array, Array]:

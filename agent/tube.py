@@ -178,6 +178,7 @@ class TubeDesign:
 
     @property
     def admissible(self) -> bool:
+        """True if the design passed every check (:attr:`failures` is empty)."""
         return not self.failures
 
     @property

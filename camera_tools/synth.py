@@ -612,6 +612,7 @@ def scene_renderer(scn: Any, **camera: Any) -> Renderer:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``python -m camera_tools.synth``; returns the exit code (0 done, 2 bad input)."""
     ap = argparse.ArgumentParser(prog="python -m camera_tools.synth", description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", required=True, help="scenario TOML with a [camera] table and robot markers")
     out = ap.add_mutually_exclusive_group(required=True)

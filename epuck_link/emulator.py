@@ -223,6 +223,7 @@ class WifiSide:
         """Blocks dropped from a backlog."""
 
     def take(self, data: bytes) -> None:
+        """Queue ``data`` received from the client; :meth:`cycle` reads it a block at a time."""
         self.rx += data
 
     @property
@@ -430,6 +431,9 @@ class TruthPublisher:
 
 # --------------------------------------------------------------------- CLI
 def main(argv: list[str] | None = None) -> int:
+    """``python -m epuck_link.emulator``: serve the emulated robot on a pseudo-terminal and/or a TCP
+    port, with ``--robot`` publishing its true pose, until SIGTERM or SIGINT (see the module
+    docstring); returns the exit code (0 once stopped, 2 bad input or a server that cannot start)."""
     from ground.bus import open_session, publisher
     from ground.process import add_common_args, announce, log
     from ground.scenario import ConfigError

@@ -123,6 +123,8 @@ _OFF = {
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``python -m epuck_link``: run the robot side of one E-puck until SIGTERM or SIGINT (see the
+    module docstring); returns the exit code (0 once stopped, 2 bad input)."""
     ap = argparse.ArgumentParser(prog="python -m epuck_link", description=__doc__.splitlines()[0])
     add_common_args(ap)
     ap.add_argument("--robot", required=True, help="robot id from the scenario")
@@ -502,6 +504,9 @@ class Link:
             self.due = now + self.period
 
     def close(self) -> None:
+        """Stop the robot port, which sends zero speed (best effort, :meth:`RobotPort.close`), and
+        the in-process emulator's truth publisher, if any; log the closing counts and undeclare the
+        subscribers."""
         sent = self.port.close()
         if self.truth is not None:
             self.truth.close()

@@ -165,13 +165,17 @@ class SerialTransport(Transport):
 
     @property
     def name(self) -> str:
+        """``serial:<device>``."""
         return f"serial:{self.device}"
 
     @property
     def is_open(self) -> bool:
+        """A port is open (after :meth:`open`, until :meth:`close`)."""
         return self._port is not None
 
     def open(self) -> None:
+        """Open the device at ``baudrate``, :attr:`timeout` bounding reads and writes, and
+        drop what the input buffer holds; LinkError if it cannot be opened."""
         import serial
 
         self.close()
@@ -185,6 +189,7 @@ class SerialTransport(Transport):
             raise LinkError(f"{self.name}: cannot open: {_one_line(e)}") from None
 
     def close(self) -> None:
+        """Close the port, if open; an error closing a dead device is ignored."""
         port, self._port = self._port, None
         if port is not None:
             try:
@@ -193,6 +198,7 @@ class SerialTransport(Transport):
                 pass
 
     def write(self, data: bytes) -> None:
+        """Write ``data``; LinkError if not open, on a failure or on a short write."""
         import serial
 
         if self._port is None:
@@ -205,6 +211,8 @@ class SerialTransport(Transport):
             raise LinkError(f"{self.name}: wrote {n} of {len(data)} bytes")
 
     def read_exact(self, n: int, timeout: float) -> bytes:
+        """Read ``n`` bytes; LinkError on a failure, or if they are not all in once
+        ``timeout`` [s] has passed (one read call may overrun it by :attr:`timeout`)."""
         import serial
 
         if self._port is None:
@@ -221,6 +229,8 @@ class SerialTransport(Transport):
         return bytes(buf)
 
     def read_some(self, n: int, timeout: float) -> bytes:
+        """What is waiting, up to ``n`` bytes; if nothing is, one byte waited for up to
+        ``timeout`` [s] (``b""`` if none comes, at once for ``timeout`` ≤ 0)."""
         import serial
 
         if self._port is None:
@@ -252,13 +262,17 @@ class TcpTransport(Transport):
 
     @property
     def name(self) -> str:
+        """``tcp:<host>:<port>``."""
         return f"tcp:{self.host}:{self.port}"
 
     @property
     def is_open(self) -> bool:
+        """A socket is connected (after :meth:`open`, until :meth:`close`)."""
         return self._sock is not None
 
     def open(self) -> None:
+        """Connect within ``connect_timeout`` [s], with TCP_NODELAY and ``timeout`` [s] on the
+        socket; LinkError if the robot cannot be reached."""
         self.close()
         try:
             s = socket.create_connection((self.host, self.port), timeout=self.connect_timeout)
@@ -269,6 +283,7 @@ class TcpTransport(Transport):
         self._sock = s
 
     def close(self) -> None:
+        """Close the socket, if open; errors are ignored."""
         s, self._sock = self._sock, None
         if s is not None:
             try:
@@ -277,6 +292,7 @@ class TcpTransport(Transport):
                 pass
 
     def write(self, data: bytes) -> None:
+        """Send all of ``data`` within ``timeout`` [s]; LinkError if not open or on a failure."""
         if self._sock is None:
             raise LinkError(f"{self.name}: not open")
         try:
@@ -286,6 +302,8 @@ class TcpTransport(Transport):
             raise LinkError(f"{self.name}: send failed: {_one_line(e)}") from None
 
     def read_exact(self, n: int, timeout: float) -> bytes:
+        """Receive exactly ``n`` bytes within ``timeout`` [s]; LinkError past it, on a
+        failure, or when the robot closes the connection."""
         if self._sock is None:
             raise LinkError(f"{self.name}: not open")
         deadline = time.monotonic() + timeout
@@ -307,6 +325,9 @@ class TcpTransport(Transport):
         return bytes(buf)
 
     def read_some(self, n: int, timeout: float) -> bytes:
+        """One ``recv`` of up to ``n`` bytes, waiting up to ``timeout`` [s] (0: only what
+        is there); ``b""`` if nothing came, LinkError on a failure or when the robot closed the
+        connection."""
         if self._sock is None:
             raise LinkError(f"{self.name}: not open")
         try:
@@ -333,25 +354,32 @@ class LoopTransport(Transport):
 
     @property
     def name(self) -> str:
+        """The name given at construction (default ``emulator``)."""
         return self._name
 
     @property
     def is_open(self) -> bool:
+        """A handler is in place (after :meth:`open`, until :meth:`close`)."""
         return self._handler is not None
 
     def open(self) -> None:
+        """Make a fresh handler with the factory and drop any queued reply."""
         self._handler = self._factory()
         self._pending.clear()
 
     def close(self) -> None:
+        """Drop the handler (queued reply bytes are dropped at the next :meth:`open`)."""
         self._handler = None
 
     def write(self, data: bytes) -> None:
+        """Hand ``data`` to the handler at once and queue its reply."""
         if self._handler is None:
             raise LinkError(f"{self.name}: not open")
         self._pending += self._handler(data)
 
     def read_exact(self, n: int, timeout: float) -> bytes:
+        """The first ``n`` queued reply bytes; LinkError at once if fewer are queued
+        (nothing comes later: ``timeout`` is unused)."""
         if self._handler is None:
             raise LinkError(f"{self.name}: not open")
         if len(self._pending) < n:
@@ -361,6 +389,7 @@ class LoopTransport(Transport):
         return out
 
     def read_some(self, n: int, timeout: float) -> bytes:
+        """Up to ``n`` queued reply bytes, ``b""`` if none; never waits."""
         if self._handler is None:
             raise LinkError(f"{self.name}: not open")
         out = bytes(self._pending[:n])
@@ -421,23 +450,30 @@ class CutTransport(Transport):
 
     @property
     def name(self) -> str:
+        """The inner transport's name."""
         return self.inner.name
 
     @property
     def is_open(self) -> bool:
+        """The inner transport is open."""
         return self.inner.is_open
 
     def open(self) -> None:
+        """LinkError while the link is cut (the robot is out of reach); else drop the held
+        bytes and open the inner transport."""
         if self.cut():
             raise LinkError(f"{self.name}: link cut (fault plan): robot out of reach")
         self._held.clear()
         self.inner.open()
 
     def close(self) -> None:
+        """Drop the held bytes and close the inner transport."""
         self._held.clear()
         self.inner.close()
 
     def write(self, data: bytes) -> None:
+        """While the link is cut, hold ``data`` and return (:attr:`writes_in_cut`); else send
+        what was held, then ``data``.  LinkError if the inner transport is not open."""
         if not self.inner.is_open:
             raise LinkError(f"{self.name}: not open")
         if self.cut():
@@ -448,6 +484,8 @@ class CutTransport(Transport):
         self.inner.write(data)
 
     def read_exact(self, n: int, timeout: float) -> bytes:
+        """The inner transport's read, with ``timeout`` [s] less any wait for a cut to end (the
+        held bytes then go through); LinkError if the link stays cut all of ``timeout``."""
         start = self.clock()
         if self._silent(timeout):
             raise LinkError(
@@ -456,6 +494,7 @@ class CutTransport(Transport):
         return self.inner.read_exact(n, max(0.0, start + timeout - self.clock()))
 
     def read_some(self, n: int, timeout: float) -> bytes:
+        """As :meth:`read_exact`, but ``b""`` if the link stays cut all of ``timeout`` [s]."""
         start = self.clock()
         if self._silent(timeout):
             return b""
@@ -521,6 +560,9 @@ class AsercomCodec(Codec):
     """Advanced sercom: ``0xBC l l r r 0xAF 0x00`` → 4 bytes."""
 
     def exchange(self, t: Transport, left: int, right: int) -> tuple[int, int]:
+        """Send one chain that sets the speeds [steps/s] (clamped to ±:attr:`limit`) and reads
+        the encoders; the int16 counts [steps] of the 4-byte reply.  LinkError on a late or
+        malformed reply."""
         t.write(P.speed_and_encoders(left, right, self.limit))
         try:
             return P.parse_encoders(t.read_exact(P.ENCODERS_REPLY_SIZE, self.reply_timeout))
@@ -528,6 +570,7 @@ class AsercomCodec(Codec):
             raise LinkError(str(e)) from None
 
     def stop_request(self) -> bytes:
+        """The set-speed request for zero speed, ended with ``0x00``: no encoder read, so no reply."""
         return P.terminate(P.set_speed(0, 0, self.limit))
 
 
@@ -558,9 +601,14 @@ class WifiCodec(Codec):
         """Sensor packets passed over for a newer one."""
 
     def reset(self) -> None:
+        """Drop the bytes left in the receive buffer from the last connection."""
         self._rx.clear()
 
     def exchange(self, t: Transport, left: int, right: int) -> tuple[int, int]:
+        """Send a command packet with the speeds [steps/s] that asks for the sensors, then take
+        every packet that has arrived: the encoder counts [steps] of the newest sensor packet,
+        waited for up to ``reply_timeout`` [s] only if none has come.  LinkError if none comes,
+        or on a malformed packet."""
         t.write(P.wifi_command(left, right, request=P.REQUEST_SENSORS, limit=self.limit))
         deadline = self.clock() + self.reply_timeout
         newest: tuple[int, int] | None = None
@@ -602,6 +650,8 @@ class WifiCodec(Codec):
         return out
 
     def stop_request(self) -> bytes:
+        """A command packet with zero speeds and request byte 0 (neither image nor
+        sensors); nothing waits for its answer."""
         return P.wifi_command(0, 0, request=0, limit=self.limit)
 
 

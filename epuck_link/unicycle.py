@@ -120,6 +120,8 @@ class LookaheadInnerLoop(InnerLoop):
             self.q = np.zeros(2)
 
     def reset(self, pose: Array, velocity: Array) -> None:
+        """Set q to ``velocity`` (2,) [m/s, world frame] of the controlled point
+        (``pose`` is unused)."""
         self.q = np.array(velocity, dtype=float)
 
     def _to_unicycle(self, q: Array, theta: float) -> tuple[float, float]:
@@ -127,17 +129,22 @@ class LookaheadInnerLoop(InnerLoop):
         return c * q[0] + s * q[1], (-s * q[0] + c * q[1]) / self.lookahead
 
     def command(self, a: Array, pose: Array, dt: float) -> tuple[float, float]:
+        """Advance q by ``dt`` [s] under ``a`` (2,) [m/s², world frame]; return
+        (v [m/s], ω [rad/s]) for q at the interval's midpoint, at the heading of ``pose``."""
         assert self.q is not None
         q_mid = self.q + 0.5 * dt * np.asarray(a)  # midpoint: O(dt³) position error
         self.q = self.q + dt * np.asarray(a)
         return self._to_unicycle(q_mid, pose[2])
 
     def realised(self, v: float, omega: float, pose: Array) -> None:
+        """Set q to the controlled point's velocity under the executed (v, ω) at
+        ``pose`` (anti-windup after a saturated substep)."""
         # Only called after a saturated substep: the executed velocity of p.
         c, s = math.cos(pose[2]), math.sin(pose[2])
         self.q = np.array([c * v - s * self.lookahead * omega, s * v + c * self.lookahead * omega])
 
     def velocity(self, pose: Array) -> Array:
+        """A copy of q (2,) [m/s, world frame] (``pose`` is unused)."""
         assert self.q is not None
         return self.q.copy()
 
@@ -152,6 +159,8 @@ class PaperInnerLoop(InnerLoop):
     lookahead: float = 0.0
 
     def reset(self, pose: Array, velocity: Array) -> None:
+        """Set v to the component of ``velocity`` (2,) [m/s, world frame] along the
+        heading of ``pose``."""
         self.v = math.cos(pose[2]) * velocity[0] + math.sin(pose[2]) * velocity[1]
 
     def rates(self, a: Array, theta: float) -> tuple[float, float]:
@@ -161,15 +170,20 @@ class PaperInnerLoop(InnerLoop):
         return c * a[0] + s * a[1], (-s * a[0] + c * a[1]) / v_eff
 
     def command(self, a: Array, pose: Array, dt: float) -> tuple[float, float]:
+        """Advance v by ``dt`` [s] under ``a`` (2,) [m/s²] (:meth:`rates`); return
+        (v at the interval's midpoint [m/s], ω [rad/s])."""
         vdot, omega = self.rates(a, pose[2])
         v_mid = self.v + 0.5 * dt * vdot
         self.v += dt * vdot
         return v_mid, omega
 
     def realised(self, v: float, omega: float, pose: Array) -> None:
+        """Set v to the executed forward speed ``v`` [m/s] (``omega`` and ``pose`` unused)."""
         self.v = v
 
     def velocity(self, pose: Array) -> Array:
+        """The axle centre's velocity v·(cos θ, sin θ) (2,) [m/s, world frame] at the
+        heading θ of ``pose``."""
         return np.array([self.v * math.cos(pose[2]), self.v * math.sin(pose[2])])
 
 
@@ -196,6 +210,8 @@ class UnicyclePlant:
         loop.reset(self.pose, np.zeros(2))
 
     def state(self) -> Array:
+        """Double-integrator state [px, vx, py, vy] (4,) [m, m/s] of the controlled point,
+        world frame; the velocity is the inner loop's extension state."""
         p = self.loop.point(self.pose)
         q = self.loop.velocity(self.pose)
         return np.array([p[0], q[0], p[1], q[1]])
@@ -287,11 +303,15 @@ class DoubleIntegratorPlant:
         return np.array([x, y, self.theta])
 
     def state(self) -> Array:
+        """A copy of the state [px, vx, py, vy] (4,) [m, m/s]."""
         return self.x.copy()
 
     def step(self, a: Array, Ts: float) -> tuple[float, float]:
+        """x ← A x + B ``a``, ``a`` (2,) [m/s²] (``Ts`` is unused: A and B are
+        given); returns (0, 0): there are no wheels."""
         self.x = self.A @ self.x + self.B @ np.asarray(a)
         return 0.0, 0.0
 
     def perturb(self, w: Array) -> None:
+        """Add ``w`` (4,) [m, m/s, m, m/s] to the state."""
         self.x = self.x + np.asarray(w)

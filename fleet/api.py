@@ -469,6 +469,7 @@ class SimulatedFleet:
 
     @property
     def processes(self) -> dict[str, int]:
+        """None started: the simulator runs in the script's process (an empty map)."""
         return {}  # one process: the script's
 
     def __init__(self, scn: Scenario, seed: int | None, out: str | Path | None, ahead: bool = False):
@@ -486,6 +487,8 @@ class SimulatedFleet:
         self.verdict: str | None = None
 
     def sample(self) -> Sample:
+        """The current step's sample: each robot's true pose and its measured (camera) pose,
+        (3,) [m, m, rad]."""
         sim = self.sim
         return Sample(
             sim.k,
@@ -494,6 +497,8 @@ class SimulatedFleet:
         )
 
     def advance(self) -> bool:
+        """Step the simulator once, noting a ``fallback`` event for every robot whose step
+        took its shifted candidate; always True (the script decides when the run ends)."""
         k = self.sim.k
         self.sim.step()
         for rid, out in self.sim.outputs.items():
@@ -502,19 +507,26 @@ class SimulatedFleet:
         return True
 
     def goals(self) -> dict[str, Array]:
+        """Each robot's goal (2,) [m], a copy: the one given and not yet taken, else its
+        controller's."""
         sim = self.sim
         return {rid: sim.pending.get(rid, c.goal).copy() for rid, c in sim.ctrls.items()}
 
     def send(self, goals: Mapping[str, Array]) -> dict[str, str]:
+        """Give each robot its goal from the next step on
+        (:meth:`fleet.simulate.Simulation.set_goal`); none is refused (an empty map)."""
         for rid, g in goals.items():
             self.sim.set_goal(rid, g)
         return {}
 
     def events(self) -> list[Event]:
+        """The events noted since the last call (:meth:`advance`'s fallbacks)."""
         out, self._events = self._events, []
         return out
 
     def close(self) -> dict[str, Any]:
+        """Finish the run, write its outputs in :attr:`out` (:func:`fleet.simulate.save_run`)
+        and judge it (:attr:`verdict`); returns the summary."""
         from fleet.simulate import save_run
         from supervisor.judge import verdict
 

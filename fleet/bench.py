@@ -192,6 +192,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``python -m fleet.bench``: parse ``argv`` and :func:`run`; returns its exit code."""
     ap = argparse.ArgumentParser(prog="fleet bench", description=__doc__.splitlines()[0])
     add_arguments(ap)
     return run(ap.parse_args(argv))

@@ -77,6 +77,9 @@ def check_camera_error(scn: Any) -> None:
 
 
 def cmd_design(args: argparse.Namespace) -> int:
+    """``fleet design``: print the tube design of a scenario, or of a preset over
+    :data:`DEFAULT_ARENA` (``--json``: as JSON); returns 0 if it is admissible, else
+    :data:`EXIT_FAIL` (2 bad input)."""
     if args.scenario:
         scn = load_scenario(args.scenario, preset_override=args.preset)
         check_camera_error(scn)
@@ -150,6 +153,10 @@ def _say_forced_order(scn: Scenario, footprint: float) -> None:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
+    """``fleet simulate``: run the scenario's fleet in one process (:func:`fleet.simulate.run`,
+    or a script for robots with waypoints: :func:`fleet.api.run_scenario`), write ``summary.json`` in
+    ``--out`` and print what happened; returns 0 if the run passed the judge, else :data:`EXIT_FAIL`
+    (2 bad input)."""
     from agent.tube import validated_design
     from fleet.simulate import run, save_run
 
@@ -204,6 +211,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    """``fleet run``: check the scenario and the options, run the fleet as processes
+    (:func:`fleet.launch.run_fleet`, or a script for robots with waypoints:
+    :func:`fleet.api.run_scenario`) and print what happened; returns the run's exit code (0 if it
+    passed, 2 bad input).  SIGTERM stops it as Ctrl-C does."""
     from fleet.launch import run_fleet
 
     # SIGTERM stops the fleet like Ctrl-C: the launcher's cleanup ends every process by pid.
@@ -371,6 +382,9 @@ def _run_links(scn: Any) -> dict[str, str]:
 
 
 def cmd_goal(args: argparse.Namespace) -> int:
+    """``fleet goal``: give a running robot's agent a new goal (:func:`fleet.operator.send_goal`)
+    and print its answer; returns the exit code (2 unless exactly one of ``--connect`` and
+    ``--zenoh-config`` is given)."""
     from fleet.operator import send_goal
 
     goal = (args.x, args.y)
@@ -405,6 +419,7 @@ def _bench_arguments(ap: argparse.ArgumentParser) -> None:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
+    """``fleet bench``: :func:`fleet.bench.run`; returns its exit code."""
     from fleet.bench import run
 
     return int(run(args))
@@ -417,18 +432,22 @@ def _markers_arguments(ap: argparse.ArgumentParser) -> None:
 
 
 def cmd_markers(args: argparse.Namespace) -> int:
+    """``fleet markers``: :func:`camera_tools.markers.run`; returns its exit code."""
     from camera_tools.markers import run
 
     return int(run(args))
 
 
 def cmd_calibrate(args: argparse.Namespace) -> int:
+    """``fleet calibrate``: :func:`camera_tools.calibrate.run`; returns its exit code."""
     from camera_tools.calibrate import run
 
     return int(run(args))
 
 
 def cmd_report(args: argparse.Namespace) -> int:
+    """``fleet report``: write the figures of the run in ``DIR``
+    (:func:`fleet.report.write_report`) and print their paths; 2 if ``DIR`` has no ``trace.npz``."""
     from fleet.report import write_report
 
     out = Path(args.dir)
@@ -449,6 +468,8 @@ def _endpoint(text: str) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``fleet`` command's argument parser: one subcommand each, whose ``func`` is the
+    ``cmd_*`` that runs it."""
     ap = argparse.ArgumentParser(prog="fleet", description="Distributed robust tube MPC for E-puck fleets")
     sub = ap.add_subparsers(dest="command", required=True)
     d = sub.add_parser("design", help="print the tube design of a scenario or preset")
@@ -551,6 +572,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``fleet``: run the subcommand; returns its exit code (2 bad input, 130 when interrupted, 0
+    when the reader of the output went away)."""
     args = build_parser().parse_args(argv)
     try:
         return int(args.func(args))

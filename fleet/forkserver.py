@@ -211,6 +211,10 @@ def _end(sock: socket.socket, children: set[int], sel: selectors.BaseSelector, w
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``python -m fleet.forkserver``: import the ``--preload`` modules, check that this process
+    has one thread, announce readiness and serve the launcher on ``--socket-fd`` until it stops
+    writing (see the module docstring); returns the exit code (0, 1 with more than one thread, 2 a bad
+    socket)."""
     ap = argparse.ArgumentParser(prog="python -m fleet.forkserver", description=__doc__.splitlines()[0])
     ap.add_argument("--socket-fd", type=int, required=True, help="the launcher's Unix socket")
     ap.add_argument("--preload", action="append", required=True, help="module to import once (repeatable)")

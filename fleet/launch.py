@@ -55,22 +55,38 @@ class Child(Protocol):
     :class:`Forked` agent's."""
 
     @property
-    def pid(self) -> int: ...
+    def pid(self) -> int:
+        """The process id."""
+        ...
 
     @property
-    def returncode(self) -> int | None: ...
+    def returncode(self) -> int | None:
+        """The exit code once known (negative: the signal that ended it), else None."""
+        ...
 
-    def poll(self) -> int | None: ...
+    def poll(self) -> int | None:
+        """The exit code if the process has ended, else None; never waits."""
+        ...
 
-    def wait(self, timeout: float | None = None) -> int: ...
+    def wait(self, timeout: float | None = None) -> int:
+        """Wait up to ``timeout`` [s] (None: for good) for the process to end and return its exit
+        code; :class:`subprocess.TimeoutExpired` if it has not ended by then."""
+        ...
 
-    def send_signal(self, sig: int) -> None: ...
+    def send_signal(self, sig: int) -> None:
+        """Send signal ``sig`` to the process."""
+        ...
 
-    def kill(self) -> None: ...
+    def kill(self) -> None:
+        """End the process with SIGKILL."""
+        ...
 
 
 @dataclass
 class Proc:
+    """A process the launcher started: its ``role`` (``tracker``, ``supervisor``, ``agent r1`` …),
+    the process (:class:`Child`), and the lines of its stdout, queued by a reader thread."""
+
     role: str
     popen: Child
     lines: queue.Queue[str] = field(default_factory=queue.Queue)
@@ -79,6 +95,7 @@ class Proc:
 
     @property
     def pid(self) -> int:
+        """The process id."""
         return self.popen.pid
 
 
@@ -115,18 +132,25 @@ class Forked:
 
     @property
     def returncode(self) -> int | None:
+        """The exit code the fork server reported (:attr:`ForkServer.UNKNOWN` once the server
+        is gone and the process too), None until then."""
         return self._server.exit_code(self.pid)
 
     def poll(self) -> int | None:
+        """As :attr:`returncode`: never waits."""
         return self.returncode
 
     def wait(self, timeout: float | None = None) -> int:
+        """The exit code, waiting up to ``timeout`` [s] (None: for good);
+        :class:`subprocess.TimeoutExpired` if the process has not ended by then."""
         code = self._server.wait_exit(self.pid, timeout)
         if code is None:
             raise subprocess.TimeoutExpired(f"pid {self.pid}", timeout or 0.0)
         return code
 
     def send_signal(self, sig: int) -> None:
+        """Send signal ``sig``, unless the process is known to have ended (one already gone
+        is ignored)."""
         if self.returncode is None:
             try:
                 os.kill(self.pid, sig)
@@ -134,6 +158,7 @@ class Forked:
                 pass
 
     def kill(self) -> None:
+        """Send SIGKILL (as :meth:`send_signal`)."""
         self.send_signal(signal.SIGKILL)
 
 
@@ -201,6 +226,8 @@ class ForkServer:
         return proc
 
     def exit_code(self, pid: int) -> int | None:
+        """``pid``'s exit code if known, without waiting: the one the server reported, or
+        :attr:`UNKNOWN` once the server is gone and the process too; else None."""
         with self._cond:
             return self._known(pid)
 
@@ -314,6 +341,7 @@ class Launched:
 
     @property
     def tracker(self) -> Proc:
+        """The tracker's process (the first started)."""
         return self.procs[0]
 
     @property

@@ -158,6 +158,8 @@ class ProcessFleet:
 
     # ------------------------------------------------------------------ Backend
     def sample(self) -> Any:
+        """Sample k (:attr:`k`): each robot's true pose of step k and its newest measured pose
+        of a step ≤ k, (3,) [m, m, rad]; a robot with none yet is left out."""
         k, inbox = self.k, self.inbox
         with inbox.cond:
             truth = {r: _pose(t) for r in self.ids if (t := inbox.get(Truth, r, k)) is not None}
@@ -184,6 +186,8 @@ class ProcessFleet:
         return min(seqs, default=self.k)
 
     def goals(self) -> dict[str, Array]:
+        """A copy of each robot's goal (2,) [m] as this script knows it: the scenario's (or,
+        for a fleet it joined, the newest plans'), then those :meth:`send` gave."""
         return {r: g.copy() for r, g in self._goals.items()}
 
     def send(self, goals: Mapping[str, Array]) -> dict[str, str]:
@@ -216,11 +220,16 @@ class ProcessFleet:
         return {} if self.launched is None else dict(self.launched.pids)
 
     def events(self) -> list[Any]:
+        """The events collected since the last call."""
         with self._lock:
             out, self._events = self._events, []
         return out
 
     def close(self) -> dict[str, Any] | None:
+        """End a fleet this script launched (its stop :class:`~ground.wire.Script`, then up to
+        120 s for the run's end and :attr:`verdict`, then what is left stopped by pid), then close the
+        log, the subscribers, the token and the session.  Returns the run's summary, None for a fleet it
+        joined."""
         summary = None
         try:
             if self.launched is not None:

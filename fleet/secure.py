@@ -616,6 +616,8 @@ def _need(args: argparse.Namespace, *names: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``python -m fleet.secure router|config|probe``: run the fleet's router, print a role's
+    configuration as JSON, or run a diagnostic client; returns the exit code (2 bad input)."""
     args = _parser().parse_args(argv)
     try:
         if args.cmd == "router":

@@ -127,18 +127,25 @@ class RunResult:
 
     @property
     def reference_violations(self) -> int:
+        """Pairs of robots, summed over the steps, whose last committed points
+        were closer than the sum of their footprint radii (less the judge's slack)."""
         return self.judge.ref_violations
 
     @property
     def obstacle_violations(self) -> int:
+        """(robot, obstacle) pairs, summed over the samples, whose true centre was
+        within a body radius of the obstacle (less the judge's slack)."""
         return self.judge.obstacle_violations
 
     @property
     def arena_violations(self) -> int:
+        """Robots, summed over the samples, whose true centre was within a body radius
+        of the arena's walls or beyond them (less the judge's slack)."""
         return self.judge.arena_violations
 
     @property
     def all_reached(self) -> bool:
+        """Every robot arrived at its goal (:meth:`supervisor.judge.Judge.reached`)."""
         return all(self.judge.reached(r) for r in self.traces)
 
     def summary(self) -> dict[str, Any]:

@@ -373,6 +373,9 @@ class Inbox:
         return step in self.missing.get((typ.TYPE, robot), ())
 
     def watch_liveliness(self, session: Any) -> Any:
+        """Subscribe to the fleet's liveliness tokens (``fleet/F/alive/*``, those already declared
+        included): the id a token names joins :attr:`live`, and when the token goes it leaves :attr:`live`
+        and is stamped in :attr:`gone`; each change wakes the waiters.  Returns the subscriber."""
         import zenoh
 
         def on_token(sample: Any) -> None:
@@ -498,6 +501,8 @@ class Inbox:
         return msg if msg is not None and step <= at_most and step not in skip else None
 
     def get(self, typ: type[M], robot: str, step: int | None = None) -> M | None:
+        """The newest message of type ``typ`` from ``robot`` (it never goes back to an older step), or
+        with ``step`` the one kept for that step (a subscription with ``keep``); None if there is none."""
         if step is None:
             return self.latest.get((typ.TYPE, robot))
         return self.history.get((typ.TYPE, robot), {}).get(step)

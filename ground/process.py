@@ -73,6 +73,10 @@ for the links' reports of a miss until then (docs/design.md, "Missed deadlines")
 
 
 def add_common_args(ap: argparse.ArgumentParser) -> None:
+    """Add the options every fleet process takes to ``ap``: ``--scenario``, ``--fleet``, the
+    Zenoh network's (``--listen``, ``--connect``, ``--zenoh-config``, ``--lease``, ``--mode``),
+    ``--faults``, ``--timeout`` [s], ``--clock``, ``--exchange`` (:func:`add_exchange_arg`) and
+    ``--delay-compensation`` (:func:`add_delay_compensation_arg`)."""
     ap.add_argument("--scenario", required=True, help="scenario TOML file")
     ap.add_argument("--fleet", default="lab", help="fleet name in the Zenoh keys (default lab)")
     ap.add_argument("--listen", action="append", default=None, help="Zenoh endpoint to listen on")

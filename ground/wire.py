@@ -117,15 +117,20 @@ class Keys:
         self.root = f"fleet/{fleet}"
 
     def pose(self, robot: str = "*") -> str:
+        """``fleet/F/pose/<robot>``: measured poses (:class:`Pose`); ``*`` (the default) for every robot."""
         return f"{self.root}/pose/{robot}"
 
     def truth(self, robot: str = "*") -> str:
+        """``fleet/F/truth/<robot>``: true poses (:class:`Truth`); ``*`` (the default) for every robot."""
         return f"{self.root}/truth/{robot}"
 
     def plan(self, robot: str = "*") -> str:
+        """``fleet/F/plan/<robot>``: committed references (:class:`Plan`); ``*`` for every robot."""
         return f"{self.root}/plan/{robot}"
 
     def near(self, robot: str = "*", cell: str = "*") -> str:
+        """``fleet/F/near/<cell>/<robot>``: plans by place (``--exchange place``); ``*`` (the
+        defaults) for every robot or cell."""
         return f"{self.root}/near/{cell}/{robot}"
 
     def at(self, robot: str = "*", cell: str | None = None, step: int | None = None) -> str:
@@ -146,43 +151,60 @@ class Keys:
             raise WireError(f"key {str(key)[:80]!r}: {e}") from None
 
     def cmd(self, robot: str = "*") -> str:
+        """``fleet/F/cmd/<robot>``: commands (:class:`Command`); ``*`` (the default) for every robot."""
         return f"{self.root}/cmd/{robot}"
 
     def odom(self, robot: str = "*") -> str:
+        """``fleet/F/odom/<robot>``: inner-loop velocities (:class:`Odom`); ``*`` for every robot."""
         return f"{self.root}/odom/{robot}"
 
     def goal(self, robot: str = "*") -> str:
+        """``fleet/F/goal/<robot>``: new goals (:class:`Goal`), put or asked as a query; ``*``
+        (the default) for every robot."""
         return f"{self.root}/goal/{robot}"
 
     def alive(self, robot: str = "*") -> str:
+        """``fleet/F/alive/<id>``: liveliness tokens (an agent's, or ``supervisor``, ``script``,
+        ``tracker``); ``*`` (the default) for every one."""
         return f"{self.root}/alive/{robot}"
 
     def wheels(self, robot: str = "*") -> str:
+        """``fleet/F/wheels/<robot>``: wheel odometry (:class:`Wheels`); ``*`` for every robot."""
         return f"{self.root}/wheels/{robot}"
 
     def emu(self, robot: str = "*") -> str:
+        """``fleet/F/emu/<robot>``: an e-puck emulator's true pose (:class:`Truth`); ``*`` (the
+        default) for every robot."""
         return f"{self.root}/emu/{robot}"
 
     def applied(self, robot: str = "*") -> str:
+        """``fleet/F/applied/<robot>``: what the robot did over a step (:class:`Applied`); ``*``
+        (the default) for every robot."""
         return f"{self.root}/applied/{robot}"
 
     def link(self, robot: str = "*") -> str:
+        """``fleet/F/link/<robot>``: the state of the radio link to the robot (:class:`LinkState`);
+        ``*`` (the default) for every robot."""
         return f"{self.root}/link/{robot}"
 
     @property
     def clock(self) -> str:
+        """``fleet/F/clock``: the clock's ticks (:class:`Tick`)."""
         return f"{self.root}/clock"
 
     @property
     def outcome(self) -> str:
+        """``fleet/F/outcome``: what the robot sides did over a step (:class:`Outcome`)."""
         return f"{self.root}/outcome"
 
     @property
     def digest(self) -> str:
+        """``fleet/F/digest``: one step's plans, relayed by the tracker (:class:`Digest`)."""
         return f"{self.root}/digest"
 
     @property
     def script(self) -> str:
+        """``fleet/F/script``: a script's permits and end of the run (:class:`Script`)."""
         return f"{self.root}/script"
 
     def robot_of(self, key: str) -> str:
@@ -195,6 +217,8 @@ class Keys:
 
 # ---------------------------------------------------------------- arrays
 def encode_array(a: NDArray[Any]) -> dict[str, Any]:
+    """``a`` as the wire's array map ``{"dtype": "<f8", "shape", "data"}``: cast to float64,
+    C-contiguous, its raw bytes (:func:`decode_array` reads it back)."""
     a = np.ascontiguousarray(a, dtype=np.float64)
     return {"dtype": "<f8", "shape": list(a.shape), "data": a.tobytes()}
 
@@ -295,6 +319,8 @@ class Message:
         return out
 
     def encode(self) -> bytes:
+        """The msgpack bytes of this message: its fields (arrays as :func:`encode_array` maps)
+        with the schema version and the type's name."""
         body = {"schema": SCHEMA_VERSION, "type": self.TYPE, **self._fields()}
         return bytes(msgpack.packb(body, use_bin_type=True))
 
@@ -1049,6 +1075,9 @@ class RejectCounter:
         self.max_sources = max_sources
 
     def reject(self, source: str, err: WireError) -> None:
+        """Count one payload from ``source`` (its key) rejected with ``err``, by source and
+        the field its reason names; report the first rejection of each source.  Past ``max_sources``
+        sources, the others are counted together under :attr:`OTHER`."""
         if source not in self._reported and len(self._reported) >= self.max_sources:
             if self.OTHER not in self._reported and self._report is not None:
                 self._report(
@@ -1066,4 +1095,5 @@ class RejectCounter:
 
     @property
     def total(self) -> int:
+        """Payloads rejected so far, every source and reason."""
         return sum(self.counts.values())

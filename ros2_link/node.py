@@ -207,6 +207,7 @@ class RosFace:
             log(ROLE, f"goal_pose {shown} for {robot} refused: {reason}")
 
     def close(self) -> None:
+        """Undeclare the liveliness tokens (the ROS 2 graph's entities) and the subscribers."""
         for t in self.tokens:
             t.undeclare()
         for s in self.subs:
@@ -214,6 +215,9 @@ class RosFace:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``python -m ros2_link``: the ROS 2 face of a running fleet until the run ends, or SIGTERM or
+    SIGINT (see the module docstring); returns the exit code (0 once stopped, 2 bad input or without
+    rosbags)."""
     ap = argparse.ArgumentParser(prog="python -m ros2_link", description=__doc__.splitlines()[0])
     add_common_args(ap)
     ap.add_argument(

@@ -42,6 +42,9 @@ deliver the token's removal before the last plan the agent put (seen at the end 
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``python -m supervisor``: judge and record the run until the tracker's stop tick or
+    SIGTERM, then write ``summary.json``, ``trace.npz`` and ``recording.rrd`` in ``--out``; returns the
+    exit code (0 once written, 2 bad input)."""
     ap = argparse.ArgumentParser(prog="python -m supervisor", description=__doc__.splitlines()[0])
     add_common_args(ap)
     ap.add_argument("--out", required=True, help="output directory")

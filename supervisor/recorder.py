@@ -252,9 +252,12 @@ class Recorder:
         self.rec.log("world/goals", self.rr.Points2D(pts, labels=self.ids, radii=0.01))
 
     def event(self, text: str, level: str = "INFO") -> None:
+        """Log ``text`` to the recording's event log (``events``) at ``level`` (e.g. ``INFO``,
+        ``WARN``), at once rather than queued for :meth:`flush`."""
         self.rec.log("events", self.rr.TextLog(text, level=level))
 
     def close(self) -> None:
+        """Flush the queued rows and the recording, and disconnect it."""
         self.flush()
         self.rec.flush()
         self.rec.disconnect()

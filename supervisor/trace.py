@@ -40,6 +40,8 @@ class Trace:
     """Obstacle outlines, each (k, 2) [m]."""
 
     def save(self, path: Path) -> None:
+        """Write the trace to ``path`` as a compressed ``.npz``: the arrays, each obstacle's
+        outline, and the rest as JSON (``meta``)."""
         meta = {
             "name": self.name, "ids": self.ids, "Ts": self.Ts, "footprint": self.footprint,
             "robot_radius": self.robot_radius, "arena": list(self.arena), "n_obstacles": len(self.obstacles),
@@ -50,6 +52,7 @@ class Trace:
 
     @staticmethod
     def load(path: Path) -> Trace:
+        """The trace that :meth:`save` wrote to ``path``."""
         with np.load(path) as z:
             meta = json.loads(str(z["meta"]))
             obstacles = [z[f"obstacle_{i}"] for i in range(meta["n_obstacles"])]

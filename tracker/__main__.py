@@ -12,6 +12,8 @@ from ground.process import exit_process
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``python -m tracker``: hand the whole command line to :func:`tracker.camera.main`
+    (``--source camera``) or :func:`tracker.sim.main`; returns its exit code."""
     args = sys.argv[1:] if argv is None else argv
     peek = argparse.ArgumentParser(prog="python -m tracker", add_help=False)
     peek.add_argument("--source", choices=["sim", "emulator", "camera"], default="sim")

@@ -381,6 +381,7 @@ class CameraRun:
             self.truths[rid].put(Truth(robot=rid, seq=k, t=frame.t, x=x, y=y, theta=th).encode())
 
     def close(self) -> None:
+        """Undeclare the subscribers."""
         for s in self.subs:
             s.undeclare()
 
@@ -469,6 +470,7 @@ class VideoSource:
             yield f
 
     def close(self) -> None:
+        """Release the video file."""
         self.cap.release()
 
 
@@ -508,6 +510,7 @@ class DeviceSource:
         return image if ok else None
 
     def start(self) -> None:
+        """Start the capture thread; the first frame it reads sets :attr:`t0`."""
         self._thread = threading.Thread(target=self._run, name="camera-capture", daemon=True)
         self._thread.start()
 
@@ -554,6 +557,7 @@ class DeviceSource:
         return f, time.monotonic() - (t0 + f.t)
 
     def close(self) -> None:
+        """Stop the capture thread (waiting up to 2 s for it) and release the camera."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=2.0)

@@ -64,6 +64,7 @@ class IntrinsicsError(ValueError):
 
 
 def cv2_module() -> Any:
+    """The ``cv2`` module, imported at the call (OpenCV is optional: ImportError without it)."""
     import cv2
 
     return cv2

@@ -96,6 +96,9 @@ tokens may go a few milliseconds before the script's."""
 
 
 def main(argv: list[str] | None = None) -> int:
+    """``python -m tracker --source sim|emulator``; returns the exit code (0 once the run has
+    ended, 1 if the agents and the supervisor did not come up within ``--start-timeout``, 2 bad
+    input)."""
     ap = argparse.ArgumentParser(prog="python -m tracker", description=__doc__.splitlines()[0])
     add_common_args(ap)
     ap.add_argument(
@@ -580,6 +583,7 @@ class SimTracker:
         )
 
     def close(self) -> None:
+        """Undeclare the liveliness token (a scripted run's) and the subscribers."""
         if self.token is not None:
             self.token.undeclare()
         for s in self.subs:

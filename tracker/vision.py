@@ -510,6 +510,8 @@ class Counts:
     """Robot marker id → detections dropped for size or handedness."""
 
     def summary(self) -> str:
+        """The counts in one line, for the log at exit."""
+
         def fmt(d: Mapping[Any, int]) -> str:
             return ", ".join(f"{k}: {v}" for k, v in sorted(d.items(), key=lambda kv: str(kv[0]))) or "none"
 

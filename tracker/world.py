@@ -46,6 +46,9 @@ class Disturbance:
         self.rng = rng
 
     def sample(self, tube_error: Array) -> Array:
+        """One draw of w (4,) [m, m/s, m, m/s]: zero (``none``), uniform in the box
+        (``uniform``), or at a corner of the box (``adversarial``), in the signs of ``tube_error`` (4,) and
+        a random sign where it is zero."""
         if self.kind == "none":
             return np.zeros(4)
         if self.kind == "uniform":
@@ -144,6 +147,8 @@ class EmulatedWorld:
         self.lookahead = lookahead
 
     def pose(self, rid: str) -> np.ndarray:
+        """The newest true pose (x, y, θ) (3,) [m, m, rad] of ``rid``'s emulator, world frame
+        (its :class:`Truth` on ``fleet/F/emu/R``); asserts that one has come."""
         t = self.inbox.get(Truth, rid)
         assert t is not None, "pose() before every emulator reported"
         return np.array([t.x, t.y, t.theta])
