@@ -253,7 +253,10 @@ class ProcessFleet:
 
     # ------------------------------------------------------------------ inside
     def _first_sample(self) -> None:
-        if not self._wait_sample(0, whole=self.hold):  # a held clock: all of sample 0
+        """Wait (bounded) for a whole sample, every robot's truth and pose, so that what the
+        script reads first names every robot: all of sample 0 on a held clock, the first that
+        comes whole on a running one (a script joining a fleet that runs)."""
+        if not self._wait_sample(0, whole=True):
             raise ConfigError("processes", f"no sample from the fleet within {SAMPLE_TIMEOUT:g} s")
         self.k = 0 if self.hold else self._newest()
 
