@@ -5,6 +5,6 @@ import os
 os.environ.setdefault("OMP_NUM_THREADS", "1")  # ProxSuite links libgomp (docs/method.md §9)
 
 from agent.node import main
-from ground.process import exit_process
+from transport.process import exit_process
 
 exit_process(main())

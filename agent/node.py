@@ -61,7 +61,6 @@ from agent.protocol import (
 )
 from agent.tube import validated_design
 from ground.arrival import arrival
-from ground.bus import Inbox, goal_reply, open_session, publisher, put
 from ground.geometry import (
     Cell,
     Whereabouts,
@@ -71,7 +70,6 @@ from ground.geometry import (
     controlled_point,
     measured_state,
 )
-from ground.process import add_common_args, announce, exchange_for, fault_plan, log
 from ground.scenario import ConfigError, Scenario, goal_problem, load_scenario
 from ground.wire import (
     LINK_DOWN,
@@ -89,6 +87,8 @@ from ground.wire import (
     decode,
     remember_steps,
 )
+from transport.bus import Inbox, goal_reply, open_session, publisher, put
+from transport.process import add_common_args, announce, exchange_for, fault_plan, log
 
 REJOIN_GAP = 5
 """Steps missed (0.5 s at Ts = 0.1 s, the link watchdog's time) after which an agent re-initialises."""
@@ -393,7 +393,7 @@ class Agent:
         return out
 
     def _die_if_planned(self, k: int) -> None:
-        """The fault plan kills this agent at step k or before (:attr:`ground.faults.FaultPlan.kills`):
+        """The fault plan kills this agent at step k or before (:attr:`transport.faults.FaultPlan.kills`):
         it sends itself SIGKILL, a hard death, before anything of step k goes out."""
         plan = self.inbox.faults
         if plan is not None and plan.kills.get(self.me, k + 1) <= k:

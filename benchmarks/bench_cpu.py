@@ -10,7 +10,7 @@ robot-steps between them, is the marginal CPU per robot-step: start-up and shut-
   per robot, a tracker and a supervisor, talking over Zenoh on loopback.
 * ``fleet run`` with its defaults but Zenoh's own runtime sizes (:data:`ZENOH_OWN`), beside
   the defaults, which size it down to one worker thread and a transmit thread
-  (:data:`ground.net.RUNTIME`): what Zenoh's own threads cost.
+  (:data:`transport.net.RUNTIME`): what Zenoh's own threads cost.
 * ``fleet run --no-delay-compensation``: each agent solving its plan after the tick instead of
   a step ahead (one message less a step: no outcome from the tracker).
 * ``fleet run --exchange place``: plans by place, the realtime clock's default, here on
@@ -55,7 +55,7 @@ SCHEMA = "fleet-bench-cpu/1"
 ZENOH_OWN_ROW = "fleet run (defaults), Zenoh's own sizes"
 ZENOH_OWN = "()"
 """``ZENOH_RUNTIME`` that leaves every pool of Zenoh's runtime at Zenoh's own size: the
-processes of ``fleet run`` size it down unless the variable is set (:func:`ground.net.size_runtime`)."""
+processes of ``fleet run`` size it down unless the variable is set (:func:`transport.net.size_runtime`)."""
 POLL = 0.05
 """Seconds between two samples of the fleet's threads."""
 LENGTHS = (6.0, 46.0)

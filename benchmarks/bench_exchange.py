@@ -9,7 +9,7 @@ Runs ``fleet run`` of the shipped swap of ``--robots`` robots on the realtime cl
 flag its default: delay compensation, the peer mesh topology), interleaved so that the machine's
 drift falls on both alike.  An entry ``E/zenoh`` runs the same with Zenoh's own runtime sizes
 (``ZENOH_RUNTIME=()``) instead of the one worker thread the fleet's processes size it down to
-(``ground.net.RUNTIME``).  Each run is :func:`bench_scale.fleet_run`'s, the harness of ``fleet
+(``transport.net.RUNTIME``).  Each run is :func:`bench_scale.fleet_run`'s, the harness of ``fleet
 bench``: deadline misses and their share of the robot-steps, the clock's real-time factor,
 collisions, pose → command latency, the cores of the agents, the tracker and the supervisor, the
 plans each agent took a step (its closing line, ``N plans taken``), the news of places that
@@ -40,7 +40,7 @@ import bench_cpu  # noqa: E402
 from bench_scale import SCENES, fleet_run  # noqa: E402
 from bench_step import machine_info  # noqa: E402
 
-from ground.process import EXCHANGES  # noqa: E402
+from transport.process import EXCHANGES  # noqa: E402
 
 RUNTIMES = {"": None, "zenoh": {"ZENOH_RUNTIME": bench_cpu.ZENOH_OWN}}
 """Environment of an ``--order`` entry's fleet by its suffix: none (the fleet's own sizing of

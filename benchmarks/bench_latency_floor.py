@@ -17,14 +17,14 @@ and what is left when there is no controller at all:
 * ``command-spread``: the same, but each stand-in's solve starts at its own offset, spread over
   :data:`SPREAD` of the period from the tick, so that the cores are free at the tick;
 * ``echo-inbox``: no controller; the pose and odometry taken as an agent takes them
-  (:class:`ground.bus.Inbox` callbacks, a main thread woken), a command put at once;
+  (:class:`transport.bus.Inbox` callbacks, a main thread woken), a command put at once;
 * ``echo``: nothing else in the process; the main thread blocks on Zenoh's queue of its poses
   and answers each at once, with no checks;
 * ``echo-callback``: the same answer, put from the callback Zenoh runs, with no hand-over.
 
 Each robot of the scenario is a spawned process, running the real controller (navigator, split
 rule against its neighbours' real plans, ProxSuite) and the real messages in the orders that
-have one, in the peer mesh that ``fleet run`` uses (``ground.net.NetConfig``).  The driver, this
+have one, in the peer mesh that ``fleet run`` uses (``transport.net.NetConfig``).  The driver, this
 process, stands in for the tracker: every Ts on the realtime clock it publishes each robot's
 pose and odometry.  An observer process stands in for the supervisor's reception (it takes and
 decodes every pose, plan and command) and for target 3's probe: it times each command from its
@@ -81,17 +81,17 @@ def _agent(scenario: str, rank: int, hub: str, order: str, ready: Any, stop: Any
     from agent.hazards import neighbour_of
     from agent.protocol import command_message, plan_message
     from agent.tube import validated_design
-    from ground.bus import Inbox, publisher
     from ground.geometry import controlled_point, measured_state
-    from ground.net import NetConfig, loopback, size_runtime
     from ground.scenario import load_scenario
     from ground.wire import Command, Keys, Odom, Plan, Pose
+    from transport.bus import Inbox, publisher
+    from transport.net import NetConfig, loopback, size_runtime
 
     scn = load_scenario(scenario)
     keys = Keys("floor")
     spec = scn.robots[rank]
     me, others = spec.id, [r.id for r in scn.robots if r.id != spec.id]
-    size_runtime()  # Zenoh's runtime as the fleet's processes size it (ground.bus.open_session)
+    size_runtime()  # Zenoh's runtime as the fleet's processes size it (transport.bus.open_session)
     session = zenoh.open(NetConfig(listen=[loopback(0)], connect=[hub]).zenoh())
     pub_cmd = publisher(session, keys.cmd(me))
     if order in BARE:  # nothing else in the process: no controller, no Inbox
@@ -156,7 +156,7 @@ def _agent(scenario: str, rank: int, hub: str, order: str, ready: Any, stop: Any
 
 def _ready(ready: Any, who: str) -> None:
     """Freeze the start-up heap, as a fleet process does once ready
-    (:func:`ground.process.announce`), and say so on ``ready``."""
+    (:func:`transport.process.announce`), and say so on ``ready``."""
     gc.collect()
     gc.freeze()
     ready.put(who)
@@ -247,17 +247,17 @@ def measure(scenario: str, order: str, seconds: float) -> dict[str, Any]:
     import numpy as np
     import zenoh
 
-    from ground.bus import publisher
-    from ground.net import NetConfig, free_port, loopback, size_runtime
     from ground.scenario import load_scenario
     from ground.wire import Command, Keys, Odom, Pose, WireError, decode
+    from transport.bus import publisher
+    from transport.net import NetConfig, free_port, loopback, size_runtime
 
     scn = load_scenario(scenario)
     ids = [r.id for r in scn.robots]
     Ts = scn.controller.Ts
     hub = loopback(free_port())
     keys = Keys("floor")
-    size_runtime()  # as the tracker sizes Zenoh's runtime (ground.bus.open_session)
+    size_runtime()  # as the tracker sizes Zenoh's runtime (transport.bus.open_session)
     session = zenoh.open(NetConfig(listen=[hub]).zenoh())
     lock = threading.Lock()
     sent: dict[tuple[str, int], float] = {}

@@ -911,8 +911,8 @@ class Observer:
     def __init__(self, hub: str, fleet: str = "lab", mode: str = "peer"):
         import zenoh
 
-        from ground.net import NetConfig
         from ground.wire import Command, Keys, Pose, Tick, WireError, decode
+        from transport.net import NetConfig
 
         self.keys = Keys(fleet)
         self.tick: dict[int, float] = {}
@@ -1003,7 +1003,7 @@ def fleet_run(
     ``topology`` None: the flag is left out, so ``fleet run`` uses its default.  ``extra``: more
     flags of ``fleet run``; ``tag``: a suffix of the run's directory, to keep apart runs that
     differ only in those; ``environ``: more environment variables of the fleet's processes."""
-    from ground.net import free_port, loopback
+    from transport.net import free_port, loopback
 
     name = SCENES[robots]
     scn_path = capped_scenario(name, sim_s, tmp, Ts)

@@ -3,7 +3,7 @@
     python benchmarks/bench_zenoh_floor.py [--robots 16] [--rate 25] [--seconds 20] [--cell 0]
 
 N processes (spawned), configured as ``fleet run`` configures its processes
-(``ground.net.NetConfig``: peer mode, multicast scouting off, the first listening on a
+(``transport.net.NetConfig``: peer mode, multicast scouting off, the first listening on a
 loopback port, the others connecting to it and finding each other by gossip, a full mesh;
 or ``--topology star``: the first a router, the others its clients).  Each publishes one
 978-byte payload (a plan's size at N = 20) ``--rate`` times a second and subscribes to every
@@ -12,7 +12,7 @@ other's, as an agent in the mesh does.  How a process takes the samples:
 * ``callback``: a Python callback that only counts (Zenoh runs it on a Python thread of its own);
 * ``decode``: the same callback decoding each payload as a :class:`ground.wire.Plan`;
 * ``drain``: no callback; the main thread takes the queued samples from a FIFO channel once
-  per period (``ground.bus.Inbox.drain``'s way);
+  per period (``transport.bus.Inbox.drain``'s way);
 * ``direct``: the counting callback run by Zenoh's own receiving thread
   (``zenoh.handlers.Callback(..., indirect=False)``, unstable in zenoh-python 1.x), with no
   hand-over to a Python thread of its own.
@@ -156,9 +156,9 @@ def _session(hub: str, topology: str, listen: bool) -> Any:
     on ``hub`` (a router in a star), or one connecting to it (a client in a star)."""
     import zenoh
 
-    from ground.net import NetConfig, loopback, size_runtime
+    from transport.net import NetConfig, loopback, size_runtime
 
-    size_runtime()  # Zenoh's runtime as the fleet's processes size it (ground.bus.open_session)
+    size_runtime()  # Zenoh's runtime as the fleet's processes size it (transport.bus.open_session)
     if listen:
         return zenoh.open(NetConfig(listen=[hub], mode="router" if topology == "star" else "peer").zenoh())
     mode = "client" if topology == "star" else "peer"
@@ -282,8 +282,8 @@ def _step_agent(
     os.environ["OMP_NUM_THREADS"] = "1"
     import zenoh
 
-    from ground.bus import publisher
     from ground.wire import Plan, WireError, decode
+    from transport.bus import publisher
 
     session = _session(hub, topology, listen=False)
     mine, cells, publishers = cells_of(i, robots, cell)
@@ -370,7 +370,7 @@ def _step_tracker(
     os.environ["OMP_NUM_THREADS"] = "1"
     import zenoh
 
-    from ground.bus import publisher
+    from transport.bus import publisher
 
     session = _session(hub, topology, listen=True)
     data = _step_payloads(robots)
@@ -474,7 +474,7 @@ def measure(
     """One row: the processes of ``pattern`` (module docstring), started, linked up (every
     process heard every publisher it subscribes to), measured over ``seconds``, ended.  With a
     tracker's stand-in, the robot-steps are the steps it put in the window, not the nominal rate."""
-    from ground.net import free_port, loopback
+    from transport.net import free_port, loopback
 
     ctx = multiprocessing.get_context("spawn")
     ready, go, stop = ctx.Queue(), ctx.Event(), ctx.Event()

@@ -40,9 +40,9 @@ from typing import Any
 
 import numpy as np
 
-from ground.process import seed_arg
 from tracker.intrinsics import CharucoBoardSpec, distort_normalised, distort_points, undistort_points
 from tracker.vision import OPENCV_MISSING, cv2_module
+from transport.process import seed_arg
 
 SUPERSAMPLE = 2
 """Rendering resolution factor before the area-averaging downscale."""

@@ -434,10 +434,10 @@ def main(argv: list[str] | None = None) -> int:
     """``python -m epuck_link.emulator``: serve the emulated robot on a pseudo-terminal and/or a TCP
     port, with ``--robot`` publishing its true pose, until SIGTERM or SIGINT (see the module
     docstring); returns the exit code (0 once stopped, 2 bad input or a server that cannot start)."""
-    from ground.bus import open_session, publisher
-    from ground.process import add_common_args, announce, log
     from ground.scenario import ConfigError
     from ground.wire import Keys
+    from transport.bus import open_session, publisher
+    from transport.process import add_common_args, announce, log
 
     ap = argparse.ArgumentParser(prog="python -m epuck_link.emulator", description=__doc__.splitlines()[0])
     add_common_args(ap)
@@ -560,6 +560,6 @@ def _start_pose(args: argparse.Namespace) -> tuple[float, float, float]:
 
 
 if __name__ == "__main__":
-    from ground.process import exit_process
+    from transport.process import exit_process
 
     exit_process(main())

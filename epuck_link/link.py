@@ -92,11 +92,11 @@ from epuck_link.transport import (
     parse_link,
 )
 from epuck_link.unicycle import make_inner_loop, unicycle_from_wheels
-from ground.bus import Inbox, open_session, publisher
 from ground.geometry import measured_state
-from ground.process import DEADLINE, add_common_args, announce, fault_plan, log
 from ground.scenario import ConfigError, RobotSpec, Scenario, load_scenario
 from ground.wire import Command, Keys, LinkState, Odom, Pose, Tick
+from transport.bus import Inbox, open_session, publisher
+from transport.process import DEADLINE, add_common_args, announce, fault_plan, log
 
 LATE = 1.0 / MIN_RATE
 """An inner-loop step that starts more than this after it was due sends zero speed first [s].

@@ -19,7 +19,7 @@ from pathlib import Path
 from types import ModuleType
 
 from fleet.launch import TOPOLOGIES
-from ground.process import EXCHANGES, seed_arg
+from transport.process import EXCHANGES, seed_arg
 
 HARNESS = Path(__file__).resolve().parent.parent / "benchmarks" / "bench_scale.py"
 """The harness in the source checkout this package is installed from (editable install)."""

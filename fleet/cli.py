@@ -32,8 +32,8 @@ from typing import Any
 from fleet.launch import STARTS, TOPOLOGIES
 from fleet.report import strict_json
 from ground.params import PRESETS, preset
-from ground.process import add_delay_compensation_arg, add_exchange_arg, domain_arg, lease_arg, seed_arg
 from ground.scenario import ConfigError, Scenario, load_scenario
+from transport.process import add_delay_compensation_arg, add_exchange_arg, domain_arg, lease_arg, seed_arg
 
 DEFAULT_ARENA = (-1.0, 1.0, -1.0, 1.0)
 EXIT_FAIL = 1
@@ -304,7 +304,7 @@ def _fault_plan(text: str, robots: list[str]) -> tuple[Any, str]:
     """(the ``--faults`` plan, "") or (None, the one line that says why it cannot be used): a bad
     plan, or one that cuts the link of or kills a robot the scenario does not have (a fault that
     hits nothing would pass for a tested one)."""
-    from ground.faults import FaultPlan, FaultPlanError
+    from transport.faults import FaultPlan, FaultPlanError
 
     try:
         plan = FaultPlan.parse(text)
@@ -484,7 +484,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_delay_compensation_arg(s)
     s.add_argument(
         "--faults", metavar="JSON",
-        help="fault plan (JSON text or file; see ground/faults.py): its kills end robots' agents at "
+        help="fault plan (JSON text or file; see transport/faults.py): its kills end robots' agents at "
         "chosen steps",
     )  # fmt: skip
     s.set_defaults(func=cmd_simulate)
@@ -504,7 +504,7 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     r.add_argument(
         "--faults", metavar="JSON",
-        help="fault plan for every process (JSON text or file; see ground/faults.py): drop or delay messages",
+        help="fault plan for every process (JSON text or file; transport/faults.py): drop or delay messages",
     )  # fmt: skip
     add_exchange_arg(r)
     r.add_argument(

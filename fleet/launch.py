@@ -34,10 +34,10 @@ from functools import partial
 from pathlib import Path
 from typing import IO, Any, Protocol
 
-from ground.net import NetConfig, free_port, loopback
-from ground.process import exchange_for, wait_owning
 from ground.scenario import load_scenario
 from supervisor.judge import verdict
+from transport.net import NetConfig, free_port, loopback
+from transport.process import exchange_for, wait_owning
 
 TOPOLOGIES = ("mesh", "star")
 """How ``fleet run`` links its processes: a mesh of Zenoh peers, or a star around the tracker."""
@@ -431,7 +431,7 @@ def start_fleet(
 
     ``seed`` overrides the scenario's.  ``fleet`` is the fleet's name in the keys.
     ``hub`` is the tracker's listening endpoint (default: a free loopback port).
-    ``faults`` is a fault plan (:mod:`ground.faults`) handed to every process.
+    ``faults`` is a fault plan (:mod:`transport.faults`) handed to every process.
     ``exchange`` is how plans travel: ``mesh`` (every agent to every agent), ``place`` (agent
     to agent by place, docs/design.md, "Plans by place") or ``relay`` (the tracker's digest,
     "Relayed plans"); ``auto``: :func:`exchange_for` the clock.

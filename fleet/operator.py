@@ -16,9 +16,9 @@ from functools import partial
 
 import numpy as np
 
-from ground.bus import Inbox, join_session
 from ground.scenario import ConfigError, goal_problem, load_scenario
 from ground.wire import Goal, Keys, Plan
+from transport.bus import Inbox, join_session
 
 RESEND = 0.5
 """Seconds between re-publications of the goal until the agent acknowledges it [s]."""

@@ -26,11 +26,11 @@ from typing import Any
 import numpy as np
 
 from fleet.backend import Event, Sample
-from ground.bus import GOAL_REPLY_TIMEOUT, Inbox, ask_goal, join_session
 from ground.geometry import Array
 from ground.scenario import ConfigError, Scenario
 from ground.wire import MAX_BATCH, SCRIPT, Goal, Keys, Plan, Pose, Script, Tick, Truth
 from supervisor.judge import SOLVED
+from transport.bus import GOAL_REPLY_TIMEOUT, Inbox, ask_goal, join_session
 
 RUN_OPTIONS = (
     "exchange", "topology", "lease", "viewer", "faults", "hub", "ros2", "ros_domain", "ros_listen", "fork",

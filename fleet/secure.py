@@ -103,10 +103,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from ground.net import SecureConfigError, load_config
 from ground.scenario import ROS_DOMAIN_MAX
 from ground.wire import ROBOT_ID, SCRIPT, Keys
 from ros2_link.graph import ADMIN_SPACE, FOOTPRINTS, GOAL_POSE, ROBOT_TOPICS, robot_topic
+from transport.net import SecureConfigError, load_config
 
 SERVICES = ("tracker", "supervisor", "operator")
 """Identities of the fleet's services (certificate common names)."""
@@ -430,7 +430,7 @@ def serve_router(conf: Any, allow_wildcard: bool = False) -> int:
     the listener is bound (``zenoh.open`` returns only then)."""
     import zenoh
 
-    from ground.process import announce, log
+    from transport.process import announce, log
 
     listen = check_router(conf, allow_wildcard)
     zenoh.init_log_from_env_or("warn")  # to stderr; RUST_LOG=trace also shows each ACL decision
@@ -483,7 +483,7 @@ def probe(conf: Any, subs: Iterable[str], lives: Iterable[str], label: str) -> i
     of the query; default timeout 10 s).  EOF ends the probe."""
     import zenoh
 
-    from ground.process import announce
+    from transport.process import announce
 
     out = _Out()
     try:
@@ -654,6 +654,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    from ground.process import exit_process
+    from transport.process import exit_process
 
     exit_process(main())

@@ -14,7 +14,7 @@ Each step, synchronously:
 4. the safety judge (:class:`supervisor.judge.Judge`) takes the true poses and the plans, as
    the supervisor does in a process run.
 
-A fault plan's ``kills`` (``fleet simulate --faults``, :mod:`ground.faults`) kill a robot's agent
+A fault plan's ``kills`` (``fleet simulate --faults``, :mod:`transport.faults`) kill a robot's agent
 at a step: from then on it makes no plan, its robot side brakes its robot (and says so, as the
 tick would), and every other agent keeps clear of it as of a dead robot
 (:class:`agent.hazards.Guard`), from its first step without that robot's plan.
@@ -237,7 +237,7 @@ class Simulation:
         self.outputs: dict[str, StepOutput] = {}
         """Each robot's controller output of the last step."""
         self.kills = {r: s for r, s in (kills or {}).items() if r in self.ids}
-        """Per robot, the step its agent dies at (:mod:`ground.faults`): it makes no plan from then on."""
+        """Per robot, the step its agent dies at (:mod:`transport.faults`): it makes no plan from then on."""
         self.guards = {rid: Guard(rid, p, lambda _: None) for rid in self.ids}
         """Each agent's view of the robots it keeps clear of as discs (here: the dead ones)."""
         self.starts = starts_of(scenario.robots, p.lookahead, design.footprint)
@@ -587,7 +587,7 @@ def run(
 
     ``ahead`` makes every plan a step ahead (delay compensation, docs/method.md §5;
     :class:`Simulation`), as the process runtime does by default.  ``kills``: robot id → the step
-    its agent dies at (:mod:`ground.faults`)."""
+    its agent dies at (:mod:`transport.faults`)."""
     sim = Simulation(scenario, seed, design, solver_fault, extra_disturbance, late, late_policy, ahead, kills)
     n_steps = steps if steps is not None else round(scenario.duration / sim.Ts)
     for _ in range(n_steps):

@@ -4,7 +4,8 @@
 * :mod:`ground.scenario` and :mod:`ground.params` — the scenario and controller schema;
 * :mod:`ground.geometry` — the controlled point, the measured state, angle wrapping;
 * :mod:`ground.model` — the nominal double-integrator model;
-* :mod:`ground.net`, :mod:`ground.bus`, :mod:`ground.process` — Zenoh configuration, the
-  session and inbox, and the prologue of every process;
-* :mod:`ground.faults` — the fault-injection plan.
+* :mod:`ground.freespace` — one model of free space past the walls and obstacles;
+* :mod:`ground.arrival` — the order of arrival a layout forces, and the wait points that keep it.
+
+The Zenoh transport stands one layer up, in :mod:`transport`.
 """

@@ -1,6 +1,6 @@
 """``python -m ros2_link``: see :mod:`ros2_link.node`."""
 
-from ground.process import exit_process
 from ros2_link.node import main
+from transport.process import exit_process
 
 exit_process(main())

@@ -26,11 +26,11 @@ from typing import Any
 
 import numpy as np
 
-from ground.bus import Inbox, ask_goal, open_session
-from ground.process import add_common_args, announce, domain_arg, log
 from ground.scenario import ROS_DOMAIN_MAX, ConfigError, Scenario, goal_problem, load_scenario, ros2_problem
 from ground.wire import MAX_PAYLOAD, Goal, Keys, Plan, Pose, Tick, WireError
 from ros2_link import graph
+from transport.bus import Inbox, ask_goal, open_session
+from transport.process import add_common_args, announce, domain_arg, log
 
 ROLE = "ros2"
 MAX_PENDING_GOALS = 16

@@ -1,6 +1,6 @@
 """``python -m supervisor``: see :mod:`supervisor.monitor`."""
 
-from ground.process import exit_process
 from supervisor.monitor import main
+from transport.process import exit_process
 
 exit_process(main())

@@ -25,13 +25,13 @@ from typing import Any
 
 import numpy as np
 
-from ground.bus import Inbox, open_session
-from ground.process import add_common_args, announce, log
 from ground.scenario import ConfigError, Scenario, forced_order_lines, load_scenario
 from ground.wire import Keys, LinkState, Plan, Pose, Tick, Truth
 from supervisor.judge import Judge
 from supervisor.recorder import Recorder
 from supervisor.trace import Trace, outlines
+from transport.bus import Inbox, open_session
+from transport.process import add_common_args, announce, log
 
 ROLE = "supervisor"
 STOP_GRACE = 5.0

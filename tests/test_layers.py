@@ -2,7 +2,8 @@
 
 The packages stand in layers, the contract at the bottom:
 
-    ground                              the contract: wire, schema, geometry, model, bus
+    ground                              the contract: wire, schema, geometry, model
+    transport                           the Zenoh bus, the network, the process prologue, faults
     agent, epuck_link                   the math of one robot; the robot side
     tracker, supervisor, ros2_link      the world and its camera; the judge and the recording;
                                         the fleet as ROS 2 sees it
@@ -28,25 +29,35 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 LAYERS = {
-    "ground": 0, "agent": 1, "epuck_link": 1, "tracker": 2, "supervisor": 2, "ros2_link": 2,
-    "camera_tools": 3, "fleet": 4,
+    "ground": 0, "transport": 1, "agent": 2, "epuck_link": 2, "tracker": 3, "supervisor": 3,
+    "ros2_link": 3, "camera_tools": 4, "fleet": 5,
 }  # fmt: skip
 ALLOWED = {
     "ground": set(),
-    "agent": {"ground"},
-    "epuck_link": {"ground"},
-    "tracker": {"ground", "epuck_link"},
-    "supervisor": {"ground"},
-    "ros2_link": {"ground"},
-    "camera_tools": {"ground", "tracker"},
-    "fleet": {"ground", "agent", "epuck_link", "tracker", "camera_tools", "supervisor", "ros2_link"},
+    "transport": {"ground"},
+    "agent": {"ground", "transport"},
+    "epuck_link": {"ground", "transport"},
+    "tracker": {"ground", "transport", "epuck_link"},
+    "supervisor": {"ground", "transport"},
+    "ros2_link": {"ground", "transport"},
+    "camera_tools": {"ground", "transport", "tracker"},
+    "fleet": {
+        "ground",
+        "transport",
+        "agent",
+        "epuck_link",
+        "tracker",
+        "camera_tools",
+        "supervisor",
+        "ros2_link",
+    },
 }
 """The packages each package may import besides itself."""
 OURS = set(LAYERS) | {"benchmarks", "tests"}
 MATH = ("agent.sets", "agent.tube", "agent.qp", "agent.coordination", "agent.navigator", "agent.hazards",
         "agent.controller", "agent.protocol")  # fmt: skip
 """The math of one robot: no transport, no logging, no plotting."""
-IO = ("zenoh", "rerun", "matplotlib", "ground.bus", "ground.process", "ground.net", "cv2")
+IO = ("zenoh", "rerun", "matplotlib", "transport", "cv2")
 """What the math must not import."""
 
 
@@ -107,6 +118,19 @@ def test_ground_imports_nothing_of_ours_but_ground():
     assert not any(bad.values()), bad
 
 
+def test_the_contract_loads_no_transport():
+    """``ground`` is only the contract: no module of it imports Zenoh, directly or otherwise, so
+    the schema, the wire's decoders and the goal rule can be used and tested without a network."""
+    bad = sorted(
+        f"{m} → {i}"
+        for m, f in MODULES.items()
+        if m.startswith("ground")
+        for i in _imports(f)
+        if i == "zenoh" or i.startswith("zenoh.")
+    )
+    assert not bad, bad
+
+
 def test_no_import_loops():
     """No module reaches itself through the imports of others (at module granularity)."""
     edges = {
@@ -143,7 +167,7 @@ def test_the_math_imports_no_transport_logging_or_plotting(module):
 
 DECISIONS = ("supervisor.judge", "epuck_link.robot_side")
 """Logic that a process runs on what it hears, with no need of the bus itself."""
-TRANSPORT = ("zenoh", "ground.bus", "ground.net", "ground.process")
+TRANSPORT = ("zenoh", "transport")
 
 
 @pytest.mark.parametrize("module", DECISIONS)
@@ -194,7 +218,7 @@ def test_the_robot_side_tracker_and_supervisor_start_without_the_solver(module, 
     """``python -m tracker``, ``epuck_link``, ``supervisor`` and ``ros2_link`` come up (their readiness line)
     in a fresh interpreter where proxsuite, scipy and the agent package cannot be imported:
     none of them loads the QP solver or synthesises the tube."""
-    from ground.net import free_port, loopback
+    from transport.net import free_port, loopback
 
     scn = ROOT / "scenarios" / "paper_two_robots.toml"
     argv = [
@@ -227,7 +251,7 @@ def test_the_robot_side_tracker_and_supervisor_start_without_the_solver(module, 
 
 def test_the_blocker_refuses_the_agent():
     """A test of the test: the agent, which needs the solver, does not start under the blocker."""
-    from ground.net import free_port, loopback
+    from transport.net import free_port, loopback
 
     scn = ROOT / "scenarios" / "paper_two_robots.toml"
     argv = [

@@ -8,7 +8,7 @@ Each parses the whole command line itself.
 import argparse
 import sys
 
-from ground.process import exit_process
+from transport.process import exit_process
 
 
 def main(argv: list[str] | None = None) -> int:

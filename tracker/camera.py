@@ -50,9 +50,7 @@ from typing import Any
 
 import numpy as np
 
-from ground.bus import Inbox, open_session, publisher
 from ground.geometry import wrap_angle
-from ground.process import DEADLINE, add_common_args, announce, log
 from ground.scenario import CameraSpec, ConfigError, Scenario, load_scenario
 from ground.wire import Applied, Keys, Outcome, Pose, Tick, Truth
 from tracker.intrinsics import Intrinsics
@@ -68,6 +66,8 @@ from tracker.vision import (
     cv2_module,
     quiet_opencv,
 )
+from transport.bus import Inbox, open_session, publisher
+from transport.process import DEADLINE, add_common_args, announce, log
 
 ROLE = "tracker"
 MAX_BAD_IN_A_ROW = 50

@@ -52,10 +52,8 @@ from typing import Any
 import numpy as np
 
 from epuck_link.robot_side import BRAKED, CANDIDATE, RobotSide
-from ground.bus import Inbox, open_session, publisher
 from ground.geometry import measured_state
 from ground.model import brake_input
-from ground.process import DEADLINE, add_common_args, announce, fault_plan, log, seed_arg
 from ground.scenario import ConfigError, Scenario, home, load_scenario, settle_samples
 from ground.wire import (
     LINK_DOWN,
@@ -75,6 +73,8 @@ from ground.wire import (
 )
 from tracker.reports import OUTCOME_WAIT, REPORT_WAIT, Reports
 from tracker.world import Disturbance, EmulatedWorld, PoseNoise, SimulatedWorld
+from transport.bus import Inbox, open_session, publisher
+from transport.process import DEADLINE, add_common_args, announce, fault_plan, log, seed_arg
 
 ROLE = "tracker"
 SUPERVISOR = "supervisor"

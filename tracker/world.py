@@ -18,12 +18,12 @@ from __future__ import annotations
 import numpy as np
 
 from epuck_link.unicycle import DoubleIntegratorPlant, UnicyclePlant, make_inner_loop
-from ground.bus import Inbox
 from ground.geometry import Array, controlled_point, measured_state
 from ground.model import double_integrator
 from ground.params import ControllerParams
 from ground.scenario import Scenario
 from ground.wire import Truth
+from transport.bus import Inbox
 
 
 class Disturbance:

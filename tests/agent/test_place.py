@@ -22,11 +22,11 @@ from agent.coordination import (
 from agent.hazards import Guard, in_reach
 from agent.node import group_of
 from agent.tube import validated_design
-from ground.bus import Inbox
 from ground.geometry import Whereabouts, block, cell_centre, cell_name, cell_of, cells_apart, parse_cell
-from ground.process import exchange_for
 from ground.scenario import load_scenario
 from ground.wire import BLIND, Keys, Plan, Tick, WireError
+from transport.bus import Inbox
+from transport.process import exchange_for
 
 SCN = load_scenario(Path(__file__).resolve().parents[2] / "scenarios" / "swap_16.toml")
 DESIGN = validated_design(SCN)
@@ -333,8 +333,8 @@ def test_a_waiting_agent_takes_the_plans_of_the_robot_it_waits_for_from_anywhere
     loopback; a marker put on the waited robot's own session, after its plan and into the
     waiter's cells, says when that plan would have come."""
     from agent.node import _Link
-    from ground.bus import put
-    from ground.net import free_port, loopback
+    from transport.bus import put
+    from transport.net import free_port, loopback
 
     keys = Keys("gate")
     hub = loopback(free_port())

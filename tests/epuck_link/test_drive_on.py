@@ -35,8 +35,8 @@ from epuck_link.transport import (
     WifiCodec,
     parse_link,
 )
-from ground.net import NetConfig, free_port, loopback
 from ground.wire import Command, Keys
+from transport.net import NetConfig, free_port, loopback
 
 pytestmark = pytest.mark.timeout(120)
 

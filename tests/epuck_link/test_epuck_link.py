@@ -42,9 +42,9 @@ from epuck_link.transport import (
     WifiCodec,
     parse_link,
 )
-from ground.net import NetConfig, free_port, loopback
 from ground.params import WheelGeometry
 from ground.wire import Command, Keys, Odom, Pose, Truth, Wheels, WireError, decode
+from transport.net import NetConfig, free_port, loopback
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -1006,7 +1006,7 @@ def wifi_rig(hub):
 HELPER = r"""
 import json, os, sys, threading, time
 import zenoh
-from ground.net import NetConfig
+from transport.net import NetConfig
 from ground.wire import Command, Keys
 
 endpoint, fleet, robot = sys.argv[1:4]

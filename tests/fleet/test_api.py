@@ -283,9 +283,9 @@ def test_a_goal_given_at_the_last_sample_goes_in_the_next_goals_batch():
     import zenoh
 
     from fleet.script import ProcessFleet
-    from ground.net import NetConfig, free_port, loopback
     from ground.scenario import load_scenario
     from ground.wire import Keys
+    from transport.net import NetConfig, free_port, loopback
 
     scn = load_scenario(SWAP4)
     session = zenoh.open(NetConfig(listen=[loopback(free_port())]).zenoh())

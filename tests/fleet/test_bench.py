@@ -603,11 +603,11 @@ def test_fleet_runs_solve_after_the_tick_without_delay_compensation(tmp_path):
 
 
 def test_the_sized_zenoh_runtime_keeps_a_router_forwarding(tmp_path):
-    """The Zenoh runtime every process sizes down by default (:data:`ground.net.RUNTIME`, the
+    """The Zenoh runtime every process sizes down by default (:data:`transport.net.RUNTIME`, the
     transmit pool apart), in a star, whose hub forwards every sample between the others: the
     run completes, every goal reached.  With the transmit pool handed over too, the hub
     deadlocked within 20 steps of this scene, every time it was tried (docs/performance.md)."""
-    from ground.net import RUNTIME
+    from transport.net import RUNTIME
 
     assert "tx:" not in RUNTIME  # the transmit pool keeps its own worker
     out = tmp_path / "star"

@@ -476,9 +476,9 @@ def test_lease_reaches_the_zenoh_configuration(tmp_path):
     ``--zenoh-config`` file (whose own lease stands when --lease is not given)."""
     import argparse
 
-    from ground.bus import session_config
-    from ground.net import NetConfig
-    from ground.process import add_common_args
+    from transport.bus import session_config
+    from transport.net import NetConfig
+    from transport.process import add_common_args
 
     assert json.loads(NetConfig(lease=1.0).zenoh().get_json("transport/link/tx/lease")) == 1000
     ap = argparse.ArgumentParser()
@@ -503,9 +503,9 @@ def test_mode_reaches_the_zenoh_configuration_and_contradictions_are_refused(tmp
     line naming the option, exit 2; a client whose router is not there, one line and exit 1."""
     import argparse
 
-    from ground.bus import session_config
-    from ground.net import NetConfig, free_port
-    from ground.process import add_common_args
+    from transport.bus import session_config
+    from transport.net import NetConfig, free_port
+    from transport.process import add_common_args
 
     ap = argparse.ArgumentParser()
     add_common_args(ap)

@@ -46,8 +46,8 @@ from fleet.secure import (
     router_json,
     to_zenoh,
 )
-from ground.net import free_port, render
 from ground.wire import SCRIPT, Keys
+from transport.net import free_port, render
 
 ROOT = Path(__file__).resolve().parents[2]
 DEPLOY = ROOT / "deploy"

@@ -30,8 +30,8 @@ from typing import IO
 import pytest
 from procfs import group_alive
 
-from ground.net import free_port
 from supervisor.recorder import robot_colour
+from transport.net import free_port
 
 ROOT = Path(__file__).resolve().parents[2]
 CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")

@@ -115,8 +115,8 @@ def test_fleet_simulate_says_the_forced_order_and_the_summary_keeps_it(tmp_path)
 def test_fleet_run_says_the_forced_order_and_the_recording_holds_it(tmp_path) -> None:
     """The process fleet says it too: on its first lines, and as an event in the Rerun recording,
     logged by the supervisor once the first plans give it the footprint."""
-    from ground.net import free_port, loopback
     from supervisor.recorder import read_events
+    from transport.net import free_port, loopback
 
     path = tmp_path / "pocket.toml"
     path.write_text(scene_to_toml(pocket(0.30, robots=2, duration=1.0)))

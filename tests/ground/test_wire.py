@@ -10,8 +10,6 @@ import msgpack
 import numpy as np
 import pytest
 
-from ground.bus import Inbox
-from ground.faults import FaultPlan
 from ground.wire import (
     MAX_BATCH,
     MAX_HORIZON,
@@ -40,6 +38,8 @@ from ground.wire import (
     decode,
     encode_array,
 )
+from transport.bus import Inbox
+from transport.faults import FaultPlan
 
 
 def _disc(robot, *disc):

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from ground.net import free_port, loopback
+from transport.net import free_port, loopback
 
 ROOT = Path(__file__).resolve().parents[2]
 SCENARIO = ROOT / "scenarios" / "paper_two_robots.toml"

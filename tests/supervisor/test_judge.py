@@ -11,9 +11,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ground.bus import Inbox
 from ground.wire import Keys, Plan, Tick
 from supervisor.monitor import _plan_step
+from transport.bus import Inbox
 
 IDS = ["r1", "r2"]
 

@@ -20,7 +20,7 @@ import pytest
 
 from fleet import Fleet, GoalRefused
 from fleet.launch import start_fleet
-from ground.net import free_port, loopback
+from transport.net import free_port, loopback
 
 pytestmark = pytest.mark.slow
 
@@ -308,9 +308,9 @@ def test_a_plan_that_trails_the_samples_is_stale_only_where_the_clock_runs_on(ho
     import zenoh
 
     from fleet.script import ProcessFleet
-    from ground.net import NetConfig
     from ground.scenario import load_scenario
     from ground.wire import Keys, Plan
+    from transport.net import NetConfig
 
     scn = load_scenario(TWO)
     keys = Keys("trail")

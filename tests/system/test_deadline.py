@@ -255,8 +255,8 @@ def test_remembered_steps_stay_bounded_and_keep_the_recent_ones():
 def test_the_newest_plan_skips_withdrawn_and_later_steps():
     """``Inbox.newest``: the plan of the newest kept step ≤ at_most that is not skipped
     (a withdrawn plan was never executed), whatever arrived since."""
-    from ground.bus import Inbox
     from ground.wire import Keys, Plan
+    from transport.bus import Inbox
 
     def plan(k: int) -> Plan:
         z = np.zeros((3, 2))
@@ -363,8 +363,8 @@ def test_epuck_link_takes_the_command_only_by_its_deadline():
 def _reports_inbox() -> tuple[Any, Any]:
     """A tracker's inbox, and ``put(robot, step, last, braked=False)``, which stores a link's
     Applied report in it as its subscription would."""
-    from ground.bus import Inbox
     from ground.wire import Applied, Keys
+    from transport.bus import Inbox
 
     keys = Keys("lab")
     inbox = Inbox(keys, "tracker")

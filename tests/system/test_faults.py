@@ -30,13 +30,13 @@ from agent.coordination import PLACE_LAG, Hazard, NeighbourInfo, hazard_halfplan
 from agent.hazards import Guard
 from agent.tube import synthesize
 from fleet.scenes import antipodal_swap, scene_to_toml
-from ground.faults import DELIVER, DROP, FaultPlan, FaultPlanError
 from ground.geometry import controlled_point
 from ground.model import stopping
-from ground.net import free_port, loopback
 from ground.scenario import load_scenario
 from ground.wire import BLIND, LinkState, Plan
 from tracker.world import Disturbance, PoseNoise, make_plant, measure
+from transport.faults import DELIVER, DROP, FaultPlan, FaultPlanError
+from transport.net import free_port, loopback
 
 ROOT = Path(__file__).resolve().parents[2]
 SCENARIOS = ROOT / "scenarios"

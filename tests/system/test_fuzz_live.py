@@ -51,8 +51,8 @@ import pytest
 from fuzzing import NAMES, TYPES, Generator, Payload, field_names, table_names
 from procfs import alive, fleet_processes, group_alive, stat
 
-from ground.net import NetConfig, free_port, loopback
 from ground.wire import MAX_PAYLOAD, Keys, Message, Odom, WireError, decode
+from transport.net import NetConfig, free_port, loopback
 
 ROOT = Path(__file__).resolve().parents[2]
 SCENARIO = ROOT / "scenarios" / "paper_three_robots.toml"
@@ -149,7 +149,7 @@ class Item:
 
 
 def verdict(key: str, typ: type[Message], data: bytes) -> str:
-    """The receiving side's decision, exactly as ground.bus.Inbox's subscriber takes it."""
+    """The receiving side's decision, exactly as transport.bus.Inbox's subscriber takes it."""
     full = f"{KEYS.root}/{key}"
     try:
         rid = None if full.endswith(("/clock", "/digest")) else KEYS.robot_of(full)
@@ -264,7 +264,7 @@ def test_generated_payloads_are_all_rejected_by_the_decoder():
 
 LOG_CHILD = """
 import sys
-from ground.bus import Inbox
+from transport.bus import Inbox
 from ground.wire import Keys, WireError
 rejects = Inbox(Keys("lab"), sys.argv[1]).rejects
 rejects.max_sources = 10**6  # one line per source here: this test is about whole lines
@@ -292,7 +292,7 @@ sys.exit(max(k.wait(timeout=120) for k in kids))
 def test_rejection_lines_of_concurrent_processes_stay_whole():
     """The fleet's processes share the launcher's stderr, and .ci/run sets PYTHONUNBUFFERED=1.
     Two processes reporting rejections at once (one line per source, 20,000 sources each) must
-    still produce whole lines: ground.bus.log must write each line in one write."""
+    still produce whole lines: transport.bus.log must write each line in one write."""
     n = 20_000
     res = subprocess.run(
         [sys.executable, "-c", LOG_PARENT, LOG_CHILD, str(n)],
@@ -305,7 +305,7 @@ def test_rejection_lines_of_concurrent_processes_stay_whole():
     broken = [ln for ln in lines if not line.fullmatch(ln)]
     whole = Counter(ln.split("]")[0] for ln in lines if line.fullmatch(ln))
     assert not broken and whole == {"[agent r1": n, "[agent r2": n}, (
-        f"{len(broken)} of {len(lines)} lines merged or split (ground/bus.py log() prints the message "
+        f"{len(broken)} of {len(lines)} lines merged or split (transport/bus.py log() prints the message "
         f"and its newline in two writes), e.g. {broken[:2]}"
     )
 

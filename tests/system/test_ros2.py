@@ -29,10 +29,10 @@ import pytest
 
 from fleet import Fleet
 from fleet.script import LOG
-from ground.net import NetConfig, free_port, loopback
 from ground.params import ControllerParams
 from ground.scenario import GOAL_TOLERANCE
 from ros2_link import graph, types
+from transport.net import NetConfig, free_port, loopback
 
 ROOT = Path(__file__).resolve().parents[2]
 WAIT = 90.0

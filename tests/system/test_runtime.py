@@ -18,7 +18,7 @@ import pytest
 from procfs import alive, argv, descendants, fleet_processes, ppid, tcp_sockets
 
 from agent.coordination import PLACE_LAG
-from ground.net import free_port, loopback
+from transport.net import free_port, loopback
 
 ROOT = Path(__file__).resolve().parents[2]
 SCENARIOS = ROOT / "scenarios"
@@ -268,8 +268,8 @@ def test_lost_commands_with_delay_compensation_are_told_before_the_next_plans(tm
     import numpy as np
 
     from fleet.scenes import antipodal_swap, scene_to_toml
-    from ground.faults import DROP, FaultPlan
     from supervisor.trace import Trace
+    from transport.faults import DROP, FaultPlan
 
     scn = tmp_path / "swap_6.toml"
     scn.write_text(scene_to_toml(antipodal_swap(6)))
@@ -597,7 +597,7 @@ def test_realtime_run_of_sixteen_robots_with_default_flags_for_20_s(tmp_path):
 def test_goal_changed_at_run_time(tmp_path):
     """An operator moves r1's goal while the fleet runs: bad goals are refused, the good one is
     taken, and the run is judged against it (realtime clock, so the run is still going)."""
-    from ground.net import free_port, loopback
+    from transport.net import free_port, loopback
 
     hub = loopback(free_port())
     scn = str(SCENARIOS / "paper_three_robots.toml")
@@ -662,8 +662,8 @@ def test_goal_is_not_sent_while_a_live_neighbour_has_sent_no_plan():
     import numpy as np
     import zenoh
 
-    from ground.net import NetConfig
     from ground.wire import Keys, Plan
+    from transport.net import NetConfig
 
     scn = str(SCENARIOS / "paper_three_robots.toml")
     hub, keys = loopback(free_port()), Keys("lab")
@@ -783,8 +783,8 @@ def test_realtime_digest_comes_half_a_step_before_its_tick(tmp_path):
 
     import zenoh
 
-    from ground.net import NetConfig, free_port, loopback
     from ground.wire import Digest, Keys, Tick, decode
+    from transport.net import NetConfig, free_port, loopback
 
     text = (SCENARIOS / "paper_three_robots.toml").read_text()
     scn = tmp_path / "three_12s.toml"

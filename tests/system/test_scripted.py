@@ -26,8 +26,8 @@ import msgpack
 import numpy as np
 
 from fleet.launch import Launched, start_fleet
-from ground.net import NetConfig, loopback
 from ground.wire import SCRIPT, Goal, Keys, Plan, Script, Tick, Truth, decode
+from transport.net import NetConfig, loopback
 
 ROOT = Path(__file__).resolve().parents[2]
 KEYS = Keys("lab")

@@ -69,8 +69,8 @@ import pytest
 from netns_util import LOCAL, ROOT, HostProc
 
 from fleet.secure import client_json, router_json
-from ground.net import free_port
 from ground.wire import Keys
+from transport.net import free_port
 
 SCENARIO = ROOT / "scenarios" / "paper_three_robots.toml"
 ROBOTS = ("r1", "r2", "r3")
@@ -100,10 +100,10 @@ ATTACKER = r"""
 import json, sys, threading
 import numpy as np
 import zenoh
-from ground.bus import publisher
-from ground.process import announce, exit_process
+from transport.bus import publisher
+from transport.process import announce, exit_process
 from ground.scenario import load_scenario
-from ground.net import load_config
+from transport.net import load_config
 from ground.wire import Command, Keys, Plan, Pose, Tick, WireError, decode
 
 conf, scenario, fleet, me, victim, status, solve_time, control_step, mid = sys.argv[1:10]
@@ -236,8 +236,8 @@ EOF ends it."""
 OBSERVER = r"""
 import json, sys, threading
 import zenoh
-from ground.process import announce, exit_process
-from ground.net import load_config
+from transport.process import announce, exit_process
+from transport.net import load_config
 from ground.wire import Command, Goal, Plan, Script, WireError, decode
 
 lock = threading.Lock()
@@ -566,9 +566,9 @@ def _forge(conf: Path, horizon: int, observer: HostProc) -> None:
     import numpy as np
     import zenoh
 
-    from ground.bus import publisher
-    from ground.net import load_config
     from ground.wire import SCRIPT, Goal, Plan, Script
+    from transport.bus import publisher
+    from transport.net import load_config
 
     z = np.zeros(2)
     plan = Plan(robot="r1", step=CONTROL_STEP, t0=0.0, Ts=0.1, committed=np.zeros((horizon, 2)),
@@ -606,8 +606,8 @@ def test_a_script_joins_the_secure_fleet_with_the_operators_certificate(net: Net
     observer, behind a barrier, sees neither.  The fleet then runs to its end with every process
     exiting 0, and its summary has r1's new goal."""
     from fleet import Fleet
-    from ground.net import render
     from ground.scenario import load_scenario
+    from transport.net import render
 
     net.router()
     observer = net.observer([K.plan("r1"), K.script, K.goal("r3")])

@@ -37,8 +37,8 @@ import pytest
 from netns_util import LOCAL, ROOT, HostProc
 
 from fleet.secure import client_json, router_json
-from ground.net import free_port, load_config
 from ros2_link import graph, types
+from transport.net import free_port, load_config
 
 SCENARIO = ROOT / "scenarios" / "paper_two_robots.toml"
 ROBOTS = ("r1", "r2")

@@ -21,7 +21,7 @@ from fleets import ENV, ROOT, agent_pid, child_pid, collected, launch, stop, unt
 from procfs import stat
 
 from fleet.scenes import antipodal_swap, scene_to_toml
-from ground.net import free_port, loopback
+from transport.net import free_port, loopback
 
 CLOCKS = ["lockstep", pytest.param("realtime", marks=pytest.mark.realtime)]
 

@@ -378,8 +378,8 @@ def test_video_through_the_tracker_process_matches_the_trajectories(tmp_path, vi
     its reports, the next tick says the same, and each miss is counted once."""
     import zenoh
 
-    from ground.net import NetConfig, free_port, loopback
     from ground.wire import Applied, Keys, Outcome, Pose, Tick, decode
+    from transport.net import NetConfig, free_port, loopback
 
     scn = write_scenario(tmp_path / "s.toml", scenario_dict())
     hub = loopback(free_port())

@@ -1,4 +1,4 @@
-"""``ground.net.free_port``: the port a launcher hands to a process it starts next."""
+"""``transport.net.free_port``: the port a launcher hands to a process it starts next."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import socket
 
 import pytest
 
-from ground import net
+from transport import net
 
 
 def test_free_ports_come_from_beside_the_kernels_ephemeral_range_and_can_be_listened_on():
@@ -75,8 +75,8 @@ def test_the_ports_picked_from_are_the_larger_gap_beside_the_ephemeral_range(
 _THREADS = r"""
 import argparse, json, os, re, sys, threading
 import zenoh
-from ground.bus import open_session
-from ground.net import NetConfig, free_port, loopback
+from transport.bus import open_session
+from transport.net import NetConfig, free_port, loopback
 
 hub = loopback(free_port())
 args = argparse.Namespace(listen=[hub], connect=[], lease=None, mode=None, zenoh_config=None)
@@ -116,7 +116,7 @@ def _zenoh_threads(env: dict[str, str]) -> dict:
 
 
 def test_every_process_sizes_zenohs_runtime_down_and_a_users_sizes_win():
-    """``ground.bus.open_session`` sizes Zenoh's runtime (``ground.net.RUNTIME``): one worker
+    """``transport.bus.open_session`` sizes Zenoh's runtime (``transport.net.RUNTIME``): one worker
     takes the receive, accept and network pools' work, and the transmit pool keeps a thread
     of its own (handing it over too deadlocks a router).  A ``ZENOH_RUNTIME`` the user set
     wins: ``()``, Zenoh's own sizes, brings back its receiving threads."""
@@ -134,8 +134,8 @@ def test_a_session_joining_from_outside_names_the_argument_that_is_wrong(tmp_pat
     """``join_session`` (``fleet goal``, a script): neither endpoints nor a file, a file that is
     not a configuration, and a client whose router is not there are each a ConfigError naming
     the argument as the caller calls it; nothing hangs."""
-    from ground.bus import join_session
     from ground.scenario import ConfigError
+    from transport.bus import join_session
 
     with pytest.raises(ConfigError) as none:
         join_session([], None)

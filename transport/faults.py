@@ -31,7 +31,7 @@ reaches the receiver when its own step passes ``k + delay``, or never if the
 run ends first).  The first matching rule decides.  Only messages that carry
 a step or sequence number are subject to faults.
 
-:class:`ground.bus.Inbox` applies the plan: a dropped or delayed message
+:class:`transport.bus.Inbox` applies the plan: a dropped or delayed message
 leaves a tombstone, so a receiver that waits for step k learns at once that
 it will not come in time and carries on with what it has, as it would after
 a real loss.

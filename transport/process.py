@@ -17,9 +17,9 @@ import sys
 import threading
 from typing import Any, NoReturn, cast
 
-from ground.faults import FaultPlan, FaultPlanError
-from ground.net import MODES, NetConfig, lease_seconds
 from ground.scenario import MAX_SEED, ROS_DOMAIN_MAX
+from transport.faults import FaultPlan, FaultPlanError
+from transport.net import MODES, NetConfig, lease_seconds
 
 EXCHANGES = ("mesh", "place", "relay")
 """How the agents' plans travel (``--exchange``): to every agent, to the agents near, or through
@@ -37,7 +37,7 @@ def exchange_for(clock: str, exchange: str = "auto") -> str:
 
 
 def lease_arg(text: str) -> float:
-    """argparse type of ``--lease``: seconds in :data:`ground.net.LEASE_RANGE`."""
+    """argparse type of ``--lease``: seconds in :data:`transport.net.LEASE_RANGE`."""
     try:
         return lease_seconds(text)
     except ValueError as e:
@@ -83,7 +83,7 @@ def add_common_args(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--connect", action="append", default=[], help="Zenoh endpoint to connect to")
     ap.add_argument(
         "--faults", default=None, metavar="JSON",
-        help="fault plan (JSON text or file, ground/faults.py): drop or delay chosen received messages",
+        help="fault plan (JSON text or file, transport/faults.py): drop or delay chosen received messages",
     )  # fmt: skip
     ap.add_argument(
         "--zenoh-config", default=None, metavar="FILE",

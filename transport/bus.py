@@ -15,12 +15,12 @@ import time
 from collections.abc import Callable, Container, Sequence
 from typing import Any, TypeVar
 
-from ground.faults import DELIVER, FaultPlan
 from ground.geometry import Whereabouts
-from ground.net import NetConfig, SecureConfigError, load_config, loopback, size_runtime
-from ground.process import log, wait_owning
 from ground.scenario import ConfigError
 from ground.wire import Digest, Goal, Keys, Message, Plan, RejectCounter, Tick, WireError, decode
+from transport.faults import DELIVER, FaultPlan
+from transport.net import NetConfig, SecureConfigError, load_config, loopback, size_runtime
+from transport.process import log, wait_owning
 
 M = TypeVar("M", bound=Message)
 _SENDER_KEYS = ("/clock", "/digest", "/outcome")
@@ -79,7 +79,7 @@ def open_session(args: argparse.Namespace) -> Any:
     """A Zenoh session (:func:`session_config`).  A session Zenoh cannot open (a client
     whose router is not there: unlike a peer, it does not wait for it) is one line on
     stderr and exit 1.  Every process of the fleet opens its session here, with Zenoh's runtime
-    sized by :func:`ground.net.size_runtime`."""
+    sized by :func:`transport.net.size_runtime`."""
     import zenoh
 
     conf = session_config(args)
