@@ -11,7 +11,7 @@ compensation" and "Missed deadlines"):
 * :func:`candidate_input` — when the robot side did not apply a command, the input it gave
   instead by following the shifted candidate of its last applied command.
 
-``agent.node`` (the process) and ``fleet.simulate`` (the whole fleet in one process) both call
+``agent.node`` (the process) and ``fleet.running.simulate`` (the whole fleet in one process) both call
 these, so that a lockstep ``fleet run`` and ``fleet simulate`` make the same plans bit for bit.
 Nothing here touches the transport.
 """

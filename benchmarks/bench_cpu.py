@@ -191,7 +191,7 @@ def _scene(n: int, seconds: float, tmp: Path) -> Path:
     """A copy of the shipped scene of ``n`` robots lasting ``seconds`` (simulated)."""
     import tomllib
 
-    from fleet.scenes import scene_to_toml
+    from fleet.running.scenes import scene_to_toml
 
     src = ROOT / "scenarios" / f"{SCENES[n]}.toml"
     data = tomllib.loads(src.read_text())

@@ -1,7 +1,7 @@
 """How the agents' plans travel, side by side on the realtime clock: every plan to every agent,
 or by place.
 
-    python benchmarks/bench_exchange.py [--robots 32] [--seconds 60] [--order mesh,place,mesh,place]
+    python -m benchmarks.bench_exchange [--robots 32] [--seconds 60] [--order mesh,place,mesh,place]
         [--json OUT.json]
 
 Runs ``fleet run`` of the shipped swap of ``--robots`` robots on the realtime clock for
@@ -32,15 +32,12 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
+from benchmarks import bench_cpu
+from benchmarks.bench_scale import SCENES, fleet_run
+from benchmarks.bench_step import machine_info
+from transport.process import EXCHANGES
+
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-import bench_cpu  # noqa: E402
-from bench_scale import SCENES, fleet_run  # noqa: E402
-from bench_step import machine_info  # noqa: E402
-
-from transport.process import EXCHANGES  # noqa: E402
 
 RUNTIMES = {"": None, "zenoh": {"ZENOH_RUNTIME": bench_cpu.ZENOH_OWN}}
 """Environment of an ``--order`` entry's fleet by its suffix: none (the fleet's own sizing of

@@ -1,6 +1,6 @@
 """Target 3's floor: pose → command latency if a command did not wait for its step's solve.
 
-    python benchmarks/bench_latency_floor.py [--scenario scenarios/swap_16.toml] [--seconds 20] [--runs 2]
+    python -m benchmarks.bench_latency_floor [--scenario scenarios/swap_16.toml] [--seconds 20] [--runs 2]
 
 An agent today answers the pose of step k only after that step's solve: it waits for its
 neighbours' plans of step k − 1, steps its :class:`agent.controller.TubeMPC` and then publishes
@@ -54,7 +54,6 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
 
 ORDERS = ("solve-first", "command-first", "command-spread", "echo-inbox", "echo", "echo-callback")
 BARE = ("echo", "echo-callback")
@@ -221,9 +220,7 @@ def _observer(hub: str, ready: Any, stop: Any, results: Any) -> None:
     Poses and commands are timed on arrival by target 3's own probe
     (``benchmarks/bench_scale.py`` ``Observer``); {(robot, step): ms} goes on ``results`` once
     the driver stops."""
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from bench_scale import Observer
-
+    from benchmarks.bench_scale import Observer
     from ground.wire import Plan, WireError, decode
 
     probe = Observer(hub, fleet="floor")

@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """Liveness benchmark: ``fleet bench --liveness N``.
 
-Runs N scenes drawn by :func:`fleet.scenes.hard_scene` (seeds ``--seed`` … ``--seed + N − 1``,
+Runs N scenes drawn by :func:`fleet.running.scenes.hard_scene` (seeds ``--seed`` … ``--seed + N − 1``,
 seven families in turn: dense random scenes with goals at the closest legal spacing, odd
 rings, mirrored grids, antipodal swaps of 4–24, thin corridors, a gap between polygons,
 goals packed around obstacles) through ``fleet simulate``, in ``--jobs`` processes, and
@@ -88,10 +88,10 @@ def _alone(scn: Any, footprint: float) -> dict[str, float]:
 
 
 def _scene(seed: int, families: tuple[str, ...] | None) -> tuple[dict[str, Any], str, Any, Any]:
-    """Hard scene ``seed`` of ``families`` (default :data:`fleet.scenes.HARD_FAMILIES`): its
+    """Hard scene ``seed`` of ``families`` (default :data:`fleet.running.scenes.HARD_FAMILIES`): its
     data, its family, and the loaded scenario and design, or None and the loader's reason."""
     from agent.tube import validated_design
-    from fleet.scenes import HARD_FAMILIES, hard_scene
+    from fleet.running.scenes import HARD_FAMILIES, hard_scene
     from ground.scenario import ConfigError, parse_scenario
 
     fams = families or HARD_FAMILIES
@@ -115,13 +115,13 @@ def floor(seed: int, families: tuple[str, ...] | None = None) -> dict[str, Any]:
 def one(
     seed: int, ahead: bool = True, families: tuple[str, ...] | None = None, realtime: Path | None = None
 ) -> dict[str, Any]:
-    """Run hard scene ``seed`` of ``families`` (default :data:`fleet.scenes.HARD_FAMILIES`) in
+    """Run hard scene ``seed`` of ``families`` (default :data:`fleet.running.scenes.HARD_FAMILIES`) in
     this process, with every plan made a step ahead as ``fleet simulate`` makes them by default
     (``ahead`` False: each from its measurement); its figures.  ``realtime``: instead run it as
     a process fleet on the realtime clock with its defaults (``fleet run --clock realtime``:
     plans by place, planned ahead), its files under that directory."""
-    from fleet.scenes import scene_to_toml
-    from fleet.simulate import run
+    from fleet.running.scenes import scene_to_toml
+    from fleet.running.simulate import run
 
     t0 = time.perf_counter()
     data, family, scn, design = _scene(seed, families)
@@ -296,7 +296,7 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     json_path = Path(args.json) if args.json else out / "liveness.json"
     order = "" if getattr(args, "delay_compensation", True) else ", each plan from its measurement"
-    from fleet.scenes import HARD_FAMILIES
+    from fleet.running.scenes import HARD_FAMILIES
 
     fams = tuple(getattr(args, "families", None) or HARD_FAMILIES)
     named = ", ".join(fams)
@@ -306,10 +306,6 @@ def run(args: argparse.Namespace) -> int:
           f"python {platform.python_version()}; load average {os.getloadavg()}", flush=True)  # fmt: skip
     t0 = time.perf_counter()
     rows: list[dict[str, Any]] = []
-    # The workers import this file by name (it may have been loaded from its path).
-    here = str(Path(__file__).resolve().parent)
-    if here not in sys.path:
-        sys.path.insert(0, here)  # spawn hands the workers this process's sys.path
     ctx = multiprocessing.get_context("spawn")
     ahead = bool(getattr(args, "delay_compensation", True))
     realtime = out / "realtime" if getattr(args, "liveness_realtime", False) else None
@@ -369,7 +365,7 @@ def main(argv: list[str] | None = None) -> int:
         help="run nothing: the floor of path efficiency (each robot's shortest way alone) per family",
     )  # fmt: skip
     args = ap.parse_args(argv)
-    from fleet.bench import families
+    from benchmarks.options import families
 
     try:
         args.families = families(args.families)

@@ -1,6 +1,6 @@
 """How many plans an agent needs, and what the fleet does if it gets only those.
 
-    python benchmarks/bench_reach.py [--scenarios scenarios/swap_16.toml,...] [--reach 0.3,inf]
+    python -m benchmarks.bench_reach [--scenarios scenarios/swap_16.toml,...] [--reach 0.3,inf]
         [--cell 0.3] [--jobs 2]
 
 In the peer mesh every agent takes every other agent's plan every step, so a fleet of n robots
@@ -52,7 +52,6 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
 
 SCENARIOS = ("swap_16", "swap_32", "swap_48")
 REACH = (0.3, 0.45, 0.6, 0.9, math.inf)
@@ -71,7 +70,7 @@ def run_one(scenario_path: str, reach: float, cell: float = CELL) -> dict[str, A
     import numpy as np
 
     import agent.controller as controller
-    from fleet.simulate import run
+    from fleet.running.simulate import run
     from ground.scenario import load_scenario
 
     known: list[int] = []

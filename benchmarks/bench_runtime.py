@@ -1,6 +1,6 @@
 """Real-time factor of `fleet run` (one process per robot, lockstep clock, loopback Zenoh).
 
-    python benchmarks/bench_runtime.py [--json OUT.json]
+    python -m benchmarks.bench_runtime [--json OUT.json]
 
 Runs the shipped scenarios paper_three_robots, swap_8 and swap_16 as separate
 processes and prints simulated seconds / wall seconds (wall time from the first

@@ -3,10 +3,10 @@
 
 Run from the repository root::
 
-    python benchmarks/bench_scale.py                 # full run, several minutes on 2 cores
-    python benchmarks/bench_scale.py --quick         # under a minute: every figure present, few samples
-    python benchmarks/bench_scale.py --json OUT.json # where the JSON goes (default out/bench/bench.json)
-    python benchmarks/bench_scale.py --no-fleet      # in-process parts only ([1]–[3])
+    python -m benchmarks.bench_scale                 # full run, several minutes on 2 cores
+    python -m benchmarks.bench_scale --quick         # under a minute: every figure present, few samples
+    python -m benchmarks.bench_scale --json OUT.json # where the JSON goes (default out/bench/bench.json)
+    python -m benchmarks.bench_scale --no-fleet      # in-process parts only ([1]–[3])
 
 ``fleet bench`` (fleet/bench.py) runs this file with the same arguments.  Six
 figures, each described in docs/performance.md:
@@ -65,24 +65,20 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import proxsuite
+
+from agent.controller import TubeMPC
+from agent.coordination import NeighbourInfo
+from agent.qp import TubeQP, configure
+from agent.tube import require_admissible, synthesize
+from benchmarks import bench_cpu
+from benchmarks import bench_step as bs
+from fleet.running.scenes import scene_to_toml
+from ground.params import preset
+from ground.wire import UNDER_WAY
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
-for _p in (str(ROOT), str(HERE)):
-    if _p not in sys.path:
-        sys.path.insert(0, _p)
-
-import bench_cpu  # noqa: E402
-import bench_step as bs  # noqa: E402
-import proxsuite  # noqa: E402
-
-from agent.controller import TubeMPC  # noqa: E402
-from agent.coordination import NeighbourInfo  # noqa: E402
-from agent.qp import TubeQP, configure  # noqa: E402
-from agent.tube import require_admissible, synthesize  # noqa: E402
-from fleet.scenes import scene_to_toml  # noqa: E402
-from ground.params import preset  # noqa: E402
-from ground.wire import UNDER_WAY  # noqa: E402
 
 try:
     import daqp
@@ -1409,9 +1405,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from fleet.bench import add_arguments  # the options live with the command
+    from benchmarks.options import add_arguments  # the options of fleet bench
 
-    ap = argparse.ArgumentParser(prog="bench_scale.py", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(
+        prog="python -m benchmarks.bench_scale", description=__doc__.split("\n\n")[0]
+    )
     add_arguments(ap)
     return run(ap.parse_args(argv))
 

@@ -3,10 +3,10 @@
 
 Run from the repository root (venv active)::
 
-    python benchmarks/bench_step.py            # full run, a minute or two on 2 cores
-    python benchmarks/bench_step.py --quick    # ~20 s (budget 1 min)
-    python benchmarks/bench_step.py --json out.json
-    python benchmarks/bench_step.py --quick --profile   # + cProfile of the 8-neighbour step
+    python -m benchmarks.bench_step            # full run, a minute or two on 2 cores
+    python -m benchmarks.bench_step --quick    # ~20 s (budget 1 min)
+    python -m benchmarks.bench_step --json out.json
+    python -m benchmarks.bench_step --quick --profile   # + cProfile of the 8-neighbour step
 
 Three figures (benchmarks/README.md; docs/performance.md for what they mean):
 
@@ -57,20 +57,18 @@ from typing import Any
 import numpy as np
 import proxsuite
 
-ROOT = Path(__file__).resolve().parent.parent
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+import agent.controller as controller_mod
+from agent.controller import TubeMPC
+from agent.coordination import NeighbourInfo
+from agent.navigator import Navigator
+from agent.qp import TubeQP
+from agent.tube import require_admissible, synthesize
+from fleet.running import simulate as harness
+from fleet.running.scenes import random_scene
+from ground.scenario import check_geometry, load_scenario, parse_scenario
+from ground.wire import UNDER_WAY
 
-import agent.controller as controller_mod  # noqa: E402
-from agent.controller import TubeMPC  # noqa: E402
-from agent.coordination import NeighbourInfo  # noqa: E402
-from agent.navigator import Navigator  # noqa: E402
-from agent.qp import TubeQP  # noqa: E402
-from agent.tube import require_admissible, synthesize  # noqa: E402
-from fleet import simulate as harness  # noqa: E402
-from fleet.scenes import random_scene  # noqa: E402
-from ground.scenario import check_geometry, load_scenario, parse_scenario  # noqa: E402
-from ground.wire import UNDER_WAY  # noqa: E402
+ROOT = Path(__file__).resolve().parent.parent
 
 try:
     import daqp

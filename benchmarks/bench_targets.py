@@ -47,15 +47,15 @@ READY_S = 5.0
 
 
 def _harnesses() -> tuple[Any, Any]:
-    from fleet.bench import CPU, HARNESS, _harness
+    from benchmarks import bench_cpu, bench_scale
 
-    return _harness(HARNESS), _harness(CPU)
+    return bench_scale, bench_cpu
 
 
 def _floor_harness() -> Any:
-    from fleet.bench import HARNESS, _harness
+    from benchmarks import bench_zenoh_floor
 
-    return _harness(HARNESS.with_name("bench_zenoh_floor.py"))
+    return bench_zenoh_floor
 
 
 FLOOR_RATES = (10.0, 200.0)

@@ -1,6 +1,6 @@
 """The transport's floor: what a fleet's message pattern costs with no fleet code at all.
 
-    python benchmarks/bench_zenoh_floor.py [--robots 16] [--rate 25] [--seconds 20] [--cell 0]
+    python -m benchmarks.bench_zenoh_floor [--robots 16] [--rate 25] [--seconds 20] [--cell 0]
 
 N processes (spawned), configured as ``fleet run`` configures its processes
 (``transport.net.NetConfig``: peer mode, multicast scouting off, the first listening on a
@@ -85,8 +85,6 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 MODES = ("callback", "decode", "drain", "direct")
 PATTERNS = ("plans", "step", "fleet")
@@ -459,7 +457,7 @@ def _step_supervisor(robots: int, hub: str, topology: str, pattern: str, ready: 
 
 def _cpu(pids: list[int]) -> dict[str, float]:
     """CPU s so far of ``pids``, by thread kind."""
-    from bench_cpu import cpu_by_kind
+    from benchmarks.bench_cpu import cpu_by_kind
 
     out: dict[str, float] = {}
     for pid in pids:
@@ -558,7 +556,7 @@ def measure(
 
 
 def main(argv: list[str] | None = None) -> int:
-    from bench_cpu import LENGTHS, SCENES, marginal_rows
+    from benchmarks.bench_cpu import LENGTHS, SCENES, marginal_rows
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--robots", type=int, default=16)

@@ -8,7 +8,7 @@ Usage::
 
 Every Zenoh node of a secure deployment authenticates with mutual TLS: its
 certificate's common name (CN) is its identity, and the router's access
-control grants rights by that name (``fleet/secure.py``).  Identities are the
+control grants rights by that name (``secure_router/access.py``).  Identities are the
 robot ids (the agent and the ``epuck_link`` of robot R both use R), plus
 ``tracker``, ``supervisor``, ``operator`` (``fleet goal``), ``router``, and for the
 fleet's ROS 2 face ``ros2`` (``python -m ros2_link``) and ``ros_client`` (ROS 2 tools

@@ -45,11 +45,11 @@ shell's pid, the default owner)::
     python deploy/netns.py up --sysctl net.ipv4.tcp_retries2=5
     python deploy/make_certs.py /tmp/pki --scenario scenarios/paper_three_robots.toml \
         --router-host 198.51.100.1
-    for r in tracker supervisor; do python -m fleet.secure config $r --certs /tmp/pki \
+    for r in tracker supervisor; do python -m secure_router config $r --certs /tmp/pki \
         --router tls/198.51.100.1:7447 --connect-timeout 10 > /tmp/$r.json; done
-    for r in r1 r2 r3; do python -m fleet.secure config agent --robot $r --certs /tmp/pki \
+    for r in r1 r2 r3; do python -m secure_router config agent --robot $r --certs /tmp/pki \
         --router tls/198.51.100.1:7447 --connect-timeout 10 > /tmp/$r.json; done
-    ip netns exec efleet-$$-router python -m fleet.secure router --certs /tmp/pki \
+    ip netns exec efleet-$$-router python -m secure_router router --certs /tmp/pki \
         --listen tls/198.51.100.1:7447 --robots r1 r2 r3 --sim-tracker &
     S="--scenario scenarios/paper_three_robots.toml --clock realtime"
     ip netns exec efleet-$$-router python -m tracker $S --zenoh-config /tmp/tracker.json &

@@ -3,7 +3,7 @@
 * ``fleet design [SCENARIO.toml] [--preset paper|epuck] [--json]`` prints the
   tube design and exits 1 if it is inadmissible.
 * ``fleet simulate SCENARIO.toml [--out DIR] [--seed N] [--no-delay-compensation]`` runs the
-  whole fleet in one process (:mod:`fleet.simulate`), writes ``DIR/summary.json`` and exits 0
+  whole fleet in one process (:mod:`fleet.running.simulate`), writes ``DIR/summary.json`` and exits 0
   only if the run completed with zero collisions and every robot reached its goal.
 * ``fleet run SCENARIO.toml [--out DIR] [--clock C] [--exchange E] [--seed N] [--viewer]
   [--listen ENDPOINT] [--lease S] [--topology T] [--start-agents fork|spawn]
@@ -29,8 +29,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from fleet.launch import STARTS, TOPOLOGIES
-from fleet.report import strict_json
+from fleet.running.launch import STARTS, TOPOLOGIES
+from fleet.running.report import strict_json
 from ground.params import PRESETS, preset
 from ground.scenario import ConfigError, Scenario, load_scenario
 from transport.process import add_delay_compensation_arg, add_exchange_arg, domain_arg, lease_arg, seed_arg
@@ -153,12 +153,12 @@ def _say_forced_order(scn: Scenario, footprint: float) -> None:
 
 
 def cmd_simulate(args: argparse.Namespace) -> int:
-    """``fleet simulate``: run the scenario's fleet in one process (:func:`fleet.simulate.run`,
-    or a script for robots with waypoints: :func:`fleet.api.run_scenario`), write ``summary.json`` in
-    ``--out`` and print what happened; returns 0 if the run passed the judge, else :data:`EXIT_FAIL`
-    (2 bad input)."""
+    """``fleet simulate``: run the scenario's fleet in one process
+    (:func:`fleet.running.simulate.run`, or a script for robots with waypoints:
+    :func:`fleet.experiment.api.run_scenario`), write ``summary.json`` in ``--out`` and print
+    what happened; returns 0 if the run passed the judge, else :data:`EXIT_FAIL` (2 bad input)."""
     from agent.tube import validated_design
-    from fleet.simulate import run, save_run
+    from fleet.running.simulate import run, save_run
 
     scn = load_scenario(args.scenario)
     design = validated_design(scn)
@@ -179,8 +179,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:
         return _bad(f"--out: cannot create {out}: {e.strerror}")
-    if any(r.waypoints for r in scn.robots):  # missions: run by a script (fleet.api)
-        from fleet.api import run_scenario
+    if any(r.waypoints for r in scn.robots):  # missions: run by a script (fleet.experiment.api)
+        from fleet.experiment.api import run_scenario
 
         ahead = args.delay_compensation
         got, why = run_scenario(args.scenario, False, seed=args.seed, out=out, delay_compensation=ahead)
@@ -212,10 +212,10 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     """``fleet run``: check the scenario and the options, run the fleet as processes
-    (:func:`fleet.launch.run_fleet`, or a script for robots with waypoints:
-    :func:`fleet.api.run_scenario`) and print what happened; returns the run's exit code (0 if it
+    (:func:`fleet.running.launch.run_fleet`, or a script for robots with waypoints:
+    :func:`fleet.experiment.api.run_scenario`) and print what happened; returns the run's exit code (0 if it
     passed, 2 bad input).  SIGTERM stops it as Ctrl-C does."""
-    from fleet.launch import run_fleet
+    from fleet.running.launch import run_fleet
 
     # SIGTERM stops the fleet like Ctrl-C: the launcher's cleanup ends every process by pid.
     signal.signal(signal.SIGTERM, _interrupt)
@@ -256,10 +256,10 @@ def cmd_run(args: argparse.Namespace) -> int:
         return _bad("--clock: emulated robots move in wall time; use --clock realtime")
     out = Path(args.out) if args.out else Path("out") / scn.name
     out.mkdir(parents=True, exist_ok=True)
-    if any(r.waypoints for r in scn.robots):  # missions: run by a script (fleet.api)
+    if any(r.waypoints for r in scn.robots):  # missions: run by a script (fleet.experiment.api)
         if emulated:
             return _bad("robots.waypoints: fleet run drives the missions of simulated robots only")
-        from fleet.api import run_scenario
+        from fleet.experiment.api import run_scenario
 
         summary, why = run_scenario(
             str(Path(args.scenario).resolve()), processes=True, seed=args.seed, out=out.resolve(),
@@ -382,10 +382,10 @@ def _run_links(scn: Any) -> dict[str, str]:
 
 
 def cmd_goal(args: argparse.Namespace) -> int:
-    """``fleet goal``: give a running robot's agent a new goal (:func:`fleet.operator.send_goal`)
+    """``fleet goal``: give a running robot's agent a new goal (:func:`fleet.running.operator.send_goal`)
     and print its answer; returns the exit code (2 unless exactly one of ``--connect`` and
     ``--zenoh-config`` is given)."""
-    from fleet.operator import send_goal
+    from fleet.running.operator import send_goal
 
     goal = (args.x, args.y)
     if bool(args.connect) == bool(args.zenoh_config):
@@ -447,8 +447,8 @@ def cmd_calibrate(args: argparse.Namespace) -> int:
 
 def cmd_report(args: argparse.Namespace) -> int:
     """``fleet report``: write the figures of the run in ``DIR``
-    (:func:`fleet.report.write_report`) and print their paths; 2 if ``DIR`` has no ``trace.npz``."""
-    from fleet.report import write_report
+    (:func:`fleet.running.report.write_report`) and print their paths; 2 if ``DIR`` has no ``trace.npz``."""
+    from fleet.running.report import write_report
 
     out = Path(args.dir)
     if not (out / "trace.npz").is_file():

@@ -1,6 +1,6 @@
 """The one safety judge: what a run did, from ground truth and the plans, and ``summary.json``.
 
-``fleet simulate`` (:mod:`fleet.simulate`) and the supervisor process (:mod:`supervisor.monitor`)
+``fleet simulate`` (:mod:`fleet.running.simulate`) and the supervisor process (:mod:`supervisor.monitor`)
 both judge a run with a :class:`Judge`, fed the same two streams step by step:
 
 * :meth:`Judge.truth` — one sample of the robots' true axle-centre poses (the initial one

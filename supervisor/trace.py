@@ -80,7 +80,7 @@ def outlines(obstacles: Any, sides: int = 96) -> list[Array]:
 
 
 def from_simulation(result: Any, scenario: Any) -> Trace:
-    """Build a trace from :func:`fleet.simulate.run`'s result."""
+    """Build a trace from :func:`fleet.running.simulate.run`'s result."""
     ids = list(result.traces)
     poses = np.array([np.array(result.traces[r].pose) for r in ids])
     T = poses.shape[1]

@@ -31,7 +31,7 @@ def children(pid: int) -> list[int]:
 
 def descendants(pid: int) -> list[int]:
     """Children of ``pid``, their children and so on: ``fleet run``'s agents are the children of
-    its fork server (fleet/forkserver.py)."""
+    its fork server (fleet/running/forkserver.py)."""
     parent = {c: int(s[1]) for c in _pids() if (s := stat(c)) is not None}
     out, todo = [], [pid]
     while todo:
@@ -55,7 +55,7 @@ def argv(pid: int) -> list[str]:
 
 def role(words: list[str]) -> str | None:
     """The fleet role a command line runs: the module after ``-m`` (``tracker``,
-    ``supervisor``, ``fleet.forkserver`` ...), ``agent ID`` for an agent; None if not ``-m``."""
+    ``supervisor``, ``fleet.running.forkserver`` ...), ``agent ID`` for an agent; None if not ``-m``."""
     if "-m" not in words or words.index("-m") + 1 >= len(words):
         return None
     module = words[words.index("-m") + 1]
@@ -70,7 +70,7 @@ def fleet_processes(launcher: int) -> dict[str, int]:
     out = {}
     for p in descendants(launcher):
         r = role(argv(p))
-        if r is not None and r != "fleet.forkserver":
+        if r is not None and r != "fleet.running.forkserver":
             out[r] = p
     return out
 

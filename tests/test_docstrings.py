@@ -8,7 +8,18 @@ import ast
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-PACKAGES = ("ground", "transport", "agent", "epuck_link", "tracker", "camera_tools", "supervisor", "ros2_link", "fleet")
+PACKAGES = (
+    "ground",
+    "transport",
+    "agent",
+    "epuck_link",
+    "secure_router",
+    "tracker",
+    "camera_tools",
+    "supervisor",
+    "ros2_link",
+    "fleet",
+)
 
 
 def _undocumented(tree: ast.AST, prefix: str = "") -> list[str]:

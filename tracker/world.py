@@ -1,6 +1,6 @@
 """The simulated world: robots as simulated plants, their disturbances and their camera.
 
-The simulated tracker (:mod:`tracker.sim`) and ``fleet simulate`` (:mod:`fleet.simulate`) move
+The simulated tracker (:mod:`tracker.sim`) and ``fleet simulate`` (:mod:`fleet.running.simulate`) move
 the same plants with the same disturbances and draw the same camera noise, in the same order
 from the same seeds, so that a lockstep run of the process fleet reproduces ``fleet simulate``
 bit for bit.

@@ -9,7 +9,7 @@ import numpy as np
 from agent.controller import TubeMPC
 from agent.coordination import NeighbourInfo, precedence
 from agent.tube import require_admissible, synthesize
-from fleet.scenes import pocket
+from fleet.running.scenes import pocket
 from ground.arrival import arrival
 from ground.geometry import controlled_point
 from ground.scenario import PARKED_RADIUS, parse_scenario

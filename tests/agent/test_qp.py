@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from agent.qp import TubeQP, daqp_solve
-from fleet.simulate import run
+from fleet.running.simulate import run
 from ground.scenario import load_scenario
 
 

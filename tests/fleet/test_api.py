@@ -1,4 +1,4 @@
-"""The experiment API (:mod:`fleet.api`) on the in-process simulator: each method's contract, seen
+"""The experiment API (:mod:`fleet.experiment.api`) on the in-process simulator: each method's contract, seen
 from a script, and the examples run as a user runs them."""
 
 from __future__ import annotations
@@ -282,7 +282,7 @@ def test_a_goal_given_at_the_last_sample_goes_in_the_next_goals_batch():
     older ones are in the plans already.  (A real loopback session; the queries recorded.)"""
     import zenoh
 
-    from fleet.script import ProcessFleet
+    from fleet.experiment.script import ProcessFleet
     from ground.scenario import load_scenario
     from ground.wire import Keys
     from transport.net import NetConfig, free_port, loopback

@@ -1,4 +1,4 @@
-"""``fleet bench`` (fleet/bench.py → benchmarks/bench_scale.py): the tiny ``--quick`` run
+"""``fleet bench`` (fleet/bench.py → benchmarks.bench_scale): the tiny ``--quick`` run
 completes, and its JSON has every figure, finite and of the right sign.
 
 No speed threshold is checked here: the figures depend on the machine's load.
@@ -211,9 +211,9 @@ def test_quick_capacity(quick: tuple[subprocess.CompletedProcess[str], dict[str,
 def test_hex_lattice_neighbours_keep_their_distance() -> None:
     """The synthetic neighbours of the step grid: the 32 nearest lattice points are ≥ 1
     apart (times the spacing r_i + r_j + √2·ε), the first ring exactly 6 at distance 1."""
-    from fleet.bench import _harness
+    from benchmarks import bench_scale
 
-    pts = _harness().hex_offsets(32)
+    pts = bench_scale.hex_offsets(32)
     assert pts.shape == (32, 2)
     r = np.hypot(pts[:, 0], pts[:, 1])
     assert np.all(np.diff(r) >= -1e-12)
@@ -224,7 +224,7 @@ def test_hex_lattice_neighbours_keep_their_distance() -> None:
 
 @pytest.mark.parametrize(("n", "radius", "half"), [(32, 1.55, 1.8), (48, 2.31, 2.56)])
 def test_large_swap_files_match_generator(n: int, radius: float, half: float) -> None:
-    from fleet.scenes import COMPACT_CONTROLLER, antipodal_swap
+    from fleet.running.scenes import COMPACT_CONTROLLER, antipodal_swap
     from ground.scenario import load_scenario, parse_scenario
 
     from_file = load_scenario(ROOT / "scenarios" / f"swap_{n}.toml")
@@ -237,7 +237,7 @@ def test_large_swap_files_match_generator(n: int, radius: float, half: float) ->
 def test_fleet_runs_sum_the_agents_closing_counts() -> None:
     """A fleet run's row sums the counters of the agents' closing lines, the news of places
     heard later than the reach's proof assumes among them (plans by place only)."""
-    from fleet.bench import _harness
+    from benchmarks import bench_scale
 
     common = "0 steered ahead, 9 plans taken ({}), {}0 injected faults, 0 rejected payloads"
     lines = [
@@ -249,7 +249,7 @@ def test_fleet_runs_sum_the_agents_closing_counts() -> None:
         + common.format("mesh", ""),
         "[tracker] run ended at step 9; 0 deadline misses, 0 rejected payloads",
     ]
-    counters = _harness()._agent_counters
+    counters = bench_scale._agent_counters
     assert counters(lines) == {
         "solves": 30, "fallbacks": 1, "tube_exits": 3, "blind_holds": 2, "agents": 3, "places_late": 11,
     }  # fmt: skip
@@ -262,9 +262,9 @@ def test_solver_variants_run_in_shuffled_order(monkeypatch: pytest.MonkeyPatch) 
     after a ProxSuite variant finds the QP and ProxSuite's code in the cache, so a fixed
     order (even rotated) always times the same variant cold: the order is shuffled per QP,
     and every variant follows every other one."""
-    from fleet.bench import _harness
+    from benchmarks import bench_scale
 
-    bench = _harness()
+    bench = bench_scale
     calls: list[tuple[int, str]] = []
 
     class Fake:
@@ -298,9 +298,9 @@ def test_solver_variants_run_in_shuffled_order(monkeypatch: pytest.MonkeyPatch) 
 def test_cpu_figures_cover_a_window_shorter_than_the_sampling_period() -> None:
     """A quick lockstep run can step for less time than the sampler's period: its CPU is taken
     from the sample before the window to the one after, never as nothing."""
-    from fleet.bench import _harness
+    from benchmarks import bench_scale
 
-    sampler = _harness().Sampler
+    sampler = bench_scale.Sampler
     samples = [(0.0, 1.0), (0.25, 1.2), (0.5, 1.3)]
     assert sampler._between(samples, 0.05, 0.19) == pytest.approx(0.2)  # inside one period
     assert sampler._between(samples, 0.0, 0.5) == pytest.approx(0.3)
@@ -368,9 +368,9 @@ def test_cpu_harness_splits_a_fleets_cpu_by_process_and_thread(tmp_path):
 def test_cpu_harness_names_each_process_by_the_module_it_runs() -> None:
     """The split's roles: the ROS 2 face (``python -m ros2_link``) is not an agent, nor is the
     launcher; a child not yet exec'd (the launcher's command line) stays the launcher's."""
-    from fleet.bench import CPU, _harness
+    from benchmarks import bench_cpu
 
-    role = _harness(CPU)._role
+    role = bench_cpu._role
     py = sys.executable
     assert role(f"{py} -m agent --scenario s.toml --robot e1 ") == "agents"
     assert role(f"{py} -m tracker --scenario s.toml ") == "tracker"
@@ -422,9 +422,9 @@ def test_cpu_ratio_counts_each_cpu_second_once(tmp_path):
     split by process role and by thread.  Counting a process's threads twice, adding a run's
     CPU to the one before it (RUSAGE_CHILDREN is cumulative), or summing the short run into the
     long one all double a term, which these bounds reject."""
-    from fleet.bench import CPU, _harness
+    from benchmarks import bench_cpu
 
-    h = _harness(CPU)
+    h = bench_cpu
     measured = []
     for T in (0.2, 0.8):
         out = tmp_path / f"burn_{T}"
@@ -468,9 +468,8 @@ def test_targets_quick_prints_and_writes_every_target(tmp_path):
     # Beside it, the floor of a step's fewest messages: three agents on a ring of cells of one,
     # each taking its two neighbours' plans; its least ratio is the floor over the same math.
     # Measured at the pace of a fleet that would meet target 1 on this machine's cores.
-    from fleet.bench import TARGETS, _harness
+    from benchmarks import bench_targets
 
-    bench_targets = _harness(TARGETS)
     floor = t[1]["detail"]["floor"]
     # Per plan of its own: a neighbour may still answer the step at which this agent stopped.
     assert floor["pattern"] == "step" and 1.5 <= floor["plans_per_step"] <= 2.1, floor
@@ -539,7 +538,7 @@ def test_latency_floor_times_every_command_of_its_window():
     put.  Each of the three robots answers each of the window's ten poses once in every order,
     and a command cannot arrive before its pose was put."""
     res = subprocess.run(
-        [sys.executable, "benchmarks/bench_latency_floor.py",
+        [sys.executable, "-m", "benchmarks.bench_latency_floor",
          "--scenario", "scenarios/paper_three_robots.toml", "--seconds", "1", "--runs", "1"],
         cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600,
     )  # fmt: skip
@@ -555,29 +554,29 @@ def test_latency_floor_times_every_command_of_its_window():
 
 @pytest.mark.parametrize(
     ("script", "args", "field"),
-    [("bench_latency_floor.py", ["--orders", "echo,nope"], "--orders"),
-     ("bench_latency_floor.py", ["--seconds", "0.5"], "--seconds"),
-     ("bench_latency_floor.py", ["--runs", "0"], "--runs"),
-     ("bench_reach.py", ["--reach", "0.3,-1"], "--reach"), ("bench_reach.py", ["--reach", "far"], "--reach"),
-     ("bench_reach.py", ["--scenarios", "nope.toml"], "--scenarios"),
-     ("bench_reach.py", ["--jobs", "0"], "--jobs"), ("bench_reach.py", ["--cell", "0"], "--cell"),
-     ("bench_zenoh_floor.py", ["--cell", "0,-4"], "--cell"),
-     ("bench_zenoh_floor.py", ["--modes", "nope"], "--modes"),
-     ("bench_zenoh_floor.py", ["--robots", "1"], "--robots"),
-     ("bench_zenoh_floor.py", ["--seconds", "nan"], "--seconds"),
-     ("bench_zenoh_floor.py", ["--seconds", "inf"], "--seconds"),
-     ("bench_zenoh_floor.py", ["--rate", "inf"], "--rate"),
-     ("bench_zenoh_floor.py", ["--rate", "0.001"], "--rate"),
-     ("bench_zenoh_floor.py", ["--runs", "0"], "--runs"),
-     ("bench_zenoh_floor.py", ["--pattern", "step,nope"], "--pattern"),
-     ("bench_zenoh_floor.py", ["--pattern", "fleet", "--modes", "direct"], "--modes"),
-     ("bench_exchange.py", ["--order", "mesh,nope"], "--order"),
-     ("bench_exchange.py", ["--order", "place/nope"], "--order"),
-     ("bench_exchange.py", ["--seconds", "nan"], "--seconds")],
+    [("bench_latency_floor", ["--orders", "echo,nope"], "--orders"),
+     ("bench_latency_floor", ["--seconds", "0.5"], "--seconds"),
+     ("bench_latency_floor", ["--runs", "0"], "--runs"),
+     ("bench_reach", ["--reach", "0.3,-1"], "--reach"), ("bench_reach", ["--reach", "far"], "--reach"),
+     ("bench_reach", ["--scenarios", "nope.toml"], "--scenarios"),
+     ("bench_reach", ["--jobs", "0"], "--jobs"), ("bench_reach", ["--cell", "0"], "--cell"),
+     ("bench_zenoh_floor", ["--cell", "0,-4"], "--cell"),
+     ("bench_zenoh_floor", ["--modes", "nope"], "--modes"),
+     ("bench_zenoh_floor", ["--robots", "1"], "--robots"),
+     ("bench_zenoh_floor", ["--seconds", "nan"], "--seconds"),
+     ("bench_zenoh_floor", ["--seconds", "inf"], "--seconds"),
+     ("bench_zenoh_floor", ["--rate", "inf"], "--rate"),
+     ("bench_zenoh_floor", ["--rate", "0.001"], "--rate"),
+     ("bench_zenoh_floor", ["--runs", "0"], "--runs"),
+     ("bench_zenoh_floor", ["--pattern", "step,nope"], "--pattern"),
+     ("bench_zenoh_floor", ["--pattern", "fleet", "--modes", "direct"], "--modes"),
+     ("bench_exchange", ["--order", "mesh,nope"], "--order"),
+     ("bench_exchange", ["--order", "place/nope"], "--order"),
+     ("bench_exchange", ["--seconds", "nan"], "--seconds")],
 )  # fmt: skip
 def test_floor_benches_refuse_bad_input_in_one_line(script: str, args: list[str], field: str) -> None:
     res = subprocess.run(
-        [sys.executable, f"benchmarks/{script}", *args],
+        [sys.executable, "-m", f"benchmarks.{script}", *args],
         cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert res.returncode == 2 and res.stdout == ""
@@ -653,7 +652,7 @@ def test_reach_bench_keeps_the_references_apart_with_only_the_robots_the_split_r
     design = synthesize(scenario.controller, scenario.arena)
     reach = 2 * design.footprint + math.sqrt(2) * design.params.epsilon * 1.01 / 0.5 + 1e-6
     res = subprocess.run(
-        [sys.executable, "benchmarks/bench_reach.py", "--scenarios", "scenarios/swap_4.toml",
+        [sys.executable, "-m", "benchmarks.bench_reach", "--scenarios", "scenarios/swap_4.toml",
          "--reach", f"{reach:.9f},inf", "--cell", f"{reach:.9f}", "--jobs", "2"],
         cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600,
     )  # fmt: skip
@@ -677,7 +676,7 @@ def test_zenoh_floor_delivers_only_the_cells_a_process_subscribes_to():
     own (their own included); in one cell, all ten.  Counted by the processes themselves, so
     this is Zenoh's key filtering seen from outside, not the bench's arithmetic."""
     res = subprocess.run(
-        [sys.executable, "benchmarks/bench_zenoh_floor.py", "--robots", "10", "--cell", "0,2",
+        [sys.executable, "-m", "benchmarks.bench_zenoh_floor", "--robots", "10", "--cell", "0,2",
          "--modes", "callback", "--seconds", "1"],
         cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600,
     )  # fmt: skip
@@ -704,7 +703,7 @@ def test_zenoh_floor_runs_a_whole_step_with_a_tracker_and_a_supervisor():
       true pose on its own.  A stand-in that subscribed to more, or answered less, fails."""
     robots = 10
     res = subprocess.run(
-        [sys.executable, "benchmarks/bench_zenoh_floor.py", "--robots", str(robots), "--cell", "2",
+        [sys.executable, "-m", "benchmarks.bench_zenoh_floor", "--robots", str(robots), "--cell", "2",
          "--pattern", "step,fleet", "--modes", "callback,drain", "--seconds", "3"],
         cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600,
     )  # fmt: skip
@@ -734,7 +733,7 @@ def test_zenoh_floor_sets_the_math_beside_the_floor():
     run and prints, per row, (math + floor) / math: recomputed here from the two printed figures,
     so a ratio that dropped or doubled either part fails."""
     res = subprocess.run(
-        [sys.executable, "benchmarks/bench_zenoh_floor.py", "--robots", "8", "--cell", "0",
+        [sys.executable, "-m", "benchmarks.bench_zenoh_floor", "--robots", "8", "--cell", "0",
          "--modes", "callback", "--seconds", "2", "--math"],
         cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=600,
     )  # fmt: skip
@@ -753,7 +752,7 @@ def test_exchange_bench_runs_each_exchange_and_counts_the_plans_taken(tmp_path):
     took: every other robot's in the mesh."""
     out = tmp_path / "rows.json"
     res = subprocess.run(
-        [sys.executable, "benchmarks/bench_exchange.py", "--robots", "3", "--seconds", "3",
+        [sys.executable, "-m", "benchmarks.bench_exchange", "--robots", "3", "--seconds", "3",
          "--order", "mesh,place/zenoh", "--out", str(tmp_path / "runs"), "--json", str(out)],
         cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=300,
     )  # fmt: skip

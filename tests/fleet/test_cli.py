@@ -618,7 +618,7 @@ def test_design_and_run_refuse_a_pose_noise_below_the_cameras_floor_error(tmp_pa
 
     from camera_tools.calibrate import main as calibrate_main
     from camera_tools.synth import PinholeCamera, Renderer
-    from fleet.scenes import scene_to_toml
+    from fleet.running.scenes import scene_to_toml
     from tracker.intrinsics import Intrinsics
 
     fiducials = {40: (-1.1, -1.1), 41: (0.0, -1.1), 42: (1.1, -1.1), 43: (1.1, 1.1), 44: (0.0, 1.1),

@@ -1,4 +1,5 @@
-"""The agents' fork server (fleet/forkserver.py) seen from the launcher's end (fleet.launch.ForkServer):
+"""The agents' fork server (fleet/running/forkserver.py) seen from the launcher's end
+(fleet.running.launch.ForkServer):
 what a forked child is given, what its exit is reported as, and that nothing outlives the server.
 
 The children run a probe module written to a temporary directory: it records each import of
@@ -16,7 +17,7 @@ from pathlib import Path
 import pytest
 from procfs import alive, argv, ppid
 
-from fleet.launch import ForkServer, LaunchError, _wait_ready
+from fleet.running.launch import ForkServer, LaunchError, _wait_ready
 
 PROBE = """
 import json, os, sys, threading
@@ -160,7 +161,7 @@ def test_a_server_with_a_thread_refuses_to_fork(probe_env, tmp_path):
 
 def test_a_bad_socket_fd_is_one_line_and_exit_2():
     res = subprocess.run(
-        [sys.executable, "-m", "fleet.forkserver", "--socket-fd", "999", "--preload", "json"],
+        [sys.executable, "-m", "fleet.running.forkserver", "--socket-fd", "999", "--preload", "json"],
         capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL,
     )  # fmt: skip
     assert res.returncode == 2 and res.stderr.startswith("forkserver: error: --socket-fd:"), res.stderr

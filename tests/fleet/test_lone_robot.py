@@ -11,8 +11,8 @@ import pytest
 
 from agent.navigator import GridPlanner
 from agent.tube import validated_design
-from fleet.scenes import LAYOUT_FAMILIES, _box, _robot, _scene, hard_scene, pocket
-from fleet.simulate import run
+from fleet.running.scenes import LAYOUT_FAMILIES, _box, _robot, _scene, hard_scene, pocket
+from fleet.running.simulate import run
 from ground.freespace import free_space_model
 from ground.scenario import parse_scenario
 

@@ -1,4 +1,4 @@
-"""The liveness bench's scene families (``fleet/scenes.py``): every drawn scene is one the loader
+"""The liveness bench's scene families (``fleet/running/scenes.py``): every drawn scene is one the loader
 and the tube design accept, each family has the shape its name promises, and the layout check
 names the order the layouts that force one force."""
 
@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fleet.scenes import (
+from fleet.running.scenes import (
     EPUCK_FOOTPRINT,
     LAYOUT_FAMILIES,
     MIN_GOAL_SPACING,

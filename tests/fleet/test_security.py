@@ -1,8 +1,8 @@
 """Secure deployment: mutual TLS and access control at a real Zenoh router.
 
-One router process (``python -m fleet.secure router`` on the shipped template
+One router process (``python -m secure_router router`` on the shipped template
 ``deploy/router.json5``) listens on ``tls/127.0.0.1:<free port>``; the clients
-are ``python -m fleet.secure probe`` processes, each with its own
+are ``python -m secure_router probe`` processes, each with its own
 certificate.  Certificates come from ``deploy/make_certs.py`` into tmp_path.
 Multicast scouting is off everywhere; nothing binds a wildcard address.
 
@@ -32,7 +32,8 @@ import pytest
 from netns_util import LOCAL, HostProc
 from procfs import tcp_sockets
 
-from fleet.secure import (
+from ground.wire import SCRIPT, Keys
+from secure_router.access import (
     ROS,
     Credentials,
     SecureConfigError,
@@ -46,7 +47,6 @@ from fleet.secure import (
     router_json,
     to_zenoh,
 )
-from ground.wire import SCRIPT, Keys
 from transport.net import free_port, render
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -113,7 +113,7 @@ def certs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
 def router(certs: tuple[Path, Path]) -> Iterator[tuple[str, Proc]]:
     """(endpoint, process) of a router running the shipped deploy/router.json5."""
     endpoint = f"tls/127.0.0.1:{free_port()}"
-    proc = _local("router", ["-m", "fleet.secure", "router", "--config", str(DEPLOY / "router.json5"),
+    proc = _local("router", ["-m", "secure_router", "router", "--config", str(DEPLOY / "router.json5"),
                            "--set", f"CERTS={certs[0]}", "--set", f"LISTEN={endpoint}"],
                 ends_on_eof=False)  # fmt: skip
     try:
@@ -132,7 +132,7 @@ def probes() -> Iterator[Callable[..., Proc]]:
 
         def start(name: str, *args: str, subs: tuple[str, ...] = (), lives: tuple[str, ...] = ()) -> Proc:
             extra = [a for s in subs for a in ("--sub", s)] + [a for s in lives for a in ("--live", s)]
-            p = _local(name, ["-m", "fleet.secure", "probe", *args, *extra])
+            p = _local(name, ["-m", "secure_router", "probe", *args, *extra])
             stack.callback(p.stop)
             return p
 
@@ -469,7 +469,7 @@ def ros_router(certs: tuple[Path, Path]) -> Iterator[tuple[str, Proc]]:
     command line (``router ... --ros-domain 0``)."""
     endpoint = f"tls/127.0.0.1:{free_port()}"
     args = ["--certs", str(certs[0]), "--listen", endpoint, "--robots", "r1", "r2", "r3", "--ros-domain", "0"]
-    proc = _local("router-ros", ["-m", "fleet.secure", "router", *args], ends_on_eof=False)
+    proc = _local("router-ros", ["-m", "secure_router", "router", *args], ends_on_eof=False)
     try:
         assert proc.ready()["listen"] == [endpoint]
         yield endpoint, proc

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fleet.scenes import random_scene
-from fleet.simulate import run
+from fleet.running.scenes import random_scene
+from fleet.running.simulate import run
 from ground.scenario import load_scenario, parse_scenario
 
 SCENARIOS = Path(__file__).resolve().parents[2] / "scenarios"

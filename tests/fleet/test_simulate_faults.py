@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fleet.scenes import antipodal_swap, scene_to_toml
-from fleet.simulate import run
+from fleet.running.scenes import antipodal_swap, scene_to_toml
+from fleet.running.simulate import run
 from ground.model import stopping
 from ground.scenario import parse_scenario
 

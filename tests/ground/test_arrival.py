@@ -13,7 +13,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fleet.scenes import lane_crossing, mirrored_grid, pocket, random_scene, scene_to_toml, single_file
+from fleet.running.scenes import (
+    lane_crossing,
+    mirrored_grid,
+    pocket,
+    random_scene,
+    scene_to_toml,
+    single_file,
+)
 from ground.arrival import Arrival, arrival
 from ground.freespace import free_space_model
 from ground.geometry import controlled_point

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fleet.scenes import antipodal_swap, lane_crossing, mirrored_grid, pocket, scene_to_toml
+from fleet.running.scenes import antipodal_swap, lane_crossing, mirrored_grid, pocket, scene_to_toml
 from ground.freespace import free_space_model
 from ground.geometry import controlled_point
 from ground.scenario import Scenario, forced_order, forced_order_lines, load_scenario

@@ -1,4 +1,4 @@
-"""Tests of the scenario schema (ground.scenario) and the programmatic scenes (fleet.scenes)."""
+"""Tests of the scenario schema (ground.scenario) and the programmatic scenes (fleet.running.scenes)."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from agent.tube import synthesize
-from fleet.scenes import COMPACT_CONTROLLER, antipodal_swap, random_scene, scene_to_toml
+from fleet.running.scenes import COMPACT_CONTROLLER, antipodal_swap, random_scene, scene_to_toml
 from ground.params import ControllerParams, preset
 from ground.scenario import (
     GOAL_MARGIN,

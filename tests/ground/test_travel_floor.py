@@ -91,7 +91,7 @@ def test_a_lone_robot_takes_no_less_than_its_floor_and_its_arrival_path_is_its_p
     its floor and, as the liveness targets ask of every robot, in at most twice it (docs/method.md
     §7 gives ε/Ts as why it cannot come near 1); its path to arrival leaves out the hold at the
     goal and is no shorter than the straight line to the tolerance circle."""
-    from fleet.simulate import run
+    from fleet.running.simulate import run
     from ground.scenario import parse_scenario
 
     rng = np.random.default_rng(seed)

@@ -488,7 +488,7 @@ def test_parked_robots_that_wall_in_a_way_home_are_named_while_they_do() -> None
     a dead-end pocket walls in the way of the robot whose goal is deeper.  The judge names it,
     within a check period, and ends the episode once the parked robot has stepped out; a robot
     parked off the way walls in nothing."""
-    from fleet.scenes import EPUCK_FOOTPRINT, pocket
+    from fleet.running.scenes import EPUCK_FOOTPRINT, pocket
     from ground.scenario import parse_scenario
     from supervisor.judge import WALL_CHECK_STEPS, Judge, verdict
 

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from fleet import Fleet, GoalRefused
-from fleet.launch import start_fleet
+from fleet.running.launch import start_fleet
 from transport.net import free_port, loopback
 
 pytestmark = pytest.mark.slow
@@ -307,7 +307,7 @@ def test_a_plan_that_trails_the_samples_is_stale_only_where_the_clock_runs_on(ho
 
     import zenoh
 
-    from fleet.script import ProcessFleet
+    from fleet.experiment.script import ProcessFleet
     from ground.scenario import load_scenario
     from ground.wire import Keys, Plan
     from transport.net import NetConfig

@@ -24,7 +24,7 @@ import pytest
 from agent.controller import SNAPSHOTS, TubeMPC
 from agent.coordination import NeighbourInfo
 from agent.tube import require_admissible, synthesize
-from fleet import simulate as harness
+from fleet.running import simulate as harness
 from ground.geometry import controlled_point
 from ground.model import chain_input
 from ground.scenario import load_scenario

@@ -29,7 +29,7 @@ from agent.controller import TubeMPC
 from agent.coordination import PLACE_LAG, Hazard, NeighbourInfo, hazard_halfplanes
 from agent.hazards import Guard
 from agent.tube import synthesize
-from fleet.scenes import antipodal_swap, scene_to_toml
+from fleet.running.scenes import antipodal_swap, scene_to_toml
 from ground.geometry import controlled_point
 from ground.model import stopping
 from ground.scenario import load_scenario

@@ -12,7 +12,7 @@ import math
 
 import pytest
 
-from fleet.scenes import (
+from fleet.running.scenes import (
     COMPACT_CONTROLLER,
     MIN_GOAL_SPACING,
     antipodal_swap,
@@ -22,7 +22,7 @@ from fleet.scenes import (
     random_scene,
     ring,
 )
-from fleet.simulate import run
+from fleet.running.simulate import run
 from ground.scenario import GOAL_MARGIN, parse_scenario
 
 
@@ -82,7 +82,7 @@ def test_a_pocket_fills_from_the_bottom_and_nobody_is_walled_in(width):
     its wait point until the robots whose way its goal walls in are past it, so the judge never
     finds a way home walled in and nobody has to leave its goal.  Without the gates, the 0.341 m
     pocket left its middle robot out for good."""
-    from fleet.scenes import pocket
+    from fleet.running.scenes import pocket
 
     scn = parse_scenario(pocket(width, depth=3 * MIN_GOAL_SPACING + 0.2, robots=3, duration=300.0))
     s = run(scn).summary()
@@ -112,7 +112,7 @@ def test_a_train_that_must_back_into_a_lane_is_named_as_having_no_room():
     robot that meets the one going first has no point out of its corridor.  The summary names
     it, and the robot it could not make way for, and counts its steps without room, each a step
     its navigator had it make way (mode ``yield``); the robot that goes first never lacks room."""
-    from fleet.scenes import LAYOUT_FAMILIES
+    from fleet.running.scenes import LAYOUT_FAMILIES
 
     data = hard_scene(36, LAYOUT_FAMILIES)
     assert data["name"] == "hard_36_file_trains_3"

@@ -8,12 +8,12 @@ exist only inside them::
     efleet-<pid>-a       eth0 198.51.100.2  agent r1
     efleet-<pid>-b       eth0 198.51.100.3  agents r2, r3
 
-The router is ``python -m fleet.secure router`` (mutual TLS, default-deny
+The router is ``python -m secure_router router`` (mutual TLS, default-deny
 access control, ``--sim-tracker``) listening only on tls/198.51.100.1:7447;
 every other process is a client of it with the configuration
-:func:`fleet.secure.client_json` builds for its identity, written to a file
+:func:`secure_router.access.client_json` builds for its identity, written to a file
 and passed as ``--zenoh-config`` (multicast scouting off, one explicit
-endpoint).  The observer is a ``fleet.secure probe`` with the operator's
+endpoint).  The observer is a ``python -m secure_router probe`` with the operator's
 identity: it reports the liveliness tokens and the commands the router
 forwards, which is how the test knows, without sleeping, when host b has
 dropped out and when it is back.
@@ -70,8 +70,8 @@ import pytest
 from netns_util import ROOT, HostProc, netns
 from procfs import tcp_sockets
 
-from fleet.secure import client_json
 from ground.wire import Keys
+from secure_router.access import client_json
 from supervisor.recorder import read_events
 
 SCENARIO = ROOT / "scenarios" / "paper_three_robots.toml"
@@ -243,11 +243,11 @@ def secure_fleet(
 
     try:
         ids = list(PLACEMENT)
-        start("router", netns.ROUTER, ["-m", "fleet.secure", "router", "--certs", str(certs),
+        start("router", netns.ROUTER, ["-m", "secure_router", "router", "--certs", str(certs),
                                        "--listen", endpoint, "--robots", *ids, "--sim-tracker"])  # fmt: skip
         ev = run.procs["router"].ready(READY_S)
         assert ev["listen"] == [endpoint]
-        start("observer", netns.ROUTER, ["-m", "fleet.secure", "probe", "--config", config("operator"),
+        start("observer", netns.ROUTER, ["-m", "secure_router", "probe", "--config", config("operator"),
                                          "--live", K.alive(), "--sub", K.cmd()], stdin=True)  # fmt: skip
         start("tracker", netns.ROUTER, ["-m", "tracker", *common, "--source", "sim",
                                         "--zenoh-config", config("tracker")])  # fmt: skip

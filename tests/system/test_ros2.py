@@ -28,7 +28,7 @@ from pathlib import Path
 import pytest
 
 from fleet import Fleet
-from fleet.script import LOG
+from fleet.experiment.script import LOG
 from ground.params import ControllerParams
 from ground.scenario import GOAL_TOLERANCE
 from ros2_link import graph, types

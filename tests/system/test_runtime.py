@@ -218,7 +218,7 @@ def test_a_fleet_over_the_old_cap_of_64_runs_as_processes_as_in_fleet_simulate(t
     """70 robots, plans relayed in one digest a step through a star: every tick, outcome and
     digest names more than 64 robots, which the wire refused before.  No payload is rejected,
     every agent plans every step, and the run is ``fleet simulate``'s to the last bit."""
-    from fleet.scenes import antipodal_swap, scene_to_toml
+    from fleet.running.scenes import antipodal_swap, scene_to_toml
 
     scene = antipodal_swap(70, radius=3.5, duration=1.5, arena=(-4.0, 4.0, -4.0, 4.0))
     path = tmp_path / "circle_70.toml"
@@ -267,7 +267,7 @@ def test_lost_commands_with_delay_compensation_are_told_before_the_next_plans(tm
     gathered before the outcome is taken, it ends 92 steps earlier), and keeps every guarantee."""
     import numpy as np
 
-    from fleet.scenes import antipodal_swap, scene_to_toml
+    from fleet.running.scenes import antipodal_swap, scene_to_toml
     from supervisor.trace import Trace
     from transport.faults import DROP, FaultPlan
 
@@ -758,7 +758,7 @@ def test_sigterm_to_fleet_run_stops_every_process(tmp_path):
                 pass
         assert len(fleet) == 5, f"the fleet did not start: {fleet}"  # tracker, supervisor, 3 agents
         kids = descendants(launcher.pid)  # and the agents' fork server, their parent
-        server = [k for k in kids if procfs.role(argv(k)) == "fleet.forkserver"]
+        server = [k for k in kids if procfs.role(argv(k)) == "fleet.running.forkserver"]
         assert len(server) == 1 and {ppid(fleet[f"agent r{i}"]) for i in (1, 2, 3)} == set(server), kids
         launcher.terminate()
         _, stderr = launcher.communicate(timeout=60)

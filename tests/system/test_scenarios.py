@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fleet.scenes import random_scene
-from fleet.simulate import run
+from fleet.running.scenes import random_scene
+from fleet.running.simulate import run
 from ground.scenario import GOAL_TOLERANCE, load_scenario, parse_scenario
 
 SCENARIOS = Path(__file__).resolve().parents[2] / "scenarios"
@@ -78,7 +78,7 @@ def test_antipodal_swap(n):
 @pytest.mark.slow
 @pytest.mark.parametrize("n", [16, 32])
 def test_antipodal_swap_compact(n):
-    """Runs with the scenario's tighter tube (footprint 0.113 m); see fleet.scenes.COMPACT_CONTROLLER.
+    """Runs with the scenario's tighter tube (footprint 0.113 m); see fleet.running.scenes.COMPACT_CONTROLLER.
     The 32 robots' goals are 0.304 m apart on the ring, R + 7.7 cm: two neighbours used to trade
     places at their goals for the whole run (docs/method.md §7, "Close goals")."""
     result = run(load_scenario(SCENARIOS / f"swap_{n}.toml"))

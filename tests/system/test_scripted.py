@@ -25,7 +25,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from fleet.launch import Launched, start_fleet
+from fleet.running.launch import Launched, start_fleet
 from ground.wire import SCRIPT, Goal, Keys, Plan, Script, Tick, Truth, decode
 from transport.net import NetConfig, loopback
 

@@ -3,13 +3,14 @@
 The deployment must ensure that robot r1 cannot publish a plan or a command for r2: the message is not
 delivered, and the fleet keeps running safely.  ``tests/fleet/test_security.py`` shows the
 non-delivery with probe processes; here a complete lockstep run of ``paper_three_robots`` goes
-through the mutual-TLS router of ``deploy/`` (``python -m fleet.secure router``, certificates
+through the mutual-TLS router of ``deploy/`` (``python -m secure_router router``, certificates
 of ``deploy/make_certs.py`` in tmp_path, listening on ``tls/127.0.0.1:<free port>`` only,
 multicast scouting off everywhere) while an attacker floods r2's keys:
 
 - the tracker, the supervisor and the three agents run as ``python -m tracker|supervisor|agent
   ... --zenoh-config FILE``, each with the client configuration
-  :func:`fleet.secure.client_json` builds for its identity (as ``tests/system/test_multihost.py`` does,
+  :func:`secure_router.access.client_json` builds for its identity (as
+  ``tests/system/test_multihost.py`` does,
   without the namespaces);
 - the **attacker** (:data:`ATTACKER`) holds r1's legitimate certificate (its configuration is
   agent r1's).  It follows the clock and the poses (reads are open within the fleet) and, for
@@ -41,7 +42,7 @@ through would have been seen.
 
 :func:`test_the_observer_sees_forged_messages_the_router_lets_through` is the positive control of
 the observation itself: the same router, attacker and observer, with the router's access
-control granting r1 r2's two keys as well (a default-deny configuration that ``fleet.secure
+control granting r1 r2's two keys as well (a default-deny configuration that ``python -m secure_router
 router`` accepts): there the observer does see the forged messages, and recognises them as such.
 (The whole run under that grant, tried once by hand: every forged message delivered, 374
 colliding steps, 2 mm at the closest, goals missed, and still every process exited 0.)
@@ -68,8 +69,8 @@ from typing import Any
 import pytest
 from netns_util import LOCAL, ROOT, HostProc
 
-from fleet.secure import client_json, router_json
 from ground.wire import Keys
+from secure_router.access import client_json, router_json
 from transport.net import free_port
 
 SCENARIO = ROOT / "scenarios" / "paper_three_robots.toml"
@@ -329,7 +330,7 @@ class Net:
                 acl_edit(conf["access_control"])
             path = self.tmp / f"router-{attempt}.json5"
             path.write_text(json.dumps(conf, indent=2))
-            p = self.start(f"router-{attempt}", ["-m", "fleet.secure", "router", "--config", str(path)])
+            p = self.start(f"router-{attempt}", ["-m", "secure_router", "router", "--config", str(path)])
             ev = p.wait_for(lambda e: e["event"] in ("ready", "eof"), READY_S)
             if ev is not None and ev["event"] == "ready":
                 assert ev["listen"] == [self.endpoint]

@@ -1,10 +1,10 @@
 """The fleet's ROS 2 face behind the secure router: ROS clients read, only the operator gives goals.
 
 A two-robot realtime fleet (``paper_two_robots``) runs behind the mutual-TLS router of
-``deploy/`` (``python -m fleet.secure router``, certificates of ``deploy/make_certs.py`` in
+``deploy/`` (``python -m secure_router router``, certificates of ``deploy/make_certs.py`` in
 tmp_path, listening on ``tls/127.0.0.1:<free port>`` only, multicast scouting off everywhere),
 whose access control has the ROS rights of ROS domain 0 (``router_json(..., ros_domain=0)``).
-Every process is a client of the router with the configuration :func:`fleet.secure.client_json`
+Every process is a client of the router with the configuration :func:`secure_router.access.client_json`
 builds for its identity: the tracker, the supervisor, the agents, and the ROS face ``python -m
 ros2_link --ros-domain 0`` with the ``ros2`` certificate.
 
@@ -36,8 +36,8 @@ from typing import Any
 import pytest
 from netns_util import LOCAL, ROOT, HostProc
 
-from fleet.secure import client_json, router_json
 from ros2_link import graph, types
+from secure_router.access import client_json, router_json
 from transport.net import free_port, load_config
 
 SCENARIO = ROOT / "scenarios" / "paper_two_robots.toml"
@@ -108,7 +108,7 @@ class Net:
             )
             path = self.tmp / f"router-{attempt}.json5"
             path.write_text(json.dumps(conf, indent=2))
-            p = self.start(f"router-{attempt}", ["-m", "fleet.secure", "router", "--config", str(path)])
+            p = self.start(f"router-{attempt}", ["-m", "secure_router", "router", "--config", str(path)])
             ev = p.wait_for(lambda e: e["event"] in ("ready", "eof"), READY_S)
             if ev is not None and ev["event"] == "ready":
                 assert ev["listen"] == [self.endpoint]

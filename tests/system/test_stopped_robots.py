@@ -20,7 +20,7 @@ import pytest
 from fleets import ENV, ROOT, agent_pid, child_pid, collected, launch, stop, until
 from procfs import stat
 
-from fleet.scenes import antipodal_swap, scene_to_toml
+from fleet.running.scenes import antipodal_swap, scene_to_toml
 from transport.net import free_port, loopback
 
 CLOCKS = ["lockstep", pytest.param("realtime", marks=pytest.mark.realtime)]

@@ -81,7 +81,7 @@ def scenario_dict(camera: dict[str, Any] | None = None, markers: bool = True) ->
 
 
 def write_scenario(path: Path, data: dict[str, Any]) -> Path:
-    from fleet.scenes import scene_to_toml
+    from fleet.running.scenes import scene_to_toml
 
     path.write_text(scene_to_toml(data))
     return path

@@ -93,7 +93,7 @@ def camera_spec() -> CameraSpec:
 
 
 def write_scenario(path: Path, camera: dict[str, Any] | None = None) -> Path:
-    from fleet.scenes import scene_to_toml
+    from fleet.running.scenes import scene_to_toml
 
     cam = {
         "marker_size": SIZE,

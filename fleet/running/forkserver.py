@@ -1,4 +1,4 @@
-"""``python -m fleet.forkserver``: start processes by fork from one that imported their code once.
+"""``python -m fleet.running.forkserver``: start processes by fork from one that imported their code once.
 
 Every agent imports the same modules (numpy, scipy, ProxSuite, Zenoh, the tube design's code):
 about 0.45 s of CPU each, so 7 s of the 8.5 s that 16 agents take to get ready on 2 cores
@@ -26,7 +26,7 @@ The protocol, on the Unix socket ``--socket-fd`` (``SOCK_SEQPACKET``, one JSON m
 
 When the launcher stops writing (it is done, or gone) the children still running get SIGTERM,
 then SIGKILL after :data:`GRACE`; their exits are reported as before, and the process exits.
-``fleet.launch.ForkServer`` is the other end.
+``fleet.running.launch.ForkServer`` is the other end.
 """
 
 from __future__ import annotations
@@ -211,11 +211,13 @@ def _end(sock: socket.socket, children: set[int], sel: selectors.BaseSelector, w
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m fleet.forkserver``: import the ``--preload`` modules, check that this process
+    """``python -m fleet.running.forkserver``: import the ``--preload`` modules, check that this process
     has one thread, announce readiness and serve the launcher on ``--socket-fd`` until it stops
     writing (see the module docstring); returns the exit code (0, 1 with more than one thread, 2 a bad
     socket)."""
-    ap = argparse.ArgumentParser(prog="python -m fleet.forkserver", description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        prog="python -m fleet.running.forkserver", description=__doc__.splitlines()[0]
+    )
     ap.add_argument("--socket-fd", type=int, required=True, help="the launcher's Unix socket")
     ap.add_argument("--preload", action="append", required=True, help="module to import once (repeatable)")
     args = ap.parse_args(argv)

@@ -600,7 +600,7 @@ def run(
 def save_run(result: RunResult, scenario: Scenario, seed: int, out: Path) -> dict[str, Any]:
     """Write the run's ``trace.npz`` (for ``fleet report``) and ``summary.json`` (with the
     ``seed``) into the directory ``out``; returns the summary."""
-    from fleet.report import strict_json
+    from fleet.running.report import strict_json
     from supervisor.trace import from_simulation
 
     out.mkdir(parents=True, exist_ok=True)

@@ -46,7 +46,7 @@ from typing import Any
 
 import numpy as np
 
-from fleet.backend import Backend, Event, Sample
+from fleet.experiment.backend import Backend, Event, Sample
 from ground.geometry import Array, controlled_point
 from ground.scenario import GOAL_TOLERANCE, Scenario, goal_problem, load_scenario, settled_since
 
@@ -139,7 +139,7 @@ class Fleet:
         lockstep both give the same trajectories for the same script and ``seed``.  ``out``: the
         run's directory (summary.json; default out/<scenario name>).  ``run_options`` go to
         ``fleet run`` (``exchange``, ``topology``, ``lease``, ``viewer``, ``faults``, ``hub``,
-        ``ros2``, ``ros_domain``, ``ros_listen``, ``fork``: :data:`fleet.script.RUN_OPTIONS`).
+        ``ros2``, ``ros_domain``, ``ros_listen``, ``fork``: :data:`fleet.experiment.script.RUN_OPTIONS`).
         ``delay_compensation`` (the default, as ``fleet run``'s): every plan is made a step
         ahead (docs/method.md §5), on either side; a goal given at sample k is then taken by the
         plans of step k + 1 on, the first made after it.  Bad input raises
@@ -150,7 +150,7 @@ class Fleet:
             raise ConfigError("clock", f"{clock!r} is not one of {', '.join(CLOCKS)}")
         scn = load_scenario(scenario)
         if processes:
-            from fleet.script import ProcessFleet
+            from fleet.experiment.script import ProcessFleet
 
             fleet = cls(
                 ProcessFleet.launch(
@@ -185,7 +185,7 @@ class Fleet:
         """Attach to a fleet that is running (``fleet run``, or the lab's processes), by its hub's
         endpoint(s) ``connect`` (e.g. ``"tcp/127.0.0.1:7447"``) or a Zenoh configuration file.
         The same methods work; leaving stops nothing, and :attr:`summary` stays None."""
-        from fleet.script import ProcessFleet
+        from fleet.experiment.script import ProcessFleet
 
         scn = load_scenario(scenario)
         eps = [connect] if isinstance(connect, str) else list(connect or [])
@@ -332,7 +332,7 @@ class Fleet:
             if self.summary is not None:
                 self.summary["waypoints_reached"] = self.waypoints_reached()
                 if self._b.out is not None:  # in the file too
-                    from fleet.report import strict_json
+                    from fleet.running.report import strict_json
 
                     text = json.dumps(strict_json(self.summary), indent=2)
                     (self._b.out / "summary.json").write_text(text + "\n")
@@ -463,7 +463,7 @@ class Fleet:
 
 class SimulatedFleet:
     """:class:`Backend` of ``Fleet.launch(..., processes=False)``: the in-process simulator
-    (:class:`fleet.simulate.Simulation`), stepped by the script."""
+    (:class:`fleet.running.simulate.Simulation`), stepped by the script."""
 
     realtime = False
 
@@ -473,9 +473,10 @@ class SimulatedFleet:
         return {}  # one process: the script's
 
     def __init__(self, scn: Scenario, seed: int | None, out: str | Path | None, ahead: bool = False):
-        """``ahead``: plans made a step ahead (delay compensation; :class:`fleet.simulate.Simulation`)."""
+        """``ahead``: plans made a step ahead (delay compensation;
+        :class:`fleet.running.simulate.Simulation`)."""
         from agent.tube import validated_design
-        from fleet.simulate import Simulation
+        from fleet.running.simulate import Simulation
 
         self.scenario = scn
         design = validated_design(scn)
@@ -514,7 +515,7 @@ class SimulatedFleet:
 
     def send(self, goals: Mapping[str, Array]) -> dict[str, str]:
         """Give each robot its goal from the next step on
-        (:meth:`fleet.simulate.Simulation.set_goal`); none is refused (an empty map)."""
+        (:meth:`fleet.running.simulate.Simulation.set_goal`); none is refused (an empty map)."""
         for rid, g in goals.items():
             self.sim.set_goal(rid, g)
         return {}
@@ -525,9 +526,9 @@ class SimulatedFleet:
         return out
 
     def close(self) -> dict[str, Any]:
-        """Finish the run, write its outputs in :attr:`out` (:func:`fleet.simulate.save_run`)
+        """Finish the run, write its outputs in :attr:`out` (:func:`fleet.running.simulate.save_run`)
         and judge it (:attr:`verdict`); returns the summary."""
-        from fleet.simulate import save_run
+        from fleet.running.simulate import save_run
         from supervisor.judge import verdict
 
         assert self.out is not None

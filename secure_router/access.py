@@ -78,7 +78,7 @@ are the same as plain JSON-able dicts.  ``deploy/*.json5`` are the same
 configurations as commented templates (``${NAME}`` placeholders, filled by
 :func:`render`); a test keeps them equal to these functions.
 
-Command line (``python -m fleet.secure``):
+Command line (``python -m secure_router``):
 
 - ``router --config deploy/router.json5 --set CERTS=DIR --set LISTEN=tls/IP:7447``
   (or ``router --certs DIR --listen EP --robots r1 r2 ...``) runs the router
@@ -567,7 +567,7 @@ def _values(pairs: list[str]) -> dict[str, str]:
 
 
 def _parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="python -m fleet.secure", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m secure_router", description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
 
     def router_args(p: argparse.ArgumentParser) -> None:
@@ -616,7 +616,7 @@ def _need(args: argparse.Namespace, *names: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m fleet.secure router|config|probe``: run the fleet's router, print a role's
+    """``python -m secure_router router|config|probe``: run the fleet's router, print a role's
     configuration as JSON, or run a diagnostic client; returns the exit code (2 bad input)."""
     args = _parser().parse_args(argv)
     try:
@@ -649,11 +649,5 @@ def main(argv: list[str] | None = None) -> int:
             label = identity(args.role, args.robot)
         return probe(conf, args.sub, args.live, label)
     except SecureConfigError as e:
-        print(f"fleet.secure: error: {e}", file=sys.stderr)
+        print(f"secure_router: error: {e}", file=sys.stderr)
         return 2
-
-
-if __name__ == "__main__":
-    from transport.process import exit_process
-
-    exit_process(main())

@@ -1,7 +1,7 @@
-"""A script on the fleet's bus: the :class:`fleet.api.Backend` of a process fleet.
+"""A script on the fleet's bus: the :class:`fleet.experiment.api.Backend` of a process fleet.
 
 ``Fleet.launch(..., processes=True)`` starts the processes of ``fleet run`` with the tracker in
-scripted mode (:func:`fleet.launch.start_fleet`); ``Fleet.connect`` joins a fleet that runs.
+scripted mode (:func:`fleet.running.launch.start_fleet`); ``Fleet.connect`` joins a fleet that runs.
 Either way the script opens one Zenoh session, subscribes to the ground truth, the measured
 poses, the plans and the clock, and declares its liveliness token ``fleet/F/alive/script``.
 
@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from fleet.backend import Event, Sample
+from fleet.experiment.backend import Event, Sample
 from ground.geometry import Array
 from ground.scenario import ConfigError, Scenario
 from ground.wire import MAX_BATCH, SCRIPT, Goal, Keys, Plan, Pose, Script, Tick, Truth
@@ -53,7 +53,7 @@ class ProcessFleet:
         self.session = session
         self.keys = keys
         self.launched = launched
-        """The processes this script started (:class:`fleet.launch.Launched`), or None."""
+        """The processes this script started (:class:`fleet.running.launch.Launched`), or None."""
         self.out: Path | None = None if launched is None else launched.out
         self.hold = hold
         """This script permits the steps (a lockstep fleet it launched)."""
@@ -101,7 +101,7 @@ class ProcessFleet:
         """Start the processes of ``fleet run`` for a script, and join them (``delay_compensation``:
         every agent plans a step ahead)."""
         from agent.tube import validated_design
-        from fleet.launch import LaunchError, start_fleet
+        from fleet.running.launch import LaunchError, start_fleet
 
         for name in options:
             if name not in RUN_OPTIONS:

@@ -1,6 +1,6 @@
-"""What a :class:`fleet.api.Fleet` drives and what it reports: the backend protocol (the
-in-process simulator, :class:`fleet.api.SimulatedFleet`, or a fleet of processes,
-:class:`fleet.script.ProcessFleet`), its samples and the fleet's events."""
+"""What a :class:`fleet.experiment.api.Fleet` drives and what it reports: the backend protocol (the
+in-process simulator, :class:`fleet.experiment.api.SimulatedFleet`, or a fleet of processes,
+:class:`fleet.experiment.script.ProcessFleet`), its samples and the fleet's events."""
 
 from __future__ import annotations
 

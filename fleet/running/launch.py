@@ -2,7 +2,7 @@
 
 Processes are started with ``subprocess`` (fork + exec, so no parent state is
 inherited; never a bare fork after Zenoh is open), except the agents: on Linux they are forked
-by a fork server (:mod:`fleet.forkserver`) that imported their code once, before any thread or
+by a fork server (:mod:`fleet.running.forkserver`) that imported their code once, before any thread or
 session existed, which saves each agent its 0.45 s of imports.  The tracker listens on a
 free loopback port, the supervisor and one agent per robot connect to it.  In
 the mesh topology every process is a Zenoh peer and the peers link to each
@@ -163,7 +163,7 @@ class Forked:
 
 
 class ForkServer:
-    """The launcher's end of :mod:`fleet.forkserver`: start it, ask it for children, learn their
+    """The launcher's end of :mod:`fleet.running.forkserver`: start it, ask it for children, learn their
     exit codes, and close it (which ends it, and any child still running)."""
 
     UNKNOWN = 255
@@ -173,7 +173,9 @@ class ForkServer:
         self._sock, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         with theirs:
             args = ["--socket-fd", str(theirs.fileno()), *[a for m in preload for a in ("--preload", m)]]
-            self.proc = _start("forkserver", "fleet.forkserver", args, env, stderr, (theirs.fileno(),))
+            self.proc = _start(
+                "forkserver", "fleet.running.forkserver", args, env, stderr, (theirs.fileno(),)
+            )
         self.popen = self.proc.popen
         self._replies: queue.Queue[dict[str, Any]] = queue.Queue()
         self._codes: dict[int, int] = {}
@@ -253,7 +255,7 @@ class ForkServer:
     def close(self, grace: float = 10.0) -> None:
         """Stop asking: the server ends its children still running, reports their exits and
         exits; then close the socket.  ``grace`` [s]: how long the server gets (its children get
-        SIGTERM, and SIGKILL after :data:`fleet.forkserver.GRACE`) before it is killed."""
+        SIGTERM, and SIGKILL after :data:`fleet.running.forkserver.GRACE`) before it is killed."""
         with contextlib.suppress(OSError):
             self._sock.shutdown(socket.SHUT_WR)
         try:
@@ -457,7 +459,7 @@ def start_fleet(
     ROS 2 tools in the mesh (default a free loopback port); a ROS 2 session must link to the face
     itself, since peers do not forward each other's data.  In the star, ROS 2 tools connect to the
     hub, the router.  ``fork``: fork the agents from a fork server that imported their code once
-    (:mod:`fleet.forkserver`) rather than start each as a new interpreter; None: as
+    (:mod:`fleet.running.forkserver`) rather than start each as a new interpreter; None: as
     :data:`STARTS` says (on Linux).  ``delay_compensation``: every agent plans a step ahead
     (docs/design.md, "Delay compensation")."""
     if ros_listen is not None and topology == "star":
