@@ -1100,17 +1100,18 @@ def check_point(scn: Scenario, p: np.ndarray, footprint: float, field: str, labe
 def check_geometry(scn: Scenario, footprint: float) -> None:
     """Check starts and goals against the footprint radius [m] of the design.
 
-    Raises :class:`ConfigError` when a start's controlled point or a goal lies
-    outside the arena or closer than ``footprint`` to a wall or an obstacle, or
-    when two starts are closer than ``2·footprint``, or two goals than that plus :data:`GOAL_MARGIN`."""
+    Raises :class:`ConfigError` when a start's controlled point or a waypoint lies outside the
+    arena or closer than ``footprint`` to a wall or an obstacle, when two starts are closer than
+    ``2·footprint``, when no passage joins a waypoint to the start, or when a goal fails the
+    one goal rule (:func:`goal_problem`: in the arena and clear of the walls and obstacles, reached
+    from the start, and ``2·footprint`` plus :data:`GOAL_MARGIN` from every goal listed before it)."""
     ell = scn.controller.lookahead
     starts = [controlled_point(r.start, ell) for r in scn.robots]
     goals = [np.asarray(r.goal, dtype=float) for r in scn.robots]
     fp = float(footprint)
 
     for i in range(len(scn.robots)):
-        for kind, p, label in (("start", starts[i], "controlled point"), ("goal", goals[i], "goal")):
-            check_point(scn, p, fp, f"robots[{i}].{kind}", label)
+        check_point(scn, starts[i], fp, f"robots[{i}].start", "controlled point")
         for j, wp in enumerate(scn.robots[i].waypoints):
             field, at = f"robots[{i}].waypoints[{j}]", np.asarray(wp, dtype=float)
             check_point(scn, at, fp, field, "waypoint")
@@ -1125,42 +1126,35 @@ def check_geometry(scn: Scenario, footprint: float) -> None:
                         f"(2 × {fp:.3f} + {GOAL_MARGIN:g} = {2.0 * fp + GOAL_MARGIN:.3f} m)",
                     )
 
-    for kind, pts, label, margin in (
-        ("start", starts, "controlled point", 0.0),
-        ("goal", goals, "goal", GOAL_MARGIN),
-    ):
-        for j in range(len(pts)):
-            for i in range(j):
-                d = float(np.linalg.norm(pts[j] - pts[i]))
-                need = 2.0 * fp + margin
-                if d < need:
-                    sd, sf = _pair(d, need)
-                    rule = f"2 × {fp:.3f}" + (f" + {margin:g}" if margin else "")
-                    raise ConfigError(
-                        f"robots[{j}].{kind}",
-                        f"{label} {_xy(pts[j])} of {scn.robots[j].id!r} is {sd} m from that of robots[{i}] "
-                        f"({scn.robots[i].id!r}), closer than their footprints allow ({rule} = {sf} m)",
-                    )
-    _check_reachable(scn, starts, goals, fp)
-
-
-def _check_reachable(scn: Scenario, starts: list[np.ndarray], goals: list[np.ndarray], fp: float) -> None:
-    """Raise :class:`ConfigError` for the first robot whose goal or waypoint cannot be reached
-    from its start by a disc of radius ``fp`` [m] past the walls and static obstacles (the other
-    robots aside; :func:`free_space`)."""
+    for j in range(len(starts)):
+        for i in range(j):
+            d = float(np.linalg.norm(starts[j] - starts[i]))
+            if d < 2.0 * fp:
+                sd, sf = _pair(d, 2.0 * fp)
+                raise ConfigError(
+                    f"robots[{j}].start",
+                    f"controlled point {_xy(starts[j])} of {scn.robots[j].id!r} is {sd} m from that of "
+                    f"robots[{i}] ({scn.robots[i].id!r}), closer than their footprints allow "
+                    f"(2 × {fp:.3f} = {sf} m)",
+                )
     joined = free_space(scn, fp)
     for i, r in enumerate(scn.robots):
-        stops = [
-            (f"robots[{i}].waypoints[{j}]", "waypoint", np.asarray(w, float))
-            for j, w in enumerate(r.waypoints)
-        ]
-        for field, label, p in [*stops, (f"robots[{i}].goal", "goal", goals[i])]:
-            if not joined(starts[i], p):
-                raise ConfigError(
-                    field,
-                    f"{label} {_xy(p)} of {r.id!r} cannot be reached from its start: the walls and "
-                    f"obstacles leave no passage for its footprint of radius {fp:.3f} m",
-                )
+        for j, w in enumerate(r.waypoints):
+            if not joined(starts[i], np.asarray(w, float)):
+                raise ConfigError(f"robots[{i}].waypoints[{j}]", _no_passage("waypoint", w, starts[i], fp))
+        # The goals by the one goal rule, each against the goals before it.
+        earlier = [(scn.robots[k].id, goals[k], fp) for k in range(i)]
+        why = _goal_reason(scn, fp, goals[i], earlier, starts[i])
+        if why is not None:
+            raise ConfigError(f"robots[{i}].goal", why)
+
+
+def _no_passage(label: str, p: Any, at: Any, fp: float) -> str:
+    """The one text of a point (2,) [m] that a disc of radius ``fp`` [m] cannot reach from ``at``."""
+    return (
+        f"{label} {_xy(p)} cannot be reached from {_xy(at)}: the walls and obstacles leave no "
+        f"passage for a footprint of radius {fp:.3f} m"
+    )
 
 
 def free_space(scn: Scenario, fp: float) -> Callable[[np.ndarray, np.ndarray], bool]:
@@ -1290,23 +1284,35 @@ def goal_problem(
     :class:`~ground.wire.Plan` (``robot``, ``goal`` (2,) [m], ``footprint`` [m]).  ``batch`` are
     the goals given to other robots together with this one (robot id → (2,) [m], not the robot
     itself): each replaces that robot's current goal, so that robots may trade goals in one batch;
-    a robot of the batch without a plan counts with ``footprint`` (one design for the fleet)."""
+    a robot of the batch without a plan counts with ``footprint`` (one design for the fleet).
+
+    The scenario loader judges each robot's goal by the same rule (:func:`check_geometry`), from
+    its start and against the goals of the robots listed before it, so a goal is refused with
+    the same text at load and at run time."""
+    given = dict(batch or {})
+    others = [(pl.robot, given.pop(pl.robot, pl.goal), pl.footprint) for pl in plans]
+    others += [(rid, g, footprint) for rid, g in given.items()]
+    return _goal_reason(scn, footprint, goal, others, at)
+
+
+def _goal_reason(
+    scn: Scenario, footprint: float, goal: Any, others: Sequence[tuple[str, Any, float]], at: Any | None
+) -> str | None:
+    """The rule of :func:`goal_problem`: ``others`` are (robot id, goal (2,) [m], footprint [m])."""
+    goal = np.asarray(goal, dtype=float)
     try:
         check_point(scn, goal, footprint, "goal")
     except ConfigError as e:
         return e.reason
     if at is not None and not free_space(scn, footprint)(np.asarray(at, dtype=float), goal):
-        return (
-            f"goal {_xy(goal)} cannot be reached from where it is: the walls and obstacles leave "
-            f"no passage for its footprint of radius {footprint:.3f} m"
-        )
-    given = dict(batch or {})
-    others = [(pl.robot, given.pop(pl.robot, pl.goal), pl.footprint) for pl in plans]
-    others += [(rid, g, footprint) for rid, g in given.items()]
+        return _no_passage("goal", goal, at, footprint)
     for rid, theirs, fp in others:
         d = float(np.linalg.norm(goal - np.asarray(theirs, dtype=float)))
         need = footprint + fp + GOAL_MARGIN
         if d < need:
-            why = f"closer than the footprints and the margin allow ({need:.3f} m)"
-            return f"{d:.3f} m from {rid}'s goal, {why}"
+            sd, sn = _pair(d, need)
+            return (
+                f"goal {_xy(goal)} is {sd} m from {rid}'s goal, closer than the footprints and the "
+                f"margin allow ({footprint:.3f} + {fp:.3f} + {GOAL_MARGIN:g} = {sn} m)"
+            )
     return None

@@ -429,7 +429,7 @@ BAD_GEOMETRY: list[tuple[str, Mutation, str, str]] = [
         "goals closer than footprints",
         _set("robots.1.goal", [0.5, 0.1]),
         "robots[1].goal",
-        "closer than their",
+        "m from r1's goal, closer than the footprints and the margin allow",
     ),
     ("goal outside arena", _set("robots.0.goal", [1.2, 0.0]), "robots[0].goal", "outside the arena"),
     (
@@ -501,8 +501,8 @@ def test_a_goal_behind_a_wall_is_refused_unless_a_passage_fits(gap: float, refus
     with pytest.raises(ConfigError) as exc:
         check_geometry(scn, 0.134)
     assert str(exc.value) == (
-        "robots[0].goal: goal (0.60, 0.00) of 'r1' cannot be reached from its start: the walls and "
-        "obstacles leave no passage for its footprint of radius 0.134 m"
+        "robots[0].goal: goal (0.60, 0.00) cannot be reached from (-0.56, 0.00): the walls and "
+        "obstacles leave no passage for a footprint of radius 0.134 m"
     )
 
 
@@ -521,7 +521,7 @@ def test_goals_given_together_are_checked_in_place_of_the_ones_they_replace() ->
     # A robot of the batch without a plan counts with the footprint, at its new goal.
     near = g3 + np.array([2 * fp + GOAL_MARGIN - 1e-3, 0.0])
     why = goal_problem(scn, fp, near, [plans["r1"]], {"r1": g2, "r3": g3})
-    assert why is not None and why.startswith("0.277 m from r3's goal"), why
+    assert why is not None and why.startswith("goal (0.28, -0.30) is 0.277 m from r3's goal"), why
     assert goal_problem(scn, fp, near + np.array([2e-3, 0.0]), [plans["r1"]], {"r3": g3, "r1": g2}) is None
     # The batch moves no wall: a goal in an obstacle is refused whatever the others do.
     assert "obstacles[0]" in str(goal_problem(scn, fp, np.array([0.0, 0.6]), [], {"r1": g2}))
@@ -536,8 +536,8 @@ def test_a_run_time_goal_needs_a_passage_from_where_the_robot_is() -> None:
     scn = parse_scenario(data)
     fp, goal = 0.134, np.array([0.7, 0.0])
     assert goal_problem(scn, fp, goal, [], at=np.array([-0.6, 0.0])) == (
-        "goal (0.70, 0.00) cannot be reached from where it is: the walls and obstacles leave no "
-        "passage for its footprint of radius 0.134 m"
+        "goal (0.70, 0.00) cannot be reached from (-0.60, 0.00): the walls and obstacles leave no "
+        "passage for a footprint of radius 0.134 m"
     )
     assert goal_problem(scn, fp, goal, [], at=np.array([0.7, 0.5])) is None
     assert goal_problem(scn, fp, goal, []) is None  # where the robot is not told: not checked
@@ -556,7 +556,7 @@ def test_a_goal_in_a_pocket_of_obstacles_is_refused() -> None:
     scn = parse_scenario(data)
     with pytest.raises(ConfigError) as exc:
         check_geometry(scn, 0.134)
-    assert exc.value.field == "robots[1].goal" and "'r2' cannot be reached" in exc.value.reason
+    assert exc.value.field == "robots[1].goal" and "cannot be reached from" in exc.value.reason
     # The same ring, its discs shrunk so a footprint passes between them: accepted.
     for ob in data["obstacles"]:
         ob["circle"]["radius"] = 0.02
@@ -743,3 +743,38 @@ def test_a_scenario_must_be_a_small_regular_file(tmp_path):
         with pytest.raises(ConfigError) as e:
             load_scenario(path)
         assert e.value.field == "file" and words in e.value.reason, str(e.value)
+
+
+@pytest.mark.parametrize(
+    "goal, obstacles, reason",
+    [
+        ([1.2, 0.0], [], "outside the arena"),
+        ([0.95, 0.0], [], "from the arena wall"),
+        ([0.0, 0.3], [{"circle": {"center": [0.0, 0.35], "radius": 0.1}}], "inside obstacles[0]"),
+        ([0.0, 0.3], [{"circle": {"center": [0.0, 0.5], "radius": 0.1}}], "from obstacles[0]"),
+        ([0.6, 0.0], [{"polygon": [[0.3, -1.0], [0.4, -1.0], [0.4, 1.0], [0.3, 1.0]]}], "cannot be reached"),
+        ([0.55, 0.05], [], "from r1's goal"),
+    ],
+)
+def test_the_loader_and_the_run_time_rule_refuse_a_goal_with_one_text(goal, obstacles, reason) -> None:
+    """One goal rule: a goal the loader refuses (robots[1].goal, or robots[0]'s for the walls) is
+    refused by :func:`goal_problem` with the very same text, for the same robot told where it
+    starts and the goals listed before it as the others' plans."""
+    from types import SimpleNamespace
+
+    from ground.geometry import controlled_point
+
+    data = base()
+    who = 0 if reason == "cannot be reached" else 1
+    data["robots"][who]["goal"] = goal
+    data["obstacles"] = obstacles
+    scn = parse_scenario(data)
+    fp = 0.134
+    with pytest.raises(ConfigError) as exc:
+        check_geometry(scn, fp)
+    assert exc.value.field == f"robots[{who}].goal" and reason in exc.value.reason, exc.value
+    at = controlled_point(scn.robots[who].start, scn.controller.lookahead)
+    earlier = [
+        SimpleNamespace(robot=r.id, goal=np.asarray(r.goal, float), footprint=fp) for r in scn.robots[:who]
+    ]
+    assert goal_problem(scn, fp, np.asarray(goal, float), earlier, at=at) == exc.value.reason

@@ -94,7 +94,8 @@ def test_a_pocket_fills_from_the_bottom_and_nobody_is_walled_in(width):
 
 
 def test_closest_goals_are_the_footprints_plus_the_margin():
-    """Goals 1 mm closer than 2 footprints + GOAL_MARGIN are refused, naming both robots."""
+    """Goals 1 mm closer than 2 footprints + GOAL_MARGIN are refused, naming both robots (the
+    field the second, the text the first) and the sum that was needed."""
     from agent.tube import validated_design
     from ground.scenario import ConfigError
 
@@ -103,7 +104,7 @@ def test_closest_goals_are_the_footprints_plus_the_margin():
     d["robots"][0]["goal"], d["robots"][1]["goal"] = [g, 0.0], [-g, 0.0]
     with pytest.raises(ConfigError) as e:
         validated_design(parse_scenario(d))
-    assert e.value.field == "robots[1].goal" and "'r1'" in e.value.reason and "'r2'" in e.value.reason
+    assert e.value.field == "robots[1].goal" and "from r1's goal" in e.value.reason
     assert f"+ {GOAL_MARGIN:g}" in e.value.reason
 
 
