@@ -119,7 +119,7 @@ def place_side(footprint: float, eps: float, share_hi: float) -> float:
 VIEW_CELLS = 2
 """With plans by place, the navigator sees the robots up to this many cells from its own
 (Chebyshev), where the constraints need one: every agent hears them, since it subscribes to
-its own group of cells and the eight groups around it (``agent.node.GROUP``), which hold every
+its own group of cells and the eight groups around it (``agent.channels.GROUP``), which hold every
 cell two or fewer from its own.  A robot whose cell is three or more from its own is more than
 two sides away (:func:`navigator_view`)."""
 

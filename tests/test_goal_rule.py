@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-FACES = ("agent/node.py", "fleet/running/operator.py", "fleet/experiment/api.py", "ros2_link/node.py")
+FACES = ("agent/goals.py", "fleet/running/operator.py", "fleet/experiment/api.py", "ros2_link/node.py")
 """The agent (the authority), ``fleet goal``, the experiment API and the ROS face."""
 PIECES = {"check_point", "free_space", "free_space_model", "joined", "_joined"}
 """What the rule is made of: a face calling one of these judges a goal its own way."""

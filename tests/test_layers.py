@@ -67,7 +67,7 @@ PACKAGES = sorted({u.split(".")[0] for u in LAYERS})
 """The top-level packages of the house."""
 OURS = set(PACKAGES) | {"tests"}
 MATH = ("agent.sets", "agent.tube", "agent.qp", "agent.coordination", "agent.navigator", "agent.hazards",
-        "agent.controller", "agent.protocol")  # fmt: skip
+        "agent.controller", "agent.protocol", "agent.sync")  # fmt: skip
 """The math of one robot: no transport, no logging, no plotting."""
 IO = ("zenoh", "rerun", "matplotlib", "transport", "cv2")
 """What the math must not import."""

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import zenoh
 
+from agent.channels import group_of
 from agent.coordination import (
     PLACE_LAG,
     VIEW_CELLS,
@@ -20,7 +21,6 @@ from agent.coordination import (
     split_halfplanes,
 )
 from agent.hazards import Guard, in_reach
-from agent.node import group_of
 from agent.tube import validated_design
 from ground.geometry import Whereabouts, block, cell_centre, cell_name, cell_of, cells_apart, parse_cell
 from ground.scenario import load_scenario
@@ -329,18 +329,18 @@ def _link_args(**net) -> SimpleNamespace:
 def test_a_waiting_agent_takes_the_plans_of_the_robot_it_waits_for_from_anywhere_and_only_those():
     """With plans by place an agent hears only the cells about its own; a robot it waits for
     (its gate, docs/method.md §7) it hears on that robot's own key wherever it is, from the
-    moment it watches it until it stops (``_Link.watch_plans``).  Two real Zenoh sessions on
+    moment it watches it until it stops (``Channels.watch_plans``).  Two real Zenoh sessions on
     loopback; a marker put on the waited robot's own session, after its plan and into the
     waiter's cells, says when that plan would have come."""
-    from agent.node import _Link
+    from agent.channels import Channels
     from transport.bus import put
     from transport.net import free_port, loopback
 
     keys = Keys("gate")
     hub = loopback(free_port())
     far, home = np.array([8.0 * SIDE, 8.0 * SIDE]), np.zeros(2)
-    waiter = _Link(_link_args(listen=[hub], connect=[]), keys, "r1", "agent r1", side=SIDE, start=far)
-    waited = _Link(_link_args(listen=[], connect=[hub]), keys, "r2", "agent r2", side=SIDE, start=home)
+    waiter = Channels(_link_args(listen=[hub], connect=[]), keys, "r1", "agent r1", side=SIDE, start=far)
+    waited = Channels(_link_args(listen=[], connect=[hub]), keys, "r2", "agent r2", side=SIDE, start=home)
     try:
         marks = iter(range(1, 10_000))
 
