@@ -210,6 +210,35 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return EXIT_FAIL if why else 0
 
 
+def _run_problem(args: argparse.Namespace, scn: Scenario, links: dict[str, str]) -> str | None:
+    """What is wrong with ``fleet run``'s fault plan and ROS 2 options for ``scn``, in one line
+    naming the option, or None."""
+    if args.faults:
+        plan, bad = _fault_plan(args.faults, list(links))
+        if plan is None:
+            return bad
+        for rid in plan.links:  # a cut that cuts nothing would pass for a tested fault
+            if links[rid] == "sim":
+                return (
+                    f"--faults: faults.links.{rid}: {rid} has no radio link (link 'sim'); cut emulator links"
+                )
+    ros2 = args.ros2 or scn.ros2.enabled
+    for name, value in (("--ros-domain", args.ros_domain), ("--ros-listen", args.ros_listen)):
+        if value is not None and not ros2:
+            return f"{name}: the ROS 2 face is off; add --ros2 (or [ros2] enabled = true)"
+    if args.ros_listen is not None and args.topology == "star":
+        return "--ros-listen: in the star topology ROS 2 tools connect to the hub (--listen)"
+    if ros2:
+        from ground.scenario import ros2_problem
+
+        problem = ros2_problem([r.id for r in scn.robots])
+        if problem is not None:
+            return f"--ros2: {problem}"
+        if importlib.util.find_spec("rosbags") is None:
+            return "--ros2: needs rosbags: pip install 'epuck-fleet[ros2]'"
+    return None
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     """``fleet run``: check the scenario and the options, run the fleet as processes
     (:func:`fleet.running.launch.run_fleet`, or a script for robots with waypoints:
@@ -227,29 +256,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     design = validated_design(scn)  # every agent checks it too: fail here, once, before starting
     _say_forced_order(scn, design.footprint)
     links = _run_links(scn)
-    if args.faults:
-        plan, bad = _fault_plan(args.faults, list(links))
-        if plan is None:
-            return _bad(bad)
-        for rid in plan.links:  # a cut that cuts nothing would pass for a tested fault
-            if links[rid] == "sim":
-                return _bad(
-                    f"--faults: faults.links.{rid}: {rid} has no radio link (link 'sim'); cut emulator links"
-                )
+    problem = _run_problem(args, scn, links)
+    if problem is not None:
+        return _bad(problem)
     ros2 = args.ros2 or scn.ros2.enabled
-    for name, value in (("--ros-domain", args.ros_domain), ("--ros-listen", args.ros_listen)):
-        if value is not None and not ros2:
-            return _bad(f"{name}: the ROS 2 face is off; add --ros2 (or [ros2] enabled = true)")
-    if args.ros_listen is not None and args.topology == "star":
-        return _bad("--ros-listen: in the star topology ROS 2 tools connect to the hub (--listen)")
-    if ros2:
-        from ground.scenario import ros2_problem
-
-        problem = ros2_problem([r.id for r in scn.robots])
-        if problem is not None:
-            return _bad(f"--ros2: {problem}")
-        if importlib.util.find_spec("rosbags") is None:
-            return _bad("--ros2: needs rosbags: pip install 'epuck-fleet[ros2]'")
     emulated = "emulator" in links.values()
     clock = args.clock or ("realtime" if emulated else "lockstep")
     if emulated and clock != "realtime":
@@ -259,6 +269,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     if any(r.waypoints for r in scn.robots):  # missions: run by a script (fleet.experiment.api)
         if emulated:
             return _bad("robots.waypoints: fleet run drives the missions of simulated robots only")
+        if args.serve:
+            return _bad("--serve: a served fleet takes its goals at run time; its robots have waypoints")
         from fleet.experiment.api import run_scenario
 
         summary, why = run_scenario(
@@ -275,7 +287,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             viewer=args.viewer, clock=clock, hub=args.listen, links=links, faults=args.faults,
             exchange=args.exchange, lease=args.lease, topology=args.topology, ros2=ros2,
             ros_domain=args.ros_domain, ros_listen=args.ros_listen, fork=args.start_agents == "fork",
-            delay_compensation=args.delay_compensation,
+            delay_compensation=args.delay_compensation, serve=args.serve,
+            timeout=None if args.serve else 600.0,
         )  # fmt: skip
     if summary is not None:
         # Plans by place assume news of places within the lag (docs/method.md §6.7): how often not.
@@ -388,18 +401,37 @@ def cmd_goal(args: argparse.Namespace) -> int:
     from fleet.running.operator import send_goal
 
     goal = (args.x, args.y)
-    if bool(args.connect) == bool(args.zenoh_config):
-        what = "both given" if args.connect else "neither given"
-        print(
-            f"fleet goal: error: --connect: give the hub or a --zenoh-config, one of them ({what})",
-            file=sys.stderr,
-        )
+    if not _one_way_in(args, "fleet goal"):
         return 2
     code, line = send_goal(
         args.scenario, args.robot, goal, args.connect or [], args.fleet, args.timeout, args.zenoh_config
     )
     print(line, file=sys.stdout if code == 0 else sys.stderr)
     return code
+
+
+def cmd_stop(args: argparse.Namespace) -> int:
+    """``fleet stop``: end a served fleet's run (:func:`fleet.running.operator.stop_fleet`) and
+    print the answer; returns the exit code (2 unless exactly one of ``--connect`` and
+    ``--zenoh-config`` is given)."""
+    from fleet.running.operator import stop_fleet
+
+    if not _one_way_in(args, "fleet stop"):
+        return 2
+    code, line = stop_fleet(args.connect or [], args.fleet, args.timeout, args.zenoh_config)
+    print(line, file=sys.stdout if code == 0 else sys.stderr)
+    return code
+
+
+def _one_way_in(args: argparse.Namespace, prog: str) -> bool:
+    """Exactly one of ``--connect`` and ``--zenoh-config`` is given; else False, said in one line."""
+    if bool(args.connect) != bool(args.zenoh_config):
+        return True
+    what = "both given" if args.connect else "neither given"
+    print(
+        f"{prog}: error: --connect: give the hub or a --zenoh-config, one of them ({what})", file=sys.stderr
+    )
+    return False
 
 
 def _interrupt(signum: int, frame: Any) -> None:
@@ -467,32 +499,18 @@ def _endpoint(text: str) -> str:
     return text
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The ``fleet`` command's argument parser: one subcommand each, whose ``func`` is the
-    ``cmd_*`` that runs it."""
-    ap = argparse.ArgumentParser(prog="fleet", description="Distributed robust tube MPC for E-puck fleets")
-    sub = ap.add_subparsers(dest="command", required=True)
-    d = sub.add_parser("design", help="print the tube design of a scenario or preset")
-    d.add_argument("scenario", nargs="?", help="scenario TOML file")
-    d.add_argument("--preset", choices=PRESETS, help="controller preset (overrides the scenario's)")
-    d.add_argument("--json", action="store_true", help="machine-readable output")
-    d.set_defaults(func=cmd_design)
-    s = sub.add_parser("simulate", help="run a scenario's whole fleet in one process (fast, closed loop)")
-    s.add_argument("scenario", help="scenario TOML file")
-    s.add_argument("--out", help="output directory (default out/<scenario name>)")
-    s.add_argument("--seed", type=seed_arg, help="override the scenario's [simulation] seed")
-    add_delay_compensation_arg(s)
-    s.add_argument(
-        "--faults", metavar="JSON",
-        help="fault plan (JSON text or file; see transport/faults.py): its kills end robots' agents at "
-        "chosen steps",
-    )  # fmt: skip
-    s.set_defaults(func=cmd_simulate)
-    r = sub.add_parser("run", help="run the fleet as separate processes over Zenoh (lockstep clock)")
+def _run_arguments(r: argparse.ArgumentParser) -> None:
+    """Declare the options of ``fleet run`` on ``r``."""
     r.add_argument("scenario", help="scenario TOML file")
     r.add_argument("--out", help="output directory (default out/<scenario name>)")
     r.add_argument("--seed", type=seed_arg, help="override the scenario's [simulation] seed")
     r.add_argument("--viewer", action="store_true", help="open the Rerun viewer live")
+    r.add_argument(
+        "--serve", action="store_true",
+        help="keep the fleet up once every robot is home, for goals from scripts (Fleet.connect), "
+        "fleet goal and ROS 2, until Ctrl-C, SIGTERM or fleet stop --connect HUB; the summary is "
+        "written when it stops",
+    )  # fmt: skip
     r.add_argument(
         "--clock", choices=["lockstep", "realtime"], default=None,
         help="default lockstep; realtime when the robots are emulated (link = \"emulator\")",
@@ -540,6 +558,31 @@ def build_parser() -> argparse.ArgumentParser:
         help="where ROS 2 tools connect to the fleet's ROS face, e.g. tcp/127.0.0.1:7447 (default a free "
         "loopback port, printed; in the star topology, the hub)",
     )  # fmt: skip
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``fleet`` command's argument parser: one subcommand each, whose ``func`` is the
+    ``cmd_*`` that runs it."""
+    ap = argparse.ArgumentParser(prog="fleet", description="Distributed robust tube MPC for E-puck fleets")
+    sub = ap.add_subparsers(dest="command", required=True)
+    d = sub.add_parser("design", help="print the tube design of a scenario or preset")
+    d.add_argument("scenario", nargs="?", help="scenario TOML file")
+    d.add_argument("--preset", choices=PRESETS, help="controller preset (overrides the scenario's)")
+    d.add_argument("--json", action="store_true", help="machine-readable output")
+    d.set_defaults(func=cmd_design)
+    s = sub.add_parser("simulate", help="run a scenario's whole fleet in one process (fast, closed loop)")
+    s.add_argument("scenario", help="scenario TOML file")
+    s.add_argument("--out", help="output directory (default out/<scenario name>)")
+    s.add_argument("--seed", type=seed_arg, help="override the scenario's [simulation] seed")
+    add_delay_compensation_arg(s)
+    s.add_argument(
+        "--faults", metavar="JSON",
+        help="fault plan (JSON text or file; see transport/faults.py): its kills end robots' agents at "
+        "chosen steps",
+    )  # fmt: skip
+    s.set_defaults(func=cmd_simulate)
+    r = sub.add_parser("run", help="run the fleet as separate processes over Zenoh (lockstep clock)")
+    _run_arguments(r)
     r.set_defaults(func=cmd_run)
     g = sub.add_parser("goal", help="give a running agent a new goal and wait until it takes it")
     g.add_argument("scenario", help="scenario TOML file of the running fleet")
@@ -554,6 +597,12 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--fleet", default="lab", help="fleet name in the Zenoh keys (default lab)")
     g.add_argument("--timeout", type=float, default=30.0, help="wait limit [s]")
     g.set_defaults(func=cmd_goal)
+    st = sub.add_parser("stop", help="end a served fleet's run (fleet run --serve), as at its duration")
+    st.add_argument("--connect", action="append", type=_endpoint, help="the fleet's hub (peer-to-peer)")
+    st.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 configuration instead of --connect")
+    st.add_argument("--fleet", default="lab", help="fleet name in the Zenoh keys (default lab)")
+    st.add_argument("--timeout", type=float, default=30.0, help="wait limit [s]")
+    st.set_defaults(func=cmd_stop)
     b = sub.add_parser(
         "bench", help="step times, solvers, real-time factors, latency and memory (prints, writes JSON)"
     )

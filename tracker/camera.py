@@ -26,6 +26,9 @@ when its command came in time), or :data:`tracker.reports.OUTCOME_WAIT`·Ts afte
   device stops delivering frames.
 
 SIGINT/SIGTERM end either run at the next step with ``Tick(stop=True)`` and exit code 0.
+``--serve`` keeps the fleet up past the scenario's duration (``--steps`` still caps it), for goal
+after goal, until a signal or a stop request (a :class:`ground.wire.Script` with ``stop``:
+``fleet stop``).
 ``--wait-agents`` holds step 0 until every robot's agent and the supervisor are alive (as the
 simulated tracker does).  Exit codes: 0 done, 1 failed (calibration, agents not up, device
 lost), 2 bad input (one line ``tracker: error: <field>: <reason>``).  ``--clock`` and
@@ -52,7 +55,7 @@ import numpy as np
 
 from ground.geometry import wrap_angle
 from ground.scenario import CameraSpec, ConfigError, Scenario, load_scenario
-from ground.wire import Applied, Keys, Outcome, Pose, Tick, Truth
+from ground.wire import Applied, Keys, Outcome, Pose, Script, Tick, Truth
 from tracker.intrinsics import Intrinsics
 from tracker.reports import OUTCOME_WAIT, REPORT_WAIT, Reports
 from tracker.vision import (
@@ -96,6 +99,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--steps", type=int, default=None, help="stop after N steps (default: end of video / duration)"
     )
+    ap.add_argument(
+        "--serve", action="store_true",
+        help="a device: keep the fleet up past the scenario's duration, until SIGINT, SIGTERM or a stop "
+        "request (fleet stop)",
+    )  # fmt: skip
     ap.add_argument(
         "--wait-agents", action="store_true", help="wait for every agent and the supervisor first"
     )
@@ -268,11 +276,21 @@ class CameraRun:
         """Delay compensation: each step's outcome, from the links' reports, as soon as they are in."""
         self.video = isinstance(source, VideoSource)
         self.limit = args.steps
-        if self.limit is None and not self.video:
+        if self.limit is None and not self.video and not args.serve:
             self.limit = round(scn.duration / self.Ts)
+        self.stop_asked = False
+        """A stop request came (served: ``fleet stop``)."""
+        if args.serve:
+            self.subs.append(inbox.subscribe(session, keys.script, Script, then=self._on_script))
         self.reports = Reports(ids)
         self.late = self.misses = 0
         self.last: Frame | None = None
+
+    def _on_script(self, msg: Script) -> None:
+        """A stop request came (served; inbox.cond held): end the run at the next step."""
+        if msg.stop:
+            self.stop_asked = True
+            self.stopping.set()
 
     def run(self) -> int:
         """Announce, wait for the fleet and the first frame, then step; the exit code."""
@@ -330,7 +348,7 @@ class CameraRun:
         self.clock.put(Tick(robot=ROLE, step=k, t=k * Ts, stop=True, misses=self.misses).encode())
         why = "step limit" if self.limit is not None and k >= self.limit else "end of video"
         if self.stopping.is_set():
-            why = "signal"
+            why = "a stop was asked (fleet stop)" if self.stop_asked else "signal"
         log(ROLE, f"run ended at step {k} ({why}); {self.late} late steps; {self.tracker.counts.summary()}")
         return code
 

@@ -29,6 +29,12 @@ of step k: the script sees sample k and gives its goals before step k is planned
 its pose only once the tick has come).  Meanwhile the tracker's liveliness
 token tells the agents (``--scripted``) that the clock is held, not dead.
 
+``--serve``: the fleet stays up, its robots held at their goals once home, for goal after goal
+(``fleet goal``, a script's ``Fleet.connect``, ROS 2): the run ends on SIGTERM or SIGINT, on a
+stop request (a :class:`ground.wire.Script` with ``stop``: ``fleet stop``), or when no agent is
+alive; not early when every robot is home, nor at the scenario's duration (``--steps`` still
+caps it).  Its clock runs free: nothing holds it.
+
 ``--source emulator`` (realtime only) is the camera of a lab whose robots are e-puck firmware
 emulators (:mod:`epuck_link.emulator`) driven by ``epuck_link`` processes: it observes each
 emulator's true pose on ``fleet/F/emu/R`` and publishes it, with the same bounded camera noise,
@@ -123,6 +129,11 @@ def main(argv: list[str] | None = None) -> int:
         help="a script drives the run: on lockstep each step waits for its permit; the run ends on "
         "the script's stop or when it leaves, not early nor at the scenario's duration",
     )  # fmt: skip
+    ap.add_argument(
+        "--serve", action="store_true",
+        help="keep the fleet up, its robots held at their goals, until SIGTERM, SIGINT or a stop "
+        "request (fleet stop); not early when every robot is home, nor at the scenario's duration",
+    )  # fmt: skip
     args = ap.parse_args(argv)
     try:
         scn = load_scenario(args.scenario)
@@ -139,12 +150,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"tracker: error: {e}", file=sys.stderr)
         return 2
     steps = args.steps if args.steps is not None else round(scn.duration / scn.controller.Ts)
-    if args.scripted and args.steps is None:
-        steps = None  # until the script ends the run
+    if (args.scripted or args.serve) and args.steps is None:
+        steps = None  # until the script or a stop request ends the run
     session = open_session(args)
     tracker = SimTracker(args, scn, session)
-    if args.scripted:
+    if args.scripted or args.serve:
         signal.signal(signal.SIGTERM, tracker.on_term)
+    if args.serve:
+        signal.signal(signal.SIGINT, tracker.on_term)
     announce(ROLE, robots=tracker.ids, steps=steps)
     try:
         if not tracker.wait_start(args.start_timeout):
@@ -233,20 +246,29 @@ class SimTracker:
         self.digest: bytes | None = None
         self.relayed: list[Plan] = []
         self.scripted = args.scripted
+        self.serve = args.serve
+        self.asked_only = self.scripted or self.serve
+        """The run ends only when asked (by the script, a signal or a stop request), not when every
+        robot is home nor at the scenario's duration."""
         self.stopping = threading.Event()
-        """SIGTERM came (scripted): end the run at the next step."""
+        """SIGTERM (or, serving, SIGINT) came: end the run at the next step."""
+        self.signal = "SIGTERM"
+        """The signal that came."""
         self.stop_asked = False
-        """The script asked to end the run (a Script with ``stop``; under inbox.cond)."""
+        """A Script with ``stop`` came: from the script, or ``fleet stop`` (under inbox.cond)."""
         self.truths_out = -1
         """The newest sample whose ground truth is out (scripted lockstep publishes it first)."""
         self.token: Any = None
-        if self.scripted:
+        if self.asked_only:
             self.subs.append(inbox.subscribe(session, keys.script, Script, then=self._on_script))
+        if self.scripted:
             # The agents (--scripted) wait on a held clock for as long as this token is there.
             self.token = session.liveliness().declare_token(keys.alive(ROLE))
 
     def on_term(self, signum: int, frame: Any) -> None:
-        """SIGTERM in a scripted run: end it at the next step, or now if a step is held."""
+        """SIGTERM in a scripted or served run (or SIGINT, served): end it at the next step, or
+        now if a step is held."""
+        self.signal = signal.Signals(signum).name
         self.stopping.set()
         with self.inbox.cond:
             self.inbox.cond.notify_all()
@@ -255,14 +277,14 @@ class SimTracker:
         """A Script came (inbox.cond held): a stop is kept whatever its step."""
         self.stop_asked = self.stop_asked or msg.stop
 
-    def _script_ended(self) -> str | None:
-        """Scripted: why the run ends now (the script's stop, the script gone, SIGTERM), or None
-        (inbox.cond held or not: reads only)."""
+    def _asked_to_end(self) -> str | None:
+        """Scripted or served: why the run ends now (a stop asked, the script gone, a signal), or
+        None (inbox.cond held or not: reads only)."""
         if self.stopping.is_set():
-            return "SIGTERM"
+            return self.signal
         if self.stop_asked:
-            return "the script asked to stop"
-        if SCRIPT not in self.inbox.live:
+            return "the script asked to stop" if self.scripted else "a stop was asked (fleet stop)"
+        if self.scripted and SCRIPT not in self.inbox.live:
             return "the script left the fleet (its liveliness token went)"
         return None
 
@@ -273,11 +295,11 @@ class SimTracker:
 
         def free() -> bool:
             permit = inbox.get(Script, SCRIPT)
-            return self._script_ended() is not None or (permit is not None and permit.step >= k)
+            return self._asked_to_end() is not None or (permit is not None and permit.step >= k)
 
         while not inbox.wait(free, HOLD_POLL):
             pass
-        why = self._script_ended()
+        why = self._asked_to_end()
         if why is not None:
             log(ROLE, f"step {k}: {why}; ending the run")
         return why is None
@@ -305,7 +327,7 @@ class SimTracker:
         alive), or k, the step not taken (scripted: the script's stop, the script gone, SIGTERM)."""
         p, inbox, ids = self.p, self.inbox, self.ids
         t = k * p.Ts
-        if self.scripted and (why := self._script_ended()) is not None:
+        if self.asked_only and (why := self._asked_to_end()) is not None:
             log(ROLE, f"step {k}: {why}; ending the run")
             return k
         # Each robot's pose and odometry, the digest of the plans (relay), then the tick, then
@@ -370,8 +392,8 @@ class SimTracker:
         if not live & set(ids):
             why = None
             if self.scripted:  # woken by the liveliness change, at the latest after SCRIPT_GRACE
-                inbox.wait(lambda: self._script_ended() is not None, SCRIPT_GRACE)
-                why = self._script_ended()
+                inbox.wait(lambda: self._asked_to_end() is not None, SCRIPT_GRACE)
+                why = self._asked_to_end()
             log(ROLE, f"step {k}: {why or 'no agent alive'}; stopping the run")
             return k + 1
         # Agents send the command before the plan of a step (with delay compensation, the plan
@@ -379,7 +401,7 @@ class SimTracker:
         # very step, as `fleet simulate` does.
         inbox.wait(partial(_planned, inbox, answering, k), 0.0 if self.realtime else self.args.timeout)
         inbox.prune(k if self.world.drives else k - Reports.LOOKBACK)
-        if self.scripted:  # the script decides when the run ends
+        if self.asked_only:  # the script, a signal or a stop request ends the run
             return None
         excused = _all_home(inbox, ids, self.world, k)
         self.home_run = self.home_run + 1 if excused is not None else 0

@@ -29,6 +29,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -44,6 +45,8 @@ TOPOLOGIES = ("mesh", "star")
 STARTS = ("fork", "spawn") if sys.platform == "linux" else ("spawn",)
 """How ``fleet run`` may start the agents, the default first: forked by :class:`ForkServer`
 (Linux only: ``SOCK_SEQPACKET`` Unix sockets, ``/proc``), or each spawned as an interpreter."""
+STOP_WAIT = 60.0
+"""How long a served fleet's tracker may take to end its run once told to [s]."""
 STAR_LEASE = 1.0
 """Default Zenoh lease in the star [s]: a hung agent is "not alive" within about a second.  The
 mesh keeps 10 s: there a 1 s lease's keep-alives cost CPU in proportion to the n(n − 1)/2 links,
@@ -106,8 +109,10 @@ def _pump(stream: IO[str], q: queue.Queue[str]) -> None:
 
 def _start(
     role: str, module: str, args: list[str], env: dict[str, str], stderr: int | IO[str] | None = None,
-    pass_fds: tuple[int, ...] = (),
+    pass_fds: tuple[int, ...] = (), own_session: bool = False,
 ) -> Proc:  # fmt: skip
+    """Start ``python -m module args`` as ``role``, its stdout read line by line; ``own_session``:
+    in a session of its own, so that the terminal's Ctrl-C reaches the launcher only."""
     popen = subprocess.Popen(
         [sys.executable, "-m", module, *args],
         stdout=subprocess.PIPE,
@@ -116,6 +121,7 @@ def _start(
         text=True,
         env=env,
         pass_fds=pass_fds,
+        start_new_session=own_session,
     )
     proc = Proc(role, popen)
     assert popen.stdout is not None
@@ -169,12 +175,15 @@ class ForkServer:
     UNKNOWN = 255
     """Exit code of a child whose fork server died before reporting it."""
 
-    def __init__(self, preload: list[str], env: dict[str, str], stderr: int | IO[str] | None):
+    def __init__(
+        self, preload: list[str], env: dict[str, str], stderr: int | IO[str] | None, own_session: bool = False
+    ):
+        """``own_session``: the server, and so every child it forks, in a session of its own."""
         self._sock, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         with theirs:
             args = ["--socket-fd", str(theirs.fileno()), *[a for m in preload for a in ("--preload", m)]]
             self.proc = _start(
-                "forkserver", "fleet.running.forkserver", args, env, stderr, (theirs.fileno(),)
+                "forkserver", "fleet.running.forkserver", args, env, stderr, (theirs.fileno(),), own_session
             )
         self.popen = self.proc.popen
         self._replies: queue.Queue[dict[str, Any]] = queue.Queue()
@@ -340,6 +349,8 @@ class Launched:
     """``topology``, ``exchange`` and ``lease_s`` [s], for the summary."""
     forkserver: ForkServer | None = None
     """The agents' fork server, closed once they are stopped (None: the agents were spawned)."""
+    serve: bool = False
+    """A served fleet (``fleet run --serve``): Ctrl-C or SIGTERM asks the tracker to end the run."""
 
     @property
     def tracker(self) -> Proc:
@@ -351,13 +362,13 @@ class Launched:
         """Process id of every process, by role (``tracker``, ``supervisor``, ``agent r1`` …)."""
         return {p.role: p.pid for p in self.procs}
 
-    def wait(self, timeout: float = 600.0) -> tuple[int, str, dict[str, Any] | None]:
-        """Wait for the tracker's end (``timeout`` [s]), then for the supervisor's summary and
+    def wait(self, timeout: float | None = 600.0) -> tuple[int, str, dict[str, Any] | None]:
+        """Wait for the tracker's end (``timeout`` [s], None: for good), then for the supervisor's summary and
         the agents' exits, stop what is left, and judge the run: (exit code, one-line verdict,
         summary or None), as ``fleet run`` reports it."""
         try:
             try:
-                self.tracker.popen.wait(timeout=timeout)
+                self._wait_tracker(timeout)
             except subprocess.TimeoutExpired:
                 return 1, f"run did not finish within {timeout:.0f} s", None
             sup = next(p for p in self.procs if p.role == "supervisor")
@@ -375,6 +386,20 @@ class Launched:
         finally:
             self.stop()
         return self._judged()
+
+    def _wait_tracker(self, timeout: float | None) -> None:
+        """Wait for the tracker's end (``timeout`` [s], None: for good).  A served fleet ends on
+        Ctrl-C (or SIGTERM, which ``fleet run`` turns into it) as on a stop request: the tracker,
+        told by SIGTERM, ends the run at its next step, and the summary is written as at the
+        end of a duration."""
+        try:
+            self.tracker.popen.wait(timeout=timeout)
+        except KeyboardInterrupt:
+            if not self.serve:
+                raise
+            print("fleet: stopping the served fleet (its summary follows)", file=sys.stderr, flush=True)
+            self.tracker.popen.send_signal(signal.SIGTERM)
+            self.tracker.popen.wait(timeout=STOP_WAIT)
 
     def stop(self) -> None:
         """End every process still running, by pid: SIGTERM, then SIGKILL (:func:`_stop`)."""
@@ -419,6 +444,7 @@ def start_fleet(
     lease: float | None = None,
     topology: str = "mesh",
     scripted: bool = False,
+    serve: bool = False,
     agent_timeout: float | None = None,
     stderr: int | IO[str] | None = None,
     ros2: bool | None = None,
@@ -450,8 +476,12 @@ def start_fleet(
     ``scripted``: a script drives the run (docs/design.md, "Scripted runs"): it connects to
     :attr:`Launched.hub`, declares the liveliness token ``fleet/F/alive/script`` within the
     tracker's start-up time (60 s), and on lockstep permits every step (:class:`ground.wire.Script`);
-    the run ends when it says so or leaves.  ``agent_timeout``: each agent's ``--timeout`` [s]
-    (default 30): how long it waits for a tick, a measurement or the neighbours' plans.
+    the run ends when it says so or leaves.  ``serve``: the fleet stays up once its robots are
+    home, past the scenario's duration, until a stop request (``fleet stop``), or Ctrl-C or
+    SIGTERM to the launcher (:meth:`Launched.wait`); its processes run in sessions of their own,
+    so that the terminal's Ctrl-C reaches the launcher only.  ``agent_timeout``: each agent's
+    ``--timeout`` [s] (default 30): how long it waits for a tick, a measurement or the
+    neighbours' plans.
     ``stderr``: where the processes' log lines go (a file descriptor or file; default this
     process's stderr).  ``ros2``: also start the fleet's ROS 2 face (``python -m ros2_link``,
     docs/ros2.md) on domain ``ros_domain`` (default the scenario's ``[ros2]`` domain); None: as the
@@ -491,37 +521,23 @@ def start_fleet(
     spoke = [*common, "--mode", "client"] if topology == "star" else common  # all but the tracker
     script = ["--scripted"] if scripted else []
     agent_args = [*script, *([] if agent_timeout is None else ["--timeout", repr(agent_timeout)])]
-    start = partial(_start, env=env, stderr=stderr)
+    start = partial(_start, env=env, stderr=stderr, own_session=serve)
     procs: list[Proc] = []
     emulators: list[Proc] = []
     server: ForkServer | None = None
     started = False
     try:
         source = ["--source", "emulator"] if emulated else []
-        procs.append(
-            start("tracker", "tracker", [*common, *hub_mode, "--listen", hub, *seed_args, *source, *script])
-        )
+        served = ["--serve"] if serve else []
+        tracker_args = [*common, *hub_mode, "--listen", hub, *seed_args, *source, *script, *served]
+        procs.append(start("tracker", "tracker", tracker_args))
         if STARTS[0] == "fork" if fork is None else fork:
-            server = ForkServer(["agent.node"], env, stderr)  # imports while the tracker starts
+            server = ForkServer(
+                ["agent.node"], env, stderr, own_session=serve
+            )  # imports while the tracker starts
         if _wait_ready(procs, 60.0):
             raise LaunchError("tracker did not start")
-        # The robot side: one emulator and one epuck_link per emulated robot.
-        for rid in emulated:
-            emu_args = [*spoke, "--connect", hub, "--robot", rid, "--pty"]
-            emulators.append(start(f"emulator {rid}", "epuck_link.emulator", emu_args))
-        procs += emulators
-        late = _wait_ready(emulators, 60.0)
-        if late:
-            raise LaunchError(f"not ready: {', '.join(late)}")
-        bridges = []
-        for e in emulators:
-            rid, pty = e.ready["robot"], e.ready["pty"]
-            link_args = [*spoke, "--connect", hub, "--robot", rid, "--link", f"serial:{pty}"]
-            bridges.append(start(f"epuck_link {rid}", "epuck_link", link_args))
-        procs += bridges
-        late = _wait_ready(bridges, 60.0)
-        if late:
-            raise LaunchError(f"not ready: {', '.join(late)}")
+        _start_robot_side(emulated, [*spoke, "--connect", hub], start, procs, emulators)
         sup_args = [*spoke, "--connect", hub, "--out", str(out), *(["--viewer"] if viewer else [])]
         sup = start("supervisor", "supervisor", sup_args)
         observers = [sup]
@@ -539,16 +555,7 @@ def start_fleet(
         procs += observers
         if server is not None and _wait_ready([server.proc], 60.0):
             raise LaunchError("the agents' fork server did not start")
-        agents = []
-        for rid in robots:
-            args = [*spoke, "--connect", hub, "--robot", rid, *agent_args]
-            role = f"agent {rid}"
-            if server is not None:
-                title = " ".join([sys.executable, "-m", "agent", *args])
-                agents.append(server.start(role, "agent.node", args, title))
-            else:
-                agents.append(start(role, "agent", args))
-            procs.append(agents[-1])
+        agents = _start_agents(robots, [*spoke, "--connect", hub], agent_args, start, server, procs)
         late = _wait_ready([*observers, *agents], 120.0)
         if late:
             raise LaunchError(f"not ready: {', '.join(late)}")
@@ -564,16 +571,62 @@ def start_fleet(
         network["delay_compensation"] = True
     if ros2:
         network["ros_endpoint"] = ros_endpoint
-    return Launched(procs, emulators, hub, out, network, server)
+    return Launched(procs, emulators, hub, out, network, server, serve)
+
+
+def _start_agents(
+    robots: list[str], args: list[str], agent_args: list[str], start: Callable[..., Proc],
+    server: ForkServer | None, procs: list[Proc],
+) -> list[Proc]:  # fmt: skip
+    """One agent per robot, with ``args``, its ``--robot`` and ``agent_args``: forked by
+    ``server`` (its title the command line it stands for), or started as an interpreter; each
+    goes on ``procs`` as it starts (to be stopped whatever comes next), and all are returned."""
+    agents: list[Proc] = []
+    for rid in robots:
+        argv = [*args, "--robot", rid, *agent_args]
+        role = f"agent {rid}"
+        if server is not None:
+            title = " ".join([sys.executable, "-m", "agent", *argv])
+            agents.append(server.start(role, "agent.node", argv, title))
+        else:
+            agents.append(start(role, "agent", argv))
+        procs.append(agents[-1])
+    return agents
+
+
+def _start_robot_side(
+    robots: list[str], args: list[str], start: Callable[..., Proc], procs: list[Proc], emulators: list[Proc]
+) -> None:
+    """The robot side of emulated ``robots``: one e-puck firmware emulator each, on a
+    pseudo-terminal, then one ``epuck_link`` driving it, each started with ``args`` once the one
+    before is ready; both kinds go on ``procs``, the emulators on ``emulators`` too.  LaunchError
+    names those not ready within a minute."""
+    for rid in robots:
+        emulators.append(start(f"emulator {rid}", "epuck_link.emulator", [*args, "--robot", rid, "--pty"]))
+    procs += emulators
+    late = _wait_ready(emulators, 60.0)
+    if late:
+        raise LaunchError(f"not ready: {', '.join(late)}")
+    bridges = []
+    for e in emulators:
+        rid, pty = e.ready["robot"], e.ready["pty"]
+        bridges.append(
+            start(f"epuck_link {rid}", "epuck_link", [*args, "--robot", rid, "--link", f"serial:{pty}"])
+        )
+    procs += bridges
+    late = _wait_ready(bridges, 60.0)
+    if late:
+        raise LaunchError(f"not ready: {', '.join(late)}")
 
 
 def run_fleet(
-    scenario: str, robots: list[str], out: Path, seed: int | None, timeout: float = 600.0, **options: Any
-) -> tuple[int, str, dict[str, Any] | None]:
+    scenario: str, robots: list[str], out: Path, seed: int | None, timeout: float | None = 600.0,
+    **options: Any,
+) -> tuple[int, str, dict[str, Any] | None]:  # fmt: skip
     """Run the fleet (``fleet run``); returns (exit code, one-line verdict, summary or None).
 
     ``options`` are those of :func:`start_fleet`; ``timeout`` [s] bounds the run, from the moment
-    every process is ready."""
+    every process is ready (None: no bound, for a served fleet)."""
     try:
         launched = start_fleet(scenario, robots, out, seed, **options)
     except LaunchError as e:

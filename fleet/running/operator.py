@@ -1,4 +1,5 @@
-"""``fleet goal``: give a running agent a new goal and wait until it takes it.
+"""``fleet goal``: give a running agent a new goal and wait until it takes it; ``fleet stop``:
+end a served fleet's run (:func:`stop_fleet`).
 
 The operator's session connects to the fleet's hub (``fleet run --listen``), waits for the
 robot's liveliness token (the readiness signal) and for the robots' plans, checks the goal by
@@ -17,11 +18,14 @@ from functools import partial
 import numpy as np
 
 from ground.scenario import ConfigError, goal_problem, load_scenario
-from ground.wire import Goal, Keys, Plan
+from ground.wire import SCRIPT, Goal, Keys, Plan, Script, Tick
 from transport.bus import Inbox, join_session
 
 RESEND = 0.5
-"""Seconds between re-publications of the goal until the agent acknowledges it [s]."""
+"""Seconds between re-publications of a goal until the agent acknowledges it, and of a stop
+request until the fleet stops [s]."""
+TRACKER = "tracker"
+"""The sender of the clock's ticks."""
 
 
 def send_goal(
@@ -95,3 +99,42 @@ def send_goal(
 def _carries(inbox: Inbox, robot: str, goal: np.ndarray) -> bool:
     plan = inbox.get(Plan, robot)
     return plan is not None and bool(np.array_equal(plan.goal, goal))
+
+
+def stop_fleet(
+    connect: list[str], fleet: str, timeout: float, zenoh_config: str | None = None
+) -> tuple[int, str]:
+    """``fleet stop``: ask a served fleet (``fleet run --serve``) to end its run; (exit code, one
+    line).  The operator's session joins the hub as :func:`send_goal`'s does, waits for the
+    fleet's clock (the readiness signal: a fleet is running there), then publishes a stop request
+    (a :class:`ground.wire.Script` with ``stop``) every :data:`RESEND` s until the tracker's stop
+    tick comes.  Exit 1: no clock, or no stop, within ``timeout`` [s] (a fleet that is not served
+    does not listen for stop requests: it ends at its duration, or on Ctrl-C)."""
+    keys = Keys(fleet)
+    session = join_session(connect, zenoh_config)
+    where = zenoh_config or ", ".join(connect)
+    inbox = Inbox(keys, "operator")
+    subs = [inbox.subscribe(session, keys.clock, Tick)]
+    try:
+        if not inbox.wait(partial(_ticking, inbox, False), timeout):
+            return 1, f"no fleet's clock on {where} within {timeout:g} s"
+        pub = session.declare_publisher(keys.script)
+        payload = Script(robot=SCRIPT, step=-1, stop=True).encode()
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            pub.put(payload)
+            if inbox.wait(partial(_ticking, inbox, True), min(RESEND, deadline - time.monotonic())):
+                tick = inbox.get(Tick, TRACKER)
+                assert tick is not None
+                return 0, f"the fleet on {where} stopped at step {tick.step}"
+        return 1, f"the fleet on {where} did not stop within {timeout:g} s (is it served: fleet run --serve?)"
+    finally:
+        for s in subs:
+            s.undeclare()
+        session.close()
+
+
+def _ticking(inbox: Inbox, stopped: bool) -> bool:
+    """A tick has come (``stopped``: the stop tick)."""
+    tick = inbox.get(Tick, TRACKER)
+    return tick is not None and (tick.stop or not stopped)
