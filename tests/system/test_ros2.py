@@ -147,7 +147,7 @@ def test_a_ros2_client_discovers_reads_and_steers_the_fleet(tmp_path):
         assert (
             "goal_pose (5.000, 0.000) for r1 refused: goal (5.00, 0.00) lies outside the arena" in fleet_log
         )
-        why = "0.000 m from r2's goal, closer than the footprints and the margin allow"
+        why = "goal (-0.70, 0.00) is 0.000 m from r2's goal, closer than the footprints and the margin allow"
         assert f"goal_pose (-0.700, 0.000) for r1 refused: {why}" in fleet_log, fleet_log[-3000:]
         assert "goal_pose (-0.450, 0.600) for r1 accepted by its agent" in fleet_log, fleet_log[-3000:]
         # On the wire: each pose sample carries rmw_zenoh's attachment.
